@@ -1,0 +1,303 @@
+"""Library sweep: convergence certification, parallel resumable build.
+
+Work is split into chunks of cells; each finished chunk is written atomically
+into ``<output>.partial/``.  A killed build resumes from the chunks on disk
+(only those made with the same recipe and code version are reused) and the
+final library is written atomically, after which the partial folder is
+removed.  Workers are spawned processes with single-threaded BLAS.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .. import __version__
+from ..config import InputError
+from ..io import atomic_write_text, read_npz, write_npz
+from .rcwa import SolverSettings, Stack, solve_cell
+from .recipe import LibraryRecipe
+from .store import UnitCellLibrary, save_library
+
+__all__ = ["build_library", "certify_convergence", "ConvergenceReport", "solve_cells", "THREAD_ENV"]
+
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class ConvergenceReport:
+    n_harmonics: int
+    reference_n_harmonics: int
+    max_phase_change_rad: float
+    max_T0_change: float
+    tolerance_rad: float
+    per_cell: tuple  # ((wx_um, wy_um, dphi_x, dphi_y), ...)
+
+    @property
+    def passed(self) -> bool:
+        return self.max_phase_change_rad <= self.tolerance_rad
+
+    def to_dict(self) -> dict:
+        return {
+            "n_harmonics": self.n_harmonics,
+            "reference_n_harmonics": self.reference_n_harmonics,
+            "max_phase_change_rad": self.max_phase_change_rad,
+            "max_T0_change": self.max_T0_change,
+            "tolerance_rad": self.tolerance_rad,
+            "passed": self.passed,
+            "per_cell": [list(c) for c in self.per_cell],
+        }
+
+
+def _solve_chunk(args) -> tuple[int, dict]:
+    key, cells, stack, settings = args
+    res = [solve_cell(wx, wy, stack, settings) for wx, wy in cells]
+    return key, {
+        "jones": np.array([r.jones for r in res]),
+        "T0": np.array([r.T0 for r in res]),
+        "T_total": np.array([r.T_total for r in res]),
+        "R_total": np.array([r.R_total for r in res]),
+        "n_harmonics": np.array([r.n_harmonics for r in res]),
+    }
+
+
+def _init_worker() -> None:  # spawned workers: one thread each
+    for k in THREAD_ENV:
+        os.environ[k] = "1"
+    try:  # torch may be imported by a user's plugin; keep it single-threaded too
+        import torch  # noqa: F401
+
+        torch.set_num_threads(1)
+    except Exception:  # pragma: no cover
+        pass
+
+
+class _Pool:
+    """Spawned single-threaded worker pool, or in-process for workers <= 1."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool = None
+        if workers > 1:
+            saved = {k: os.environ.get(k) for k in THREAD_ENV}
+            for k in THREAD_ENV:  # spawned children read these before importing numpy
+                os.environ[k] = "1"
+            try:
+                self.pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker)
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+                    else:
+                        os.environ[k] = v
+
+    def imap(self, fn, jobs):
+        if self.pool is None:
+            return map(fn, jobs)
+        return self.pool.imap_unordered(fn, jobs)
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+
+
+def solve_cells(cells: Sequence[tuple[float, float]], stack: Stack, settings: SolverSettings,
+                workers: int = 1) -> dict:
+    """Solve a list of (wx, wy) cells; returns stacked result arrays in order."""
+    pool = _Pool(workers)
+    try:
+        jobs = [(i, [c], stack, settings) for i, c in enumerate(cells)]
+        out = dict(pool.imap(_solve_chunk, jobs))
+    finally:
+        pool.close()
+    return {k: np.concatenate([out[i][k] for i in range(len(cells))]) for k in out[0]}
+
+
+def certify_convergence(recipe: LibraryRecipe, workers: int = 1) -> ConvergenceReport:
+    """Solve the check cells at the recipe's setting and at the reference one."""
+    cells = list(recipe.check_cells)
+    ref_settings = SolverSettings(recipe.reference_n_harmonics, recipe.settings.truncation,
+                                  recipe.settings.factorization, recipe.settings.use_symmetry)
+    a = solve_cells(cells, recipe.stack, recipe.settings, workers)
+    b = solve_cells(cells, recipe.stack, ref_settings, workers)
+    ja, jb = a["jones"], b["jones"]
+    dphi = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
+    dT = np.abs(a["T0"] - b["T0"])
+    per = tuple((round(wx * 1e6, 6), round(wy * 1e6, 6), float(d[0]), float(d[1]))
+                for (wx, wy), d in zip(cells, dphi))
+    return ConvergenceReport(
+        n_harmonics=int(a["n_harmonics"][0]),
+        reference_n_harmonics=int(b["n_harmonics"][0]),
+        max_phase_change_rad=float(dphi.max()),
+        max_T0_change=float(dT.max()),
+        tolerance_rad=recipe.tolerance,
+        per_cell=per,
+    )
+
+
+def _unique_cells(widths: np.ndarray) -> list[tuple[int, int]]:
+    """(i, j) with i <= j: the mirror cell (j, i) follows from symmetry."""
+    n = len(widths)
+    return [(i, j) for i in range(n) for j in range(i, n)]
+
+
+def _build_key(recipe: LibraryRecipe) -> str:
+    d = recipe.to_dict()
+    d.pop("name")
+    d.pop("convergence")
+    d["version"] = __version__
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def build_library(
+    recipe: LibraryRecipe,
+    output: str | Path,
+    *,
+    workers: int = 2,
+    chunk_size: int = 32,
+    allow_unconverged: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    log: Callable[[str], None] = lambda s: None,
+    _stop_after_chunks: int | None = None,
+) -> tuple[UnitCellLibrary, dict]:
+    """Build (or resume) the library for ``recipe`` into ``output``.
+
+    Returns the library and a report dict.  ``_stop_after_chunks`` simulates a
+    kill (tests): the build raises ``KeyboardInterrupt`` after that many chunks.
+    """
+    output = Path(output)
+    t_start = time.perf_counter()
+    log(f"convergence check on {len(recipe.check_cells)} cells "
+        f"(nG {recipe.settings.n_harmonics} vs {recipe.reference_n_harmonics}) ...")
+    conv = certify_convergence(recipe, workers)
+    log(f"  max phase change {conv.max_phase_change_rad:.4f} rad "
+        f"(tolerance {conv.tolerance_rad:g}), max T0 change {conv.max_T0_change:.2e}")
+    if not conv.passed and not allow_unconverged:
+        raise InputError(
+            f"convergence check failed: phase changes by {conv.max_phase_change_rad:.4f} rad between "
+            f"nG {conv.n_harmonics} and {conv.reference_n_harmonics} (tolerance {conv.tolerance_rad:g} rad); "
+            "raise solver.n_harmonics or pass --allow-unconverged"
+        )
+
+    widths = recipe.widths
+    n = len(widths)
+    pairs = _unique_cells(widths)
+    chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
+    part_dir = output.parent / (output.name + ".partial")
+    key = _build_key(recipe)
+    manifest = part_dir / "manifest.json"
+    if part_dir.exists():
+        ok = manifest.exists() and json.loads(manifest.read_text()).get("key") == key
+        if not ok:
+            log(f"discarding {part_dir} (made with another recipe or version)")
+            shutil.rmtree(part_dir)
+    part_dir.mkdir(parents=True, exist_ok=True)
+    if not manifest.exists():
+        atomic_write_text(manifest, json.dumps({"key": key, "chunk_size": chunk_size,
+                                                "n_chunks": len(chunks)}))
+    else:
+        chunk_size = json.loads(manifest.read_text())["chunk_size"]
+        chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
+
+    done: dict[int, dict] = {}
+    for k in range(len(chunks)):
+        f = part_dir / f"chunk-{k:05d}.npz"
+        if f.exists():
+            try:
+                done[k] = read_npz(f, "chunk")
+            except InputError:
+                f.unlink()
+    if done:
+        log(f"resuming: {len(done)}/{len(chunks)} chunks already on disk")
+    todo = [k for k in range(len(chunks)) if k not in done]
+    n_cells_total = len(pairs)
+    n_done = sum(len(chunks[k]) for k in done)
+    if progress:
+        progress(n_done, n_cells_total)
+    t_sweep = time.perf_counter()
+    pool = _Pool(workers)
+    try:
+        jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings)
+                for k in todo]
+        for count, (k, res) in enumerate(pool.imap(_solve_chunk, jobs), 1):
+            write_npz(part_dir / f"chunk-{k:05d}.npz", res)
+            done[k] = res
+            n_done += len(chunks[k])
+            if progress:
+                progress(n_done, n_cells_total)
+            if _stop_after_chunks is not None and count >= _stop_after_chunks:
+                raise KeyboardInterrupt("simulated kill")
+    finally:
+        pool.close()
+    sweep_s = time.perf_counter() - t_sweep
+
+    jones = np.zeros((n, n, 2, 2), complex)
+    T0 = np.zeros((n, n, 2))
+    Tt = np.zeros((n, n, 2))
+    Rt = np.zeros((n, n, 2))
+    nG_actual = set()
+    swap = [1, 0]
+    for k, cells in enumerate(chunks):
+        r = done[k]
+        nG_actual.update(int(v) for v in r["n_harmonics"])
+        for c, (i, j) in enumerate(cells):
+            jones[i, j] = r["jones"][c]
+            T0[i, j], Tt[i, j], Rt[i, j] = r["T0"][c], r["T_total"][c], r["R_total"][c]
+            # mirror across the diagonal: t_x(wx, wy) = t_y(wy, wx), t_xy <-> t_yx
+            jones[j, i] = r["jones"][c][np.ix_(swap, swap)]
+            T0[j, i], Tt[j, i], Rt[j, i] = (r["T0"][c][swap], r["T_total"][c][swap], r["R_total"][c][swap])
+    st = recipe.stack
+    meta = {
+        "version": __version__,
+        "recipe": recipe.to_dict(),
+        "stack": {
+            "wavelength_m": st.wavelength, "period_m": st.period, "height_m": st.height,
+            "n_pillar": st.n_pillar, "n_substrate": st.n_substrate, "n_superstrate": st.n_superstrate,
+            "materials": {"pillar": "a-Si", "substrate": "fused silica", "superstrate": "air"},
+        },
+        "solver": {
+            "name": "grcwa", "factorization": recipe.settings.factorization.value,
+            "truncation": recipe.settings.truncation.value,
+            "use_symmetry": recipe.settings.use_symmetry,
+            "n_harmonics_requested": recipe.settings.n_harmonics,
+            "n_harmonics": sorted(nG_actual)[0] if len(nG_actual) == 1 else sorted(nG_actual),
+            "incidence": "normal, from the substrate",
+        },
+        "convergence": conv.to_dict(),
+        "convention": {
+            "time": "exp(-i omega t)",
+            "field_phase": "exp(+i phi)",
+            "t": "0th-order E at pillar top (z = h) over incident E at z = 0, times exp(-i k0 n_sup h); "
+                 "no pillar gives 2 n_sub / (n_sub + n_sup)",
+            "jones_index": "[out, in], 0 = x-pol (paper TE), 1 = y-pol (paper TM)",
+            "array_index": "[i_wx, i_wy]",
+        },
+        "symmetry_used": "t_x(wx, wy) = t_y(wy, wx)",
+    }
+    lib = UnitCellLibrary(widths.copy(), widths.copy(), jones, T0, Tt, Rt, meta)
+    save_library(output, lib)
+    shutil.rmtree(part_dir, ignore_errors=True)
+    report = {
+        "output": str(output),
+        "cells": n * n,
+        "cells_solved": n_cells_total,
+        "sweep_seconds": sweep_s,
+        "total_seconds": time.perf_counter() - t_start,
+        "workers": workers,
+        "convergence": conv.to_dict(),
+    }
+    return lib, report

@@ -1,0 +1,35 @@
+"""Test setup: one BLAS/OpenMP thread per process (the CI machine has 2 shared cores)."""
+
+import os
+
+for _k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_k] = "1"
+
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo() -> Path:
+    return REPO
+
+
+@pytest.fixture(scope="session")
+def paper_library():
+    from metadesign.library import load_library
+
+    return load_library(REPO / "library" / "paper.npz")
+
+
+def run_cli(*args, cwd=None):
+    """Run ``python -m metadesign ARGS`` in a subprocess; returns CompletedProcess."""
+    import subprocess
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run([sys.executable, "-m", "metadesign", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, env=env, timeout=600)
