@@ -137,6 +137,64 @@ def _cmd_library_export(a: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------- design
+
+
+def _design_text(d, out) -> str:
+    m = d.metrics
+    return "\n".join([
+        f"design         {d.meta['name']} -> {out}",
+        f"cells          {d.spec.n_cells} x {d.spec.n_cells} ({d.spec.n_cells * d.spec.period * 1e3:.4g} mm), "
+        f"{m['n_cells_in_aperture']} in the clear aperture",
+        f"atoms          {m['n_atoms']} from {m['n_kept_library_cells']} kept cells (T0 >= "
+        f"{d.meta['discretizer']['threshold']:g}), {m['n_empty_bins']} empty bins, {m['n_atoms_used']} used",
+        f"mapping        {m['metric']}, constant offsets x {m['phase_offsets_rad'][0]:+.3f} "
+        f"y {m['phase_offsets_rad'][1]:+.3f} rad",
+        f"phase RMSE     x-pol {m['rmse_rad'][0]:.4f}  y-pol {m['rmse_rad'][1]:.4f} rad",
+        f"peak error     x-pol {m['peak_error_rad'][0]:.4f}  y-pol {m['peak_error_rad'][1]:.4f} rad",
+        f"mean T0        x-pol {m['mean_T0'][0]:.4f}  y-pol {m['mean_T0'][1]:.4f}",
+        "other metric   " + ", ".join(
+            f"{k}: RMSE {v['rmse_rad'][0]:.4f}/{v['rmse_rad'][1]:.4f} rad, T0 {v['mean_T0'][0]:.4f}/{v['mean_T0'][1]:.4f}"
+            for k, v in m["comparison_on_sample"].items()) + " (sampled cells)",
+        f"time           {m['seconds']['total']:.1f} s",
+    ])
+
+
+def _cmd_design(a: argparse.Namespace) -> int:
+    from .design.store import load_design
+
+    if a.target in ("plot", "show"):
+        if not a.path:
+            raise InputError(f"design {a.target}: give the design folder or design.npz")
+        d = load_design(a.path)
+        if a.target == "show":
+            _emit(d.metrics, a.json, _design_text(d, a.path))
+            return 0
+        from .design.plot import plot_design
+        from .library.store import load_library
+
+        lib = None
+        try:
+            lib = load_library(d.meta["library"]["path"])
+        except InputError:
+            pass  # coverage dots need the library; the rest does not
+        base = Path(a.path)
+        out = Path(a.output) if a.output else (base if base.is_dir() else base.parent) / "fig-s2.png"
+        plot_design(d, out, lib)
+        print(f"wrote {out}")
+        return 0
+    from .design.recipe import load_design_recipe
+    from .design.store import run_design
+
+    if a.path:
+        raise InputError(f"design: unexpected argument {a.path!r} (usage: design RECIPE [-o OUT])")
+    recipe = load_design_recipe(a.target)
+    d, out = run_design(recipe, Path(a.output) if a.output else None,
+                        progress=_progress_bar("design", unit="row"))
+    _emit(d.metrics | {"output": str(out)}, a.json, _design_text(d, out))
+    return 0
+
+
 # ------------------------------------------------------------------- demo
 
 
@@ -167,6 +225,19 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("-o", "--output", default="demo-out", help="output folder (default: ./demo-out)")
     demo.add_argument("--json", action="store_true", help="print the summary as JSON")
     demo.set_defaults(func=_cmd_demo)
+
+    des = sub.add_parser(
+        "design", help="Eq. 1 supercell design + discretizer; also: design plot|show DESIGN",
+        description="Stage 2. `metadesign design RECIPE [-o OUT]` computes the Eq. 1 phases of every cell, "
+        "selects the atoms (16x16 binning of the library's (phase_x, phase_y) coverage over cells with T0 >= "
+        "threshold) and maps every cell to its nearest atom; writes OUT/design.npz and OUT/metrics.json "
+        "(default OUT: a folder named after the recipe, beside it). `metadesign design plot DESIGN [-o PNG]` "
+        "draws the Fig. S2 equivalent; `metadesign design show DESIGN [--json]` prints the metrics.")
+    des.add_argument("target", help="a design recipe (TOML), or 'plot' / 'show'")
+    des.add_argument("path", nargs="?", help="with plot/show: the design folder or design.npz")
+    des.add_argument("-o", "--output", help="output folder (design) or PNG path (plot)")
+    des.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    des.set_defaults(func=_cmd_design)
 
     lib = sub.add_parser("library", help="unit-cell library: build (RCWA sweep), show, plot, export",
                          description="Stage 1: the RCWA unit-cell library of rectangular Si pillars.")

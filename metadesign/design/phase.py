@@ -1,0 +1,147 @@
+"""Eq. 1: interleaved multi-focal supercell phase profiles (pure kernels, SI).
+
+Geometry conventions (README "Design conventions"):
+
+* The metasurface is ``n x n`` unit cells of pitch ``p``; maps are indexed
+  ``[iy, ix]`` (row = y, column = x), and cell ``(ix, iy)`` is centred at
+  ``x = (ix - (n - 1) / 2) p``, ``y = (iy - (n - 1) / 2) p``.
+* A supercell is ``m x m`` cells (paper: m = 2).  Cell ``(ix, iy)`` belongs to
+  channel ``k = 1 + (ix mod m) + m (iy mod m)``: for m = 2, k = 1 is the
+  lower-x/lower-y corner of the supercell, k = 2 the higher-x/lower-y, k = 3
+  the lower-x/higher-y and k = 4 the higher-x/higher-y corner.
+* Channel ``k`` is an off-axis converging lens (Eq. 1) whose axis passes
+  through ``(dx_k, dy_k)``: its PSF lands at ``(dx_k, dy_k)`` in its focal
+  plane.  The paper's ``Delta x_k = x + (-1)^k Delta x`` is a typo for
+  ``Delta x_k = (-1)^k Delta x`` (the ``x +`` would cancel the coordinate in
+  ``x - Delta x_k``); with ``Delta y_k = -Delta y`` for k < 3 and ``+Delta y``
+  otherwise, k = 1..4 land at (-,-), (+,-), (-,+), (+,+): quadrants QI..QIV in
+  reading order of a sensor frame whose rows run along +y and columns along
+  +x (QI top-left, QII top-right, QIII bottom-left, QIV bottom-right when row
+  0 is drawn at the top).
+* Phase convention: fields ``exp(+i phi)`` with ``exp(-i omega t)``;
+  ``phi = (2 pi / lambda) (f - sqrt(f^2 + r^2)) <= 0`` converges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "LensChannel",
+    "SupercellSpec",
+    "paper_channels",
+    "cell_coordinates",
+    "lens_phase",
+    "channel_of_cell",
+    "design_phase_rows",
+    "wrap",
+]
+
+
+@dataclass(frozen=True)
+class LensChannel:
+    """One off-axis lens: focal length and PSF offset (metres)."""
+
+    focal_length: float
+    offset_x: float
+    offset_y: float
+
+
+@dataclass(frozen=True)
+class SupercellSpec:
+    """The whole metasurface design (SI units)."""
+
+    wavelength: float
+    period: float
+    n_cells: int  # cells per side
+    supercell: int  # m: channels per polarisation = m * m
+    channels_x: tuple[LensChannel, ...]  # x-pol lenses, k = 1..m*m
+    channels_y: tuple[LensChannel, ...]  # y-pol lenses
+    circular_aperture: bool = False  # clear aperture: inscribed circle instead of the full square
+
+    def __post_init__(self) -> None:
+        m2 = self.supercell**2
+        if len(self.channels_x) != m2 or len(self.channels_y) != m2:
+            raise ValueError(f"need {m2} channels per polarisation for a {self.supercell}x{self.supercell} supercell")
+        if self.n_cells < self.supercell:
+            raise ValueError("the aperture is smaller than one supercell")
+
+    @property
+    def aperture(self) -> float:
+        return self.n_cells * self.period
+
+    def channels(self, pol: int) -> tuple[LensChannel, ...]:
+        return self.channels_x if pol == 0 else self.channels_y
+
+
+def paper_channels(f0: float = 50e-3, df: float = 0.4e-3, dx: float = 240e-6, dy: float = 192e-6):
+    """Table S1 lenses: x-pol f_k = f0 - (4 - k) df, y-pol f_k = f0 + k df,
+    offsets ((-1)^k dx, -dy for k < 3 else +dy)."""
+    offs = [((-1) ** k * dx, -dy if k < 3 else dy) for k in range(1, 5)]
+    xs = tuple(LensChannel(f0 - (4 - k) * df, *offs[k - 1]) for k in range(1, 5))
+    ys = tuple(LensChannel(f0 + k * df, *offs[k - 1]) for k in range(1, 5))
+    return xs, ys
+
+
+def wrap(phi):
+    """Wrap to [-pi, pi)."""
+    return (phi + np.pi) % (2 * np.pi) - np.pi
+
+
+def cell_coordinates(n_cells: int, period: float, index=None) -> np.ndarray:
+    """Centre coordinates of cells ``index`` (default all) along one axis."""
+    i = np.arange(n_cells) if index is None else np.asarray(index)
+    return (i - (n_cells - 1) / 2.0) * period
+
+
+def lens_phase(x, y, lens: LensChannel, wavelength: float) -> np.ndarray:
+    """Unwrapped Eq. 1 phase; broadcasts ``x`` against ``y``.
+
+    Uses ``f - sqrt(f^2 + r^2) = -r^2 / (f + sqrt(f^2 + r^2))`` (no cancellation).
+    """
+    r2 = (np.asarray(x) - lens.offset_x) ** 2 + (np.asarray(y) - lens.offset_y) ** 2
+    f = lens.focal_length
+    return -(2 * np.pi / wavelength) * r2 / (f + np.sqrt(f * f + r2))
+
+
+def channel_of_cell(ix, iy, m: int = 2):
+    """Channel number k (1-based) of cell ``(ix, iy)``."""
+    return 1 + np.asarray(ix) % m + m * (np.asarray(iy) % m)
+
+
+def design_phase_rows(spec: SupercellSpec, pol: int, row0: int, row1: int,
+                      offset: float = 0.0, wrapped: bool = True, dtype=np.float64) -> np.ndarray:
+    """Design phase of rows ``row0:row1`` (all columns), shape ``(row1-row0, n)``.
+
+    ``offset`` is the per-polarisation constant added before wrapping.
+    """
+    n, m = spec.n_cells, spec.supercell
+    out = np.empty((row1 - row0, n), dtype=dtype)
+    ys_all = cell_coordinates(n, spec.period, np.arange(row0, row1))
+    for b in range(m):
+        rows = np.arange((b - row0) % m, row1 - row0, m)
+        if rows.size == 0:
+            continue
+        y = ys_all[rows][:, None]
+        for a in range(m):
+            lens = spec.channels(pol)[a + m * b]
+            cols = np.arange(a, n, m)
+            x = cell_coordinates(n, spec.period, cols)[None, :]
+            ph = lens_phase(x, y, lens, spec.wavelength)
+            if offset:
+                ph += offset
+            out[np.ix_(rows, cols)] = wrap(ph) if wrapped else ph
+    return out
+
+
+def aperture_mask_rows(spec: SupercellSpec, row0: int, row1: int) -> np.ndarray | None:
+    """Boolean clear-aperture mask of rows ``row0:row1`` (None: full square)."""
+    if not spec.circular_aperture:
+        return None
+    n = spec.n_cells
+    x = cell_coordinates(n, spec.period)
+    y = cell_coordinates(n, spec.period, np.arange(row0, row1))
+    r = spec.aperture / 2
+    return x[None, :] ** 2 + y[:, None] ** 2 <= r * r

@@ -1,0 +1,77 @@
+"""Figure S2 equivalent: coverage with selected atoms, atom widths,
+discretized phase maps and width maps (a central crop for large designs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..library.store import UnitCellLibrary
+from ..plotting import pyplot, save_figure
+from .build import discretized_phase
+from .store import Design
+
+__all__ = ["plot_design"]
+
+
+def plot_design(d: Design, out: str | Path, lib: UnitCellLibrary | None = None, crop: int = 400) -> Path:
+    plt = pyplot()
+    fig, ax = plt.subplots(2, 4, figsize=(18, 8.6), constrained_layout=True)
+    a = d.atoms
+    th = d.meta["discretizer"]["threshold"]
+    # (a) coverage
+    if lib is not None:
+        keep = (lib.T0[..., 0] >= th) & (lib.T0[..., 1] >= th)
+        ax[0, 0].scatter(lib.phase_x[keep], lib.phase_y[keep], s=2, c="tab:blue", label=f"library, T0 >= {th:g}")
+    ax[0, 0].scatter(a.phase[:, 0], a.phase[:, 1], s=28, facecolors="none", edgecolors="tab:red",
+                     label=f"selected atoms ({len(a)})")
+    bins = d.meta["discretizer"]["bins"]
+    for e in np.linspace(-np.pi, np.pi, bins + 1):
+        ax[0, 0].axhline(e, color="0.85", lw=0.4, zorder=0)
+        ax[0, 0].axvline(e, color="0.85", lw=0.4, zorder=0)
+    ax[0, 0].set(xlim=(-np.pi, np.pi), ylim=(-np.pi, np.pi), xlabel="phase x-pol (TE) [rad]",
+                 ylabel="phase y-pol (TM) [rad]", title="(a) phase coverage", aspect="equal")
+    ax[0, 0].legend(loc="upper left", fontsize=7)
+    # (b) width combinations
+    sc = ax[1, 0].scatter(a.wx * 1e6, a.wy * 1e6, c=a.T0.min(axis=1), cmap="viridis", vmin=th, vmax=1, s=18)
+    fig.colorbar(sc, ax=ax[1, 0], label="min(T0_x, T0_y)", shrink=0.8)
+    ax[1, 0].set(xlabel="w_x [um]", ylabel="w_y [um]", title="(b) atom widths", aspect="equal")
+    # (c, d) maps on a central crop
+    n = d.spec.n_cells
+    c = min(n, crop)
+    s = (n - c) // 2
+    s -= s % d.spec.supercell
+    im = d.index_map[s:s + c, s:s + c]
+    p = d.spec.period * 1e3
+    lo = (s - (n - 1) / 2) * p
+    ext = [lo, lo + c * p, lo, lo + c * p]
+    crop_note = "" if c == n else f" (central {c}x{c} of {n}x{n})"
+    wx_map = np.append(a.wx * 1e6, np.nan)[np.where(im == d.empty, len(a), im)]
+    wy_map = np.append(a.wy * 1e6, np.nan)[np.where(im == d.empty, len(a), im)]
+    panels = [
+        (discretized_phase(im, a, 0, d.empty), "twilight", (-np.pi, np.pi), "(c) discretized phase x-pol [rad]"),
+        (discretized_phase(im, a, 1, d.empty), "twilight", (-np.pi, np.pi), "(c) discretized phase y-pol [rad]"),
+        (wx_map, "magma", (a.wx.min() * 1e6, a.wx.max() * 1e6), "(d) w_x map [um]"),
+        (wy_map, "magma", (a.wy.min() * 1e6, a.wy.max() * 1e6), "(d) w_y map [um]"),
+    ]
+    for axi, (data, cmap, lim, title) in zip([ax[0, 1], ax[0, 2], ax[1, 1], ax[1, 2]], panels):
+        h = axi.imshow(data, origin="lower", extent=ext, cmap=cmap, vmin=lim[0], vmax=lim[1],
+                       interpolation="nearest")
+        axi.set(title=title, xlabel="x [mm]", ylabel="y [mm]")
+        fig.colorbar(h, ax=axi, shrink=0.8)
+    # error histogram per polarisation and a text panel of metrics
+    m = d.metrics
+    ax[0, 3].axis("off")
+    txt = (f"{d.meta['name']}: {n}x{n} cells ({n * d.spec.period * 1e3:.3f} mm)\n"
+           f"atoms {m['n_atoms']} (used {m['n_atoms_used']}), empty bins {m['n_empty_bins']}\n"
+           f"metric {m['metric']}, offsets x {m['phase_offsets_rad'][0]:+.3f} y {m['phase_offsets_rad'][1]:+.3f} rad\n"
+           f"RMSE  x {m['rmse_rad'][0]:.3f}  y {m['rmse_rad'][1]:.3f} rad\n"
+           f"peak  x {m['peak_error_rad'][0]:.3f}  y {m['peak_error_rad'][1]:.3f} rad\n"
+           f"mean T0  x {m['mean_T0'][0]:.3f}  y {m['mean_T0'][1]:.3f}")
+    ax[0, 3].text(0.0, 0.95, txt, va="top", family="monospace", fontsize=9)
+    counts = np.bincount(d.index_map[d.index_map != d.empty].ravel(), minlength=len(a))
+    ax[1, 3].bar(np.arange(len(a)), counts, width=1.0, color="tab:gray")
+    ax[1, 3].set(title="atom usage", xlabel="atom index", ylabel="cells", yscale="log")
+    fig.suptitle(f"Design {d.meta['name']}: discretization (Fig. S2){crop_note}")
+    return save_figure(fig, out)

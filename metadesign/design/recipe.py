@@ -1,0 +1,109 @@
+"""Design recipe (``layouts/*.toml``) -> validated :class:`DesignRecipe`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError, Param, Section, load_toml, parse
+from .discretize import Metric
+from .phase import LensChannel, SupercellSpec
+
+__all__ = ["DesignRecipe", "load_design_recipe", "design_recipe_from_dict", "SECTIONS"]
+
+_PAPER_OFFSETS = [[-240.0, -192.0], [240.0, -192.0], [-240.0, 192.0], [240.0, 192.0]]
+
+
+def _pol_section(name: str, focals: list[float]) -> Section:
+    return Section(
+        name,
+        (
+            Param("focal_lengths_mm", list, focals, lo=0, open_lo=True, hi=1e5),
+            Param("offsets_um", list, _PAPER_OFFSETS, pairs=True, lo=-1e6, hi=1e6),
+        ),
+        optional=True,
+    )
+
+
+SECTIONS = (
+    Section(
+        "design",
+        (
+            Param("library", str, "../library/paper.npz"),
+            Param("wavelength_nm", float, lo=0, open_lo=True, hi=1e5),
+            Param("period_um", float, lo=0, open_lo=True, hi=100),
+            Param("aperture_mm", float, lo=0, open_lo=True, hi=300),
+            Param("clear_aperture", str, "square", choices=["square", "circle"]),
+            Param("supercell", int, 2, lo=1, hi=8),
+        ),
+    ),
+    _pol_section("x_pol", [48.8, 49.2, 49.6, 50.0]),
+    _pol_section("y_pol", [50.4, 50.8, 51.2, 51.6]),
+    Section(
+        "discretizer",
+        (
+            Param("transmission_threshold", float, 0.7, lo=0, hi=1, open_hi=False),
+            Param("bins", int, 16, lo=2, hi=64),
+            Param("metric", str, "phase", choices=[m.value for m in Metric]),
+            Param("optimise_offsets", bool, True),
+            Param("tile_rows", int, 256, lo=2, hi=100000),
+        ),
+        optional=True,
+    ),
+)
+
+
+@dataclass(frozen=True)
+class DesignRecipe:
+    name: str
+    source: Path | None
+    library_path: Path
+    spec: SupercellSpec
+    threshold: float
+    bins: int
+    metric: Metric
+    optimise_offsets: bool
+    tile_rows: int
+    raw: dict  # the recipe as written (recipe units), embedded in outputs
+
+    def default_output(self) -> Path:
+        base = self.source.parent if self.source else Path.cwd()
+        return base / self.name
+
+
+def design_recipe_from_dict(data: dict, name: str = "design", source: Path | None = None) -> DesignRecipe:
+    v = parse(data, SECTIONS, str(source) if source else "recipe")
+    d, dz = v["design"], v["discretizer"]
+    m = d["supercell"]
+    chans = {}
+    for pol in ("x_pol", "y_pol"):
+        f, o = v[pol]["focal_lengths_mm"], v[pol]["offsets_um"]
+        for key, seq in (("focal_lengths_mm", f), ("offsets_um", o)):
+            if len(seq) != m * m:
+                raise ConfigError(f"{pol}.{key}", f"needs {m * m} entries for a {m}x{m} supercell, got {len(seq)}")
+        chans[pol] = tuple(LensChannel(fk, ox, oy) for fk, (ox, oy) in zip(f, o))
+    n_cells = int(np.floor(d["aperture_mm"] / d["period_um"] + 1e-9))
+    n_cells -= n_cells % m  # whole supercells
+    if n_cells < m:
+        raise ConfigError("design.aperture_mm",
+                          f"{d['aperture_mm'] * 1e3:g} mm is smaller than one {m}x{m} supercell "
+                          f"({m * d['period_um'] * 1e3:g} mm)")
+    spec = SupercellSpec(
+        wavelength=d["wavelength_nm"], period=d["period_um"], n_cells=n_cells, supercell=m,
+        channels_x=chans["x_pol"], channels_y=chans["y_pol"], circular_aperture=d["clear_aperture"] == "circle",
+    )
+    lib = Path(d["library"])
+    if not lib.is_absolute():
+        lib = (source.parent if source else Path.cwd()) / lib
+    return DesignRecipe(
+        name=name, source=source, library_path=lib, spec=spec, threshold=dz["transmission_threshold"],
+        bins=dz["bins"], metric=Metric(dz["metric"]), optimise_offsets=dz["optimise_offsets"],
+        tile_rows=dz["tile_rows"], raw=data,
+    )
+
+
+def load_design_recipe(path: str | Path) -> DesignRecipe:
+    path = Path(path)
+    return design_recipe_from_dict(load_toml(path), name=path.stem, source=path)

@@ -1,0 +1,156 @@
+"""Design file I/O and the ``metadesign design`` job (the I/O edge of stage 2).
+
+``DESIGN/design.npz`` (read with ``allow_pickle=False``):
+
+* ``index_map`` ``[iy, ix]`` uint8 (uint16 past 254 atoms): atom of each cell,
+  the dtype's max value = no pillar (outside a circular clear aperture);
+* ``atom_wx_m``, ``atom_wy_m`` (n,), ``atom_t`` (n, 2) complex ``[t_x, t_y]``,
+  ``atom_T0`` (n, 2), ``atom_lib_index`` (n, 2);
+* ``meta``: JSON with the recipe, the design spec (lenses, offsets), the
+  library identity (sha256) and path, the constant phase offsets, the
+  metrics, the conventions and the version.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..config import ConfigError, InputError
+from ..io import atomic_write_text, from_json_array, json_array, read_npz, write_npz
+from ..library.store import UnitCellLibrary, load_library
+from .build import DesignResult, discretize_design, empty_index
+from .discretize import AtomTable, select_atoms
+from .phase import LensChannel, SupercellSpec
+from .recipe import DesignRecipe
+
+__all__ = ["Design", "run_design", "save_design", "load_design", "DESIGN_FORMAT", "check_library"]
+
+DESIGN_FORMAT = "metadesign.design/1"
+
+
+@dataclass(frozen=True)
+class Design:
+    spec: SupercellSpec
+    atoms: AtomTable
+    index_map: np.ndarray
+    offsets: tuple[float, float]
+    metrics: dict
+    meta: dict
+
+    @property
+    def empty(self) -> int:
+        return int(np.iinfo(self.index_map.dtype).max)
+
+
+def check_library(recipe: DesignRecipe, lib: UnitCellLibrary) -> None:
+    """Refuse a library made for another wavelength or period."""
+    spec = recipe.spec
+    for key, want, have, unit, scale in (
+        ("design.wavelength_nm", spec.wavelength, lib.wavelength, "nm", 1e9),
+        ("design.period_um", spec.period, lib.period, "um", 1e6),
+    ):
+        if abs(want - have) > 1e-9 * have:
+            raise ConfigError(key, f"{want * scale:g} {unit} does not match the library ({have * scale:g} {unit}, "
+                                   f"{recipe.library_path})")
+
+
+def _spec_dict(spec: SupercellSpec) -> dict:
+    ch = lambda cs: [{"focal_length_m": c.focal_length, "offset_x_m": c.offset_x, "offset_y_m": c.offset_y}
+                     for c in cs]  # noqa: E731
+    return {"wavelength_m": spec.wavelength, "period_m": spec.period, "n_cells": spec.n_cells,
+            "supercell": spec.supercell, "circular_aperture": spec.circular_aperture,
+            "channels_x": ch(spec.channels_x), "channels_y": ch(spec.channels_y)}
+
+
+def _spec_from_dict(d: dict) -> SupercellSpec:
+    ch = lambda cs: tuple(LensChannel(c["focal_length_m"], c["offset_x_m"], c["offset_y_m"]) for c in cs)  # noqa
+    return SupercellSpec(d["wavelength_m"], d["period_m"], int(d["n_cells"]), int(d["supercell"]),
+                         ch(d["channels_x"]), ch(d["channels_y"]), bool(d["circular_aperture"]))
+
+
+def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
+               progress: Callable[[int, int], None] | None = None) -> tuple[Design, Path]:
+    """Validate against the library, select atoms, discretize, write the design."""
+    lib = load_library(recipe.library_path)
+    check_library(recipe, lib)
+    n_sup = lib.meta["stack"]["n_superstrate"]
+    n_sub = lib.meta["stack"]["n_substrate"]
+    try:
+        atoms = select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, recipe.threshold, recipe.bins,
+                             tn_scale=float(np.sqrt(n_sup / n_sub)))
+    except ValueError as exc:
+        raise ConfigError("discretizer.transmission_threshold", str(exc)) from None
+    res: DesignResult = discretize_design(recipe.spec, atoms, recipe.metric, recipe.optimise_offsets,
+                                          recipe.tile_rows, progress)
+    meta = {
+        "format": DESIGN_FORMAT,
+        "version": __version__,
+        "name": recipe.name,
+        "recipe": recipe.raw,
+        "spec": _spec_dict(recipe.spec),
+        "library": {"path": str(recipe.library_path), "sha256": lib.identity,
+                    "n_harmonics": lib.meta["solver"]["n_harmonics"]},
+        "discretizer": {"threshold": recipe.threshold, "bins": recipe.bins, "metric": recipe.metric.value,
+                        "tn_scale": atoms.tn_scale},
+        "phase_offsets_rad": list(res.offsets),
+        "metrics": res.metrics,
+        "conventions": {
+            "index_map": "[iy, ix]; cell (ix, iy) at x = (ix - (n-1)/2) p, y = (iy - (n-1)/2) p",
+            "channel": "k = 1 + (ix mod m) + m (iy mod m); PSF of channel k at (offset_x_k, offset_y_k)",
+            "empty": "max value of the index dtype = no pillar",
+            "phase": "exp(+i phi), exp(-i omega t); converging lens phi <= 0 away from its axis",
+        },
+    }
+    design = Design(recipe.spec, atoms, res.index_map, res.offsets, res.metrics, meta)
+    out = out_dir or recipe.default_output()
+    save_design(out, design)
+    return design, out
+
+
+def save_design(out_dir: Path, d: Design) -> Path:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    a = d.atoms
+    write_npz(out_dir / "design.npz", {
+        "index_map": d.index_map, "atom_wx_m": a.wx, "atom_wy_m": a.wy, "atom_t": a.t, "atom_T0": a.T0,
+        "atom_lib_index": a.lib_index, "meta": json_array(d.meta),
+    })
+    atomic_write_text(out_dir / "metrics.json", json.dumps(d.metrics, indent=2, sort_keys=True))
+    return out_dir / "design.npz"
+
+
+def load_design(path: str | Path) -> Design:
+    path = Path(path)
+    if path.is_dir():
+        path = path / "design.npz"
+    z = read_npz(path, "design file")
+    need = ("index_map", "atom_wx_m", "atom_wy_m", "atom_t", "atom_T0", "atom_lib_index", "meta")
+    missing = [k for k in need if k not in z]
+    if missing:
+        raise InputError(f"{path}: not a design file (missing {', '.join(missing)})")
+    try:
+        meta = from_json_array(z["meta"])
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{path}: design metadata unreadable ({exc})") from None
+    if meta.get("format") != DESIGN_FORMAT:
+        raise InputError(f"{path}: unsupported design format {meta.get('format')!r}")
+    spec = _spec_from_dict(meta["spec"])
+    im = z["index_map"]
+    n = len(z["atom_wx_m"])
+    dtype, empty = empty_index(n)
+    if im.shape != (spec.n_cells, spec.n_cells) or im.dtype != dtype:
+        raise InputError(f"{path}: index_map has shape {im.shape} {im.dtype}, expected "
+                         f"{(spec.n_cells, spec.n_cells)} {np.dtype(dtype)}")
+    if int(im[im != empty].max(initial=0)) >= n:
+        raise InputError(f"{path}: index_map refers to atoms beyond the table ({n} atoms)")
+    m = meta["metrics"]
+    atoms = AtomTable(z["atom_wx_m"], z["atom_wy_m"], z["atom_t"], z["atom_T0"], z["atom_lib_index"],
+                      int(m.get("n_empty_bins", 0)), int(m.get("n_kept_library_cells", 0)),
+                      float(meta["discretizer"]["tn_scale"]))
+    return Design(spec, atoms, im, tuple(meta["phase_offsets_rad"]), m, meta)
