@@ -156,8 +156,7 @@ def _design_text(d, out) -> str:
         "other metric   " + ", ".join(
             f"{k}: RMSE {v['rmse_rad'][0]:.4f}/{v['rmse_rad'][1]:.4f} rad, T0 {v['mean_T0'][0]:.4f}/{v['mean_T0'][1]:.4f}"
             for k, v in m["comparison_on_sample"].items()) + " (sampled cells)",
-        f"time           {m['seconds']['total']:.1f} s",
-    ])
+    ] + ([f"time           {d.seconds['total']:.1f} s"] if d.seconds else []))
 
 
 def _cmd_design(a: argparse.Namespace) -> int:
@@ -191,7 +190,7 @@ def _cmd_design(a: argparse.Namespace) -> int:
     recipe = load_design_recipe(a.target)
     d, out = run_design(recipe, Path(a.output) if a.output else None,
                         progress=_progress_bar("design", unit="row"))
-    _emit(d.metrics | {"output": str(out)}, a.json, _design_text(d, out))
+    _emit(d.metrics | {"output": str(out), "seconds": d.seconds}, a.json, _design_text(d, out))
     return 0
 
 

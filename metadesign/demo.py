@@ -1,4 +1,8 @@
-"""``metadesign demo``: the embedded demo through every stage built so far."""
+"""``metadesign demo``: the embedded demo through every stage built so far.
+
+Each stage returns a dict with ``line`` (one summary line), ``figures`` and
+its numbers; the demo writes ``summary.json`` and the figures to one folder.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from .io import atomic_write_text
-from .paths import default_library_path
+from .paths import default_library_path, repo_root
 
 __all__ = ["run_demo"]
 
@@ -31,27 +35,44 @@ def _stage_library(out: Path, log) -> dict:
     idx = [(40, 20), (8, 72), (60, 60)]
     err = max(float(np.abs(solve_cell(lib.wx[i], lib.wy[j], stack, settings).jones - lib.jones[i, j]).max())
               for i, j in idx)
-    log(f"library: {s['grid']['n_wx']} x {s['grid']['n_wy']} cells, {100 * s['fraction_above_threshold']:.1f} % "
-        f"with T0 >= 70 %, re-solve error {err:.1e}")
-    return {"summary": s, "respot_check_max_abs_error": err, "figures": [str(fig)]}
+    line = (f"{s['grid']['n_wx']}x{s['grid']['n_wy']} cells, nG {s['solver']['n_harmonics']}, convergence "
+            f"{s['convergence']['max_phase_change_rad']:.4f} rad, {100 * s['fraction_above_threshold']:.1f} % "
+            f"cells with T0 >= 70 %, RCWA re-check {err:.1e}")
+    log(f"library: {line}")
+    return {"line": line, "summary": s, "recheck_max_abs_error": err, "figures": [str(fig)]}
+
+
+def _stage_design(out: Path, log) -> dict:
+    from .design.plot import plot_design
+    from .design.recipe import load_design_recipe
+    from .design.store import run_design
+    from .library.store import load_library
+
+    recipe = load_design_recipe(repo_root() / "layouts" / "demo.toml")
+    d, path = run_design(recipe, out / "design")
+    fig = plot_design(d, out / "design-fig-s2.png", load_library(recipe.library_path))
+    m = d.metrics
+    line = (f"{d.spec.n_cells}x{d.spec.n_cells} cells, {m['n_atoms']} atoms, RMSE x {m['rmse_rad'][0]:.3f} "
+            f"y {m['rmse_rad'][1]:.3f} rad, peak {m['peak_error_rad'][0]:.3f}/{m['peak_error_rad'][1]:.3f} rad, "
+            f"mean T0 {m['mean_T0'][0]:.3f}/{m['mean_T0'][1]:.3f}")
+    log(f"design: {line}")
+    return {"line": line, "metrics": m, "path": str(path), "figures": [str(fig)]}
+
+
+STAGES = (("library", _stage_library), ("design", _stage_design))
 
 
 def run_demo(out: Path, log: Callable[[str], None] = print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     result: dict = {"output": str(out), "stages": {}}
-    result["stages"]["library"] = _stage_library(out, log)
+    for name, fn in STAGES:
+        result["stages"][name] = fn(out, log)
     result["seconds"] = time.perf_counter() - t0
-    lib = result["stages"]["library"]["summary"]
-    lines = [
-        f"metadesign demo -> {out}/",
-        f"  stage 1 library   {lib['grid']['n_wx']}x{lib['grid']['n_wy']} cells, nG {lib['solver']['n_harmonics']}, "
-        f"convergence {lib['convergence']['max_phase_change_rad']:.4f} rad, "
-        f"{100 * lib['fraction_above_threshold']:.1f} % cells T0 >= 70 %, "
-        f"RCWA re-check {result['stages']['library']['respot_check_max_abs_error']:.1e}",
-        f"  figures           " + ", ".join(Path(f).name for st in result["stages"].values() for f in st["figures"]),
-        f"  time              {result['seconds']:.1f} s",
-    ]
+    figs = [Path(f).name for st in result["stages"].values() for f in st["figures"]]
+    lines = [f"metadesign demo -> {out}/"]
+    lines += [f"  {i}. {name:<9} {st['line']}" for i, (name, st) in enumerate(result["stages"].items(), 1)]
+    lines += [f"  figures      {', '.join(figs)}", f"  time         {result['seconds']:.1f} s"]
     result["text"] = "\n".join(lines)
     atomic_write_text(out / "summary.json", json.dumps({k: v for k, v in result.items() if k != "text"},
                                                       indent=2, sort_keys=True, default=float))

@@ -16,16 +16,22 @@ __all__ = ["DesignResult", "discretize_design", "empty_index", "OFFSET_GRID"]
 OFFSET_GRID = 256  # resolution of the constant-offset search (2 pi / 256 = 0.025 rad)
 
 
-def empty_index(n_atoms: int):
-    """(dtype, sentinel) of the index map: uint8 with 255 = no pillar, if it fits."""
-    return (np.uint8, 255) if n_atoms < 255 else (np.uint16, 65535)
+def empty_index(n_atoms: int, needs_empty: bool):
+    """(dtype, sentinel) of the index map.  The sentinel (the dtype's max value)
+    marks cells without a pillar and exists only when the design has such
+    cells (circular clear aperture); uint8 whenever it fits."""
+    n = n_atoms + (1 if needs_empty else 0)
+    dtype = np.uint8 if n <= 256 else np.uint16
+    return dtype, (int(np.iinfo(dtype).max) if needs_empty else None)
 
 
 @dataclass
 class DesignResult:
     index_map: np.ndarray  # [iy, ix] atom index, sentinel = no pillar (outside a circular aperture)
     offsets: tuple[float, float]  # constant added to the x-pol / y-pol design phase (rad)
+    empty: int | None  # the no-pillar sentinel, if any
     metrics: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)  # timings (kept out of the files: same inputs, same bytes)
 
 
 def _sample_rows(n: int, target: int = 1024) -> np.ndarray:
@@ -90,7 +96,7 @@ def discretize_design(
             "sampled_cells": int(ax.size),
         }
 
-    dtype, empty = empty_index(len(atoms))
+    dtype, empty = empty_index(len(atoms), spec.circular_aperture)
     index_map = np.empty((n, n), dtype)
     sse = np.zeros(2)
     peak = np.zeros(2)
@@ -123,7 +129,7 @@ def discretize_design(
         if progress:
             progress(r1, n)
     elapsed = time.perf_counter() - t0
-    used = np.bincount(index_map[index_map != empty].ravel() if spec.circular_aperture else index_map.ravel(),
+    used = np.bincount(index_map[index_map != empty].ravel() if empty is not None else index_map.ravel(),
                        minlength=len(atoms))
     metrics = {
         "metric": metric.value,
@@ -139,9 +145,9 @@ def discretize_design(
         "n_kept_library_cells": atoms.n_kept_cells,
         "lut_unsafe_fraction": mapper.unsafe_fraction,
         "comparison_on_sample": comparison,
-        "seconds": {"lookup_table": t_lut, "mapping": time.perf_counter() - t_map, "total": elapsed},
     }
-    return DesignResult(index_map=index_map, offsets=offsets, metrics=metrics)
+    seconds = {"lookup_table": t_lut, "mapping": time.perf_counter() - t_map, "total": elapsed}
+    return DesignResult(index_map=index_map, offsets=offsets, empty=empty, metrics=metrics, seconds=seconds)
 
 
 def discretized_phase(index_map: np.ndarray, atoms: AtomTable, pol: int, empty: int | None = None) -> np.ndarray:

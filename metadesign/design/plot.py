@@ -47,8 +47,9 @@ def plot_design(d: Design, out: str | Path, lib: UnitCellLibrary | None = None, 
     lo = (s - (n - 1) / 2) * p
     ext = [lo, lo + c * p, lo, lo + c * p]
     crop_note = "" if c == n else f" (central {c}x{c} of {n}x{n})"
-    wx_map = np.append(a.wx * 1e6, np.nan)[np.where(im == d.empty, len(a), im)]
-    wy_map = np.append(a.wy * 1e6, np.nan)[np.where(im == d.empty, len(a), im)]
+    k = d.atom_indices()[s:s + c, s:s + c]
+    wx_map = np.append(a.wx * 1e6, np.nan)[k]
+    wy_map = np.append(a.wy * 1e6, np.nan)[k]
     panels = [
         (discretized_phase(im, a, 0, d.empty), "twilight", (-np.pi, np.pi), "(c) discretized phase x-pol [rad]"),
         (discretized_phase(im, a, 1, d.empty), "twilight", (-np.pi, np.pi), "(c) discretized phase y-pol [rad]"),
@@ -70,7 +71,7 @@ def plot_design(d: Design, out: str | Path, lib: UnitCellLibrary | None = None, 
            f"peak  x {m['peak_error_rad'][0]:.3f}  y {m['peak_error_rad'][1]:.3f} rad\n"
            f"mean T0  x {m['mean_T0'][0]:.3f}  y {m['mean_T0'][1]:.3f}")
     ax[0, 3].text(0.0, 0.95, txt, va="top", family="monospace", fontsize=9)
-    counts = np.bincount(d.index_map[d.index_map != d.empty].ravel(), minlength=len(a))
+    counts = np.bincount(d.atom_indices().ravel(), minlength=len(a) + 1)[:len(a)]
     ax[1, 3].bar(np.arange(len(a)), counts, width=1.0, color="tab:gray")
     ax[1, 3].set(title="atom usage", xlabel="atom index", ylabel="cells", yscale="log")
     fig.suptitle(f"Design {d.meta['name']}: discretization (Fig. S2){crop_note}")

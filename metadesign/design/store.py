@@ -42,10 +42,13 @@ class Design:
     offsets: tuple[float, float]
     metrics: dict
     meta: dict
+    empty: int | None = None  # index-map value meaning "no pillar", if the design has such cells
+    seconds: dict | None = None
 
-    @property
-    def empty(self) -> int:
-        return int(np.iinfo(self.index_map.dtype).max)
+    def atom_indices(self) -> np.ndarray:
+        """The index map with the sentinel replaced by len(atoms) (for table look-ups)."""
+        im = self.index_map
+        return np.where(im == self.empty, len(self.atoms), im) if self.empty is not None else im
 
 
 def check_library(recipe: DesignRecipe, lib: UnitCellLibrary) -> None:
@@ -99,6 +102,7 @@ def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
         "discretizer": {"threshold": recipe.threshold, "bins": recipe.bins, "metric": recipe.metric.value,
                         "tn_scale": atoms.tn_scale},
         "phase_offsets_rad": list(res.offsets),
+        "empty_index": res.empty,
         "metrics": res.metrics,
         "conventions": {
             "index_map": "[iy, ix]; cell (ix, iy) at x = (ix - (n-1)/2) p, y = (iy - (n-1)/2) p",
@@ -107,7 +111,7 @@ def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
             "phase": "exp(+i phi), exp(-i omega t); converging lens phi <= 0 away from its axis",
         },
     }
-    design = Design(recipe.spec, atoms, res.index_map, res.offsets, res.metrics, meta)
+    design = Design(recipe.spec, atoms, res.index_map, res.offsets, res.metrics, meta, res.empty, res.seconds)
     out = out_dir or recipe.default_output()
     save_design(out, design)
     return design, out
@@ -143,14 +147,15 @@ def load_design(path: str | Path) -> Design:
     spec = _spec_from_dict(meta["spec"])
     im = z["index_map"]
     n = len(z["atom_wx_m"])
-    dtype, empty = empty_index(n)
-    if im.shape != (spec.n_cells, spec.n_cells) or im.dtype != dtype:
+    dtype, empty = empty_index(n, spec.circular_aperture)
+    if im.shape != (spec.n_cells, spec.n_cells) or im.dtype != dtype or meta.get("empty_index") != empty:
         raise InputError(f"{path}: index_map has shape {im.shape} {im.dtype}, expected "
                          f"{(spec.n_cells, spec.n_cells)} {np.dtype(dtype)}")
-    if int(im[im != empty].max(initial=0)) >= n:
+    used = im[im != empty] if empty is not None else im
+    if int(used.max(initial=0)) >= n:
         raise InputError(f"{path}: index_map refers to atoms beyond the table ({n} atoms)")
     m = meta["metrics"]
     atoms = AtomTable(z["atom_wx_m"], z["atom_wy_m"], z["atom_t"], z["atom_T0"], z["atom_lib_index"],
                       int(m.get("n_empty_bins", 0)), int(m.get("n_kept_library_cells", 0)),
                       float(meta["discretizer"]["tn_scale"]))
-    return Design(spec, atoms, im, tuple(meta["phase_offsets_rad"]), m, meta)
+    return Design(spec, atoms, im, tuple(meta["phase_offsets_rad"]), m, meta, empty)

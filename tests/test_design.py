@@ -1,0 +1,172 @@
+"""Stage 2: Eq. 1 geometry, wrap-aware exact mapping, metrics with known answers, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from metadesign.design import (
+    AtomTable, Metric, NearestAtom, SupercellSpec, brute_force_nearest, cell_coordinates, design_phase_rows,
+    paper_channels, select_atoms, wrap,
+)
+from metadesign.design.build import discretize_design
+
+CX, CY = paper_channels()
+
+
+def _unwrap2d(ph):
+    return np.unwrap(np.unwrap(ph, axis=1), axis=0)
+
+
+@pytest.mark.parametrize("pol", [0, 1])
+def test_paraboloid_fit_recovers_table_s1(pol):
+    """Fit each sub-lattice's unwrapped phase: f_k and offsets (Table S1) within 0.1 %."""
+    n = 1000  # 0.7 mm: the quartic term of Eq. 1 is < 1e-4 of the quadratic one here
+    spec = SupercellSpec(1.55e-6, 0.7e-6, n, 2, CX, CY)
+    ph = design_phase_rows(spec, pol, 0, n)  # wrapped, as stored
+    x = cell_coordinates(n, spec.period)
+    expected_f = [48.8e-3, 49.2e-3, 49.6e-3, 50.0e-3] if pol == 0 else [50.4e-3, 50.8e-3, 51.2e-3, 51.6e-3]
+    expected_off = [(-240e-6, -192e-6), (240e-6, -192e-6), (-240e-6, 192e-6), (240e-6, 192e-6)]
+    k0 = 2 * np.pi / 1.55e-6
+    for k in range(4):
+        a, b = k % 2, k // 2
+        sub = _unwrap2d(ph[b::2, a::2])
+        X, Y = np.meshgrid(x[a::2], x[b::2])
+        A = np.stack([np.ones(X.size), X.ravel(), Y.ravel(), (X**2 + Y**2).ravel()], axis=1)
+        c = np.linalg.lstsq(A, sub.ravel(), rcond=None)[0]
+        d = c[3]
+        f = -k0 / (2 * d)
+        dx, dy = -c[1] / (2 * d), -c[2] / (2 * d)
+        assert f == pytest.approx(expected_f[k], rel=1e-3)
+        assert dx == pytest.approx(expected_off[k][0], rel=1e-3)
+        assert dy == pytest.approx(expected_off[k][1], rel=1e-3)
+        assert d < 0  # converging: phase decreases away from the lens axis
+
+
+def _atoms(phx, phy, T=1.0):
+    phx, phy = np.asarray(phx, float), np.asarray(phy, float)
+    n = phx.size
+    t = np.stack([np.exp(1j * phx), np.exp(1j * phy)], axis=1) * np.sqrt(T)
+    return AtomTable(np.full(n, 2e-7), np.full(n, 2e-7), t, np.full((n, 2), T), np.zeros((n, 2), int), 0, n, 1.0)
+
+
+def test_wrap_aware_mapping():
+    e = 0.05
+    atoms = _atoms([np.pi - e, -np.pi + 4 * e], [0.0, 0.0])
+    for m in (NearestAtom(atoms), lambda x, y: brute_force_nearest(x, y, atoms)):
+        assert int(np.ravel(m(np.array([-np.pi + e]), np.array([0.0])))[0]) == 0
+
+
+@pytest.mark.parametrize("metric", list(Metric))
+def test_lut_mapping_equals_brute_force(paper_library, metric):
+    lib = paper_library
+    atoms = select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, 0.7, 16, np.sqrt(1 / 1.444))
+    rng = np.random.default_rng(3)
+    px = rng.uniform(-np.pi, np.pi, 300_000)
+    py = rng.uniform(-np.pi, np.pi, 300_000)
+    # adversarial points: exactly on atom phases, on the LUT grid lines and at -pi
+    g = -np.pi + np.arange(1024) * 2 * np.pi / 1024
+    px = np.concatenate([px, atoms.phase[:, 0], g, np.full(1024, -np.pi)])
+    py = np.concatenate([py, atoms.phase[:, 1], g[::-1], g])
+    lut = NearestAtom(atoms, metric)
+    assert 0 < lut.unsafe_fraction < 0.5
+    np.testing.assert_array_equal(lut(px, py), brute_force_nearest(px, py, atoms, metric))
+
+
+def test_atom_selection_bins_and_gap_filling():
+    # synthetic library: a 64 x 64 (wx, wy) grid whose phases sweep the torus linearly
+    n = 64
+    w = np.linspace(1e-7, 5e-7, n)
+    phx = wrap(np.linspace(-np.pi, np.pi, n, endpoint=False))[:, None] + np.zeros((1, n))
+    phy = np.zeros((n, 1)) + wrap(np.linspace(-np.pi, np.pi, n, endpoint=False))[None, :]
+    T0 = np.ones((n, n, 2))
+    T0[20:40, 20:40] = 0.1  # a coverage gap of ~4 x 4 bins
+    atoms = select_atoms(np.exp(1j * phx), np.exp(1j * phy), T0, w, w, 0.7, 16)
+    assert atoms.n_empty_bins == 25  # samples 20..39 fill bins 5..9: 5 x 5 bins wholly inside the gap
+    assert len(atoms) < 256  # gap bins borrowed neighbours' cells, deduplicated
+    assert np.all(atoms.T0 >= 0.7)
+    assert len(np.unique(atoms.lib_index, axis=0)) == len(atoms)
+
+
+def test_metrics_known_answer_uniform_quantiser():
+    """Atoms exactly at the 16 x 16 bin centres: a lens's wrapped phase is ~uniform,
+    so RMSE per polarisation -> bin width / sqrt(12) and peak -> half a bin."""
+    c = -np.pi + (np.arange(16) + 0.5) * 2 * np.pi / 16
+    gx, gy = np.meshgrid(c, c, indexing="ij")
+    atoms = _atoms(gx.ravel(), gy.ravel(), T=0.9)
+    spec = SupercellSpec(1.55e-6, 0.7e-6, 2000, 2, CX, CY)
+    res = discretize_design(spec, atoms, Metric.PHASE, optimise_offsets=False)
+    delta = 2 * np.pi / 16
+    np.testing.assert_allclose(res.metrics["rmse_rad"], delta / np.sqrt(12), rtol=0.02)
+    np.testing.assert_allclose(res.metrics["peak_error_rad"], delta / 2, rtol=0.01)
+    np.testing.assert_allclose(res.metrics["mean_T0"], 0.9, rtol=1e-12)
+    # every cell's atom is its brute-force nearest
+    ph = design_phase_rows(spec, 0, 0, 50), design_phase_rows(spec, 1, 0, 50)
+    np.testing.assert_array_equal(res.index_map[:50].ravel(), brute_force_nearest(ph[0], ph[1], atoms))
+
+
+def test_offset_optimisation_lowers_error(paper_library):
+    lib = paper_library
+    atoms = select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, 0.7, 16, np.sqrt(1 / 1.444))
+    spec = SupercellSpec(1.55e-6, 0.7e-6, 600, 2, CX, CY)
+    a = discretize_design(spec, atoms, optimise_offsets=False).metrics
+    b = discretize_design(spec, atoms, optimise_offsets=True).metrics
+    assert sum(b["rmse_rad"]) <= sum(a["rmse_rad"]) + 1e-3
+    assert max(b["rmse_rad"]) < 0.2  # well below the paper's 0.7 rad
+
+
+def test_circular_aperture_leaves_corners_empty(paper_library):
+    lib = paper_library
+    atoms = select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, 0.7, 16, np.sqrt(1 / 1.444))
+    spec = SupercellSpec(1.55e-6, 0.7e-6, 200, 2, CX, CY, circular_aperture=True)
+    res = discretize_design(spec, atoms)
+    assert res.empty == np.iinfo(res.index_map.dtype).max  # 256 atoms + "no pillar" need uint16
+    empty = res.index_map == res.empty
+    assert empty[0, 0] and empty[-1, -1] and not empty[100, 100]
+    assert res.metrics["n_cells_in_aperture"] == pytest.approx(np.pi / 4 * 200**2, rel=0.02)
+
+
+DEMO = """
+[design]
+library = "{lib}"
+wavelength_nm = 1550.0
+period_um = 0.7
+aperture_mm = 0.1
+"""
+
+
+def test_design_cli_writes_reproducible_design(tmp_path, repo):
+    rec = tmp_path / "small.toml"
+    rec.write_text(DEMO.format(lib=repo / "library" / "paper.npz"))
+    p = run_cli("design", rec, "--json")
+    assert p.returncode == 0, p.stderr
+    m = json.loads(p.stdout)
+    assert m["n_cells"] == 142 * 142
+    first = (tmp_path / "small" / "design.npz").read_bytes()
+    p = run_cli("design", rec, "-o", tmp_path / "again")
+    assert (tmp_path / "again" / "design.npz").read_bytes() == first
+    p = run_cli("design", "plot", tmp_path / "small")
+    assert p.returncode == 0 and (tmp_path / "small" / "fig-s2.png").stat().st_size > 10_000
+    from metadesign.design.store import load_design
+    d = load_design(tmp_path / "small")
+    assert d.index_map.shape == (142, 142) and d.index_map.dtype == np.uint8
+
+
+@pytest.mark.parametrize("edit,field", [
+    (("wavelength_nm = 1550.0", "wavelength_nm = 1310.0"), "design.wavelength_nm"),
+    (("period_um = 0.7", "period_um = 0.65"), "design.period_um"),
+    (("aperture_mm = 0.1", "aperture_mm = 0.001"), "design.aperture_mm"),
+    (("aperture_mm = 0.1", "aperture_mm = 0.1\n[discretizer]\ntransmission_threshold = 0.9999"),
+     "discretizer.transmission_threshold"),
+    (("aperture_mm = 0.1", "aperture_mm = 0.1\n[x_pol]\nfocal_lengths_mm = [50.0]"), "x_pol.focal_lengths_mm"),
+    (("aperture_mm = 0.1", "aperture_mm = 0.1\nsupercel = 2"), "design.supercel"),
+])
+def test_design_bad_input(tmp_path, repo, edit, field):
+    rec = tmp_path / "bad.toml"
+    rec.write_text(DEMO.format(lib=repo / "library" / "paper.npz").replace(*edit))
+    p = run_cli("design", rec)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0]
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["bad.toml"]
