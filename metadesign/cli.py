@@ -194,6 +194,106 @@ def _cmd_design(a: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------- layout
+
+
+def _find_design_for(layout: Path, given: str | None):
+    from .design.store import load_design
+
+    if given:
+        return load_design(given)
+    cand = layout.parent / "design.npz"
+    if not cand.exists():
+        raise InputError(f"{layout}: no design.npz beside it; pass --design DESIGN")
+    return load_design(cand)
+
+
+def _cmd_layout(a: argparse.Namespace) -> int:
+    from .layouts import LayoutOptions
+
+    if a.target == "verify":
+        return _cmd_layout_verify(a)
+    if a.target == "preview":
+        return _cmd_layout_preview(a)
+    if a.path:
+        raise InputError(f"layout: unexpected argument {a.path!r} (usage: layout DESIGN [-o OUT])")
+    from .design.store import load_design
+    from .layouts import write_layout
+
+    d = load_design(a.target)
+    opts = LayoutOptions(layer=a.layer, datatype=a.datatype, grid_nm=a.grid_nm,
+                         outline_layer=None if a.no_outline else a.outline_layer,
+                         label_layer=a.label_layer, label=a.label)
+    base = Path(a.target)
+    folder = base if base.is_dir() else base.parent
+    stem = Path(a.output) if a.output else folder / "layout"
+    if stem.suffix in (".oas", ".gds"):
+        stem = stem.with_suffix("")
+    fmts = ["oas", "gds"] if a.format == "both" else [a.format]
+    if a.format not in ("oas", "gds", "both"):
+        raise InputError(f"--format: expected oas, gds or both, got {a.format!r}")
+    reports = []
+    for fmt in fmts:
+        if fmt == "gds" and d.index_map.size > 1_000_000:
+            print(f"metadesign: warning: GDSII cannot store irregular repetitions: {d.index_map.size:,} pillars "
+                  "expand into one SREF each (expect a file of GB size and minutes)", file=sys.stderr)
+        reports.append(write_layout(d, stem.with_suffix("." + fmt), fmt, opts))
+    text = "\n".join(
+        f"wrote {r['file']}: {r['pillars']:,} pillars, {r['atoms']} atoms, {r['bytes'] / 1e6:.2f} MB in "
+        f"{r['seconds']:.1f} s; widths snapped to {r['snapping']['grid_nm']} nm (max error "
+        f"{r['snapping']['max_error_nm']:.3f} nm, {r['snapping']['odd_width_atoms']} atoms with an odd-nm width "
+        "centred 0.5 nm low)" for r in reports)
+    _emit({"layouts": reports}, a.json, text)
+    return 0
+
+
+def _cmd_layout_verify(a: argparse.Namespace) -> int:
+    from .layouts import drc_check, read_layout, read_layout_klayout, verify_against_design
+
+    if not a.path:
+        raise InputError("layout verify: give the layout file")
+    path = Path(a.path)
+    lc = read_layout(path)
+    d = _find_design_for(path, a.design)
+    grid = int(lc.provenance.get("grid_nm", 1)) if "grid_nm" in lc.provenance else 1
+    rep = {"file": str(path), "gdstk": verify_against_design(lc, d, grid)}
+    if a.klayout:
+        rep["klayout"] = verify_against_design(read_layout_klayout(path), d, grid)
+    rep["drc"] = drc_check(lc, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
+    ok = rep["gdstk"]["exact"] and rep["drc"]["passed"] and rep.get("klayout", {"exact": True})["exact"]
+    rep["passed"] = ok
+    g = rep["gdstk"]
+    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'}",
+             f"  gdstk read-back: {g['pillars']:,} pillars, exact {g['exact']} ({g['read_seconds']:.1f} s)"
+             + "".join(f"\n    - {p}" for p in g["problems"])]
+    if "klayout" in rep:
+        k = rep["klayout"]
+        lines.append(f"  KLayout read-back: {k['pillars']:,} pillars, exact {k['exact']}, per-atom counts "
+                     f"{'agree' if k['counts_per_atom'] == g['counts_per_atom'] else 'DIFFER'} "
+                     f"({k['read_seconds']:.1f} s)" + "".join(f"\n    - {p}" for p in k["problems"]))
+    t, w = rep["drc"]["from_atom_table"], rep["drc"]["geometric_window"]
+    lines.append(f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm): atom table min "
+                 f"feature {t['min_feature_nm']} nm, min gap x {t['min_gap_x_nm']} / y {t['min_gap_y_nm']} nm; "
+                 f"KLayout window {w['window_cells']}x{w['window_cells']} cells: {w['width_violations']} width, "
+                 f"{w['space_violations']} space violations -> {'pass' if rep['drc']['passed'] else 'FAIL'}")
+    _emit(rep, a.json, "\n".join(lines))
+    return 0 if ok else 1
+
+
+def _cmd_layout_preview(a: argparse.Namespace) -> int:
+    from .layouts import read_layout
+    from .layouts.preview import preview_layout
+
+    if not a.path:
+        raise InputError("layout preview: give the layout file")
+    path = Path(a.path)
+    lc = read_layout(path)
+    out = Path(a.output) if a.output else path.with_name(path.stem + "-preview.png")
+    preview_layout(lc, out, tuple(a.window) if a.window else None)
+    print(f"wrote {out}")
+    return 0
+
+
 # ------------------------------------------------------------------- demo
 
 
@@ -237,6 +337,34 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument("-o", "--output", help="output folder (design) or PNG path (plot)")
     des.add_argument("--json", action="store_true", help="print the metrics as JSON")
     des.set_defaults(func=_cmd_design)
+
+    lay = sub.add_parser(
+        "layout", help="OASIS/GDS layout: layout DESIGN | layout verify LAYOUT | layout preview LAYOUT",
+        description="Stage 3. `metadesign layout DESIGN` writes the design as OASIS (default) and/or GDS with "
+        "gdstk (one cell per atom, one repetition per atom; 1 nm database unit), with provenance in the file "
+        "and a JSON side-car. `metadesign layout verify LAYOUT` reads every pillar back and compares it exactly "
+        "with the design (add --klayout for KLayout's independent reader), and runs the design-rule checks. "
+        "`metadesign layout preview LAYOUT` renders a pillar window and a thumbnail.")
+    lay.add_argument("target", help="design folder / design.npz, or 'verify' / 'preview'")
+    lay.add_argument("path", nargs="?", help="with verify/preview: the layout file")
+    lay.add_argument("-o", "--output", help="layout path without suffix (default DESIGN/layout), or preview PNG")
+    lay.add_argument("--format", default="oas", help="oas (default), gds or both")
+    lay.add_argument("--layer", type=int, default=1, help="pillar layer (default 1)")
+    lay.add_argument("--datatype", type=int, default=0, help="pillar datatype (default 0)")
+    lay.add_argument("--grid-nm", type=int, default=1, help="width snapping grid in nm (default 1)")
+    lay.add_argument("--outline-layer", type=int, default=10, help="aperture outline layer (default 10)")
+    lay.add_argument("--no-outline", action="store_true", help="no aperture outline")
+    lay.add_argument("--label-layer", type=int, default=11, help="text/provenance layer (default 11)")
+    lay.add_argument("--label", help="label text written beside the aperture (default: the design name)")
+    lay.add_argument("--design", help="verify: the design to compare with (default: design.npz beside the layout)")
+    lay.add_argument("--klayout", action="store_true", help="verify: also read the file with KLayout and compare")
+    lay.add_argument("--min-feature-nm", type=int, default=100, help="verify: minimum pillar width rule (100)")
+    lay.add_argument("--min-gap-nm", type=int, default=150, help="verify: minimum gap rule (150)")
+    lay.add_argument("--drc-window-cells", type=int, default=64, help="verify: geometric DRC window (64 cells)")
+    lay.add_argument("--window", type=int, nargs=3, metavar=("IX0", "IY0", "CELLS"),
+                     help="preview: window of cells to draw (default: 16 x 16 at the centre)")
+    lay.add_argument("--json", action="store_true", help="print the report as JSON")
+    lay.set_defaults(func=_cmd_layout)
 
     lib = sub.add_parser("library", help="unit-cell library: build (RCWA sweep), show, plot, export",
                          description="Stage 1: the RCWA unit-cell library of rectangular Si pillars.")

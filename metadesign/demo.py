@@ -59,7 +59,26 @@ def _stage_design(out: Path, log) -> dict:
     return {"line": line, "metrics": m, "path": str(path), "figures": [str(fig)]}
 
 
-STAGES = (("library", _stage_library), ("design", _stage_design))
+def _stage_layout(out: Path, log) -> dict:
+    from .design.store import load_design
+    from .layouts import drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout
+    from .layouts.preview import preview_layout
+
+    d = load_design(out / "design")
+    rep = write_layout(d, out / "design" / "layout.oas", "oas")
+    lc = read_layout(out / "design" / "layout.oas")
+    v = verify_against_design(lc, d)
+    k = verify_against_design(read_layout_klayout(out / "design" / "layout.oas"), d)
+    drc = drc_check(lc, 100, 150)
+    fig = preview_layout(lc, out / "layout-preview.png")
+    line = (f"{rep['pillars']:,} pillars, {rep['bytes'] / 1e3:.0f} kB OASIS in {rep['seconds']:.2f} s; read-back exact "
+            f"{v['exact']} (gdstk) / {k['exact']} (KLayout); DRC {'pass' if drc['passed'] else 'FAIL'} (min feature "
+            f"{drc['from_atom_table']['min_feature_nm']} nm, min gap {min(drc['from_atom_table']['min_gap_x_nm'], drc['from_atom_table']['min_gap_y_nm'])} nm)")
+    log(f"layout: {line}")
+    return {"line": line, "write": rep, "verify_gdstk": v, "verify_klayout": k, "drc": drc, "figures": [str(fig)]}
+
+
+STAGES = (("library", _stage_library), ("design", _stage_design), ("layout", _stage_layout))
 
 
 def run_demo(out: Path, log: Callable[[str], None] = print) -> dict:

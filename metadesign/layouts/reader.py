@@ -1,0 +1,297 @@
+"""Read a layout back (gdstk, and KLayout as an independent reader), rebuild
+the index map exactly, check it against the design, and run design rules."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import InputError
+from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
+
+__all__ = ["LayoutContents", "read_layout", "read_layout_klayout", "verify_against_design", "drc_check",
+           "check_file"]
+
+_OASIS_MAGIC = b"%SEMI-OASIS\r\n"
+_GDS_MAGIC = b"\x00\x06\x00\x02"
+
+
+def check_file(path: Path) -> str:
+    """Format of a layout file after integrity checks; one-line InputError otherwise."""
+    import gdstk
+
+    if not path.exists():
+        raise InputError(f"{path}: no such layout file")
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+        fh.seek(max(0, path.stat().st_size - 4))
+        tail = fh.read(4)
+    if head.startswith(_OASIS_MAGIC):
+        ok, _sig = gdstk.oas_validate(str(path))
+        if ok is None:
+            raise InputError(f"{path}: OASIS file without a validation signature (truncated, or not written "
+                             "by metadesign)")
+        if not ok:
+            raise InputError(f"{path}: OASIS file is corrupt (CRC32 mismatch)")
+        return "oas"
+    if head.startswith(_GDS_MAGIC):
+        if tail != b"\x00\x04\x04\x00":  # ENDLIB record
+            raise InputError(f"{path}: GDSII file is truncated (no ENDLIB record)")
+        return "gds"
+    raise InputError(f"{path}: not an OASIS or GDSII file")
+
+
+@dataclass
+class LayoutContents:
+    index_map: np.ndarray  # [iy, ix], -1 where no pillar was placed
+    atom_widths_nm: np.ndarray  # (n_atoms, 2) rectangle sizes read from the atom cells
+    atom_centres_nm: np.ndarray  # (n_atoms, 2) rectangle centres (x2, to keep integers)
+    provenance: dict
+    n_placements: int
+    duplicates: int
+    off_lattice: int
+    period_nm: int
+    origin_nm: int
+    seconds: float
+
+
+def _provenance(top) -> dict:
+    prop = top.get_property(PROPERTY)
+    if not prop:
+        raise InputError(f"layout has no '{PROPERTY}' property on its top cell: not written by metadesign")
+    raw = prop[0]
+    return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+
+
+def _place(index_map, n, p_nm, x0, a, xs, ys):
+    """Scatter atom ``a`` at positions (nm); returns (duplicates, off-lattice).
+
+    Readers return float positions (gdstk accumulates the repetition deltas in
+    doubles, ~1e-6 nm off); each must be within 0.01 nm of an integer nm,
+    which must then lie exactly on the lattice (integer arithmetic)."""
+    xi, yi = np.rint(xs).astype(np.int64), np.rint(ys).astype(np.int64)
+    near = (np.abs(xs - xi) < 0.01) & (np.abs(ys - yi) < 0.01)
+    ix, rx = np.divmod(xi - x0, p_nm)
+    iy, ry = np.divmod(yi - x0, p_nm)
+    bad = ~near | (rx != 0) | (ry != 0) | (ix < 0) | (ix >= n) | (iy < 0) | (iy >= n)
+    ix, iy = ix[~bad], iy[~bad]
+    dup = int(np.count_nonzero(index_map[iy, ix] >= 0))
+    index_map[iy, ix] = a
+    return dup, int(bad.sum())
+
+
+def read_layout(path: str | Path) -> LayoutContents:
+    """gdstk reader: every pillar, exactly."""
+    import gdstk
+
+    path = Path(path)
+    t0 = time.perf_counter()
+    fmt = check_file(path)
+    try:
+        lib = gdstk.read_oas(str(path), unit=1e-9) if fmt == "oas" else gdstk.read_gds(str(path), unit=1e-9)
+    except Exception as exc:  # gdstk raises RuntimeError/OSError on damaged files
+        raise InputError(f"{path}: cannot read layout ({exc})") from None
+    cells = {c.name: c for c in lib.cells}
+    if TOP_CELL not in cells:
+        raise InputError(f"{path}: no top cell {TOP_CELL!r}: not a metadesign layout")
+    top = cells[TOP_CELL]
+    if fmt == "gds":  # GDSII keeps no cell properties: provenance is in the text label
+        prov = None
+        for lab in top.labels:
+            if lab.texttype == 1 and lab.text.startswith("{"):
+                prov = json.loads(lab.text)
+        if prov is None:
+            raise InputError(f"{path}: no provenance label: not written by metadesign")
+    else:
+        prov = _provenance(top)
+    n = int(prov["n_cells"])
+    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
+    n_atoms = int(prov["n_atoms"])
+    widths = np.zeros((n_atoms, 2), np.int64)
+    centres2 = np.zeros((n_atoms, 2), np.int64)
+    for a in range(n_atoms):
+        c = cells.get(f"ATOM_{a:03d}")
+        if c is None or len(c.polygons) != 1:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} missing or not a single rectangle")
+        (xa, ya), (xb, yb) = c.polygons[0].bounding_box()
+        widths[a] = round(xb - xa), round(yb - ya)
+        centres2[a] = round(xa + xb), round(ya + yb)
+    im = np.full((n, n), -1, np.int16 if n_atoms < 32767 else np.int32)
+    dup = off = count = 0
+    # GDSII stores one SREF per pillar: group them per atom cell first
+    groups: dict[int, list] = {}
+    for ref in top.references:
+        name = ref.cell.name if hasattr(ref.cell, "name") else str(ref.cell)
+        if not name.startswith("ATOM_"):
+            raise InputError(f"{path}: unexpected reference to cell {name!r}")
+        a = int(name[5:])
+        ox, oy = ref.origin
+        if ref.repetition.size > 1:
+            offs = np.asarray(ref.repetition.offsets)
+            xs = np.concatenate([[0.0], offs[:, 0]]) + ox
+            ys = np.concatenate([[0.0], offs[:, 1]]) + oy
+        else:
+            xs, ys = np.array([ox]), np.array([oy])
+        groups.setdefault(a, []).append((xs, ys))
+    for a, parts in groups.items():
+        xs = np.concatenate([p[0] for p in parts])
+        ys = np.concatenate([p[1] for p in parts])
+        count += xs.size
+        d, o = _place(im, n, p_nm, x0, a, xs, ys)
+        dup += d
+        off += o
+    return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
+
+
+def read_layout_klayout(path: str | Path) -> LayoutContents:
+    """Independent reader: KLayout's own OASIS/GDS parser (expands repetitions)."""
+    import klayout.db as kdb
+
+    path = Path(path)
+    t0 = time.perf_counter()
+    check_file(path)
+    ly = kdb.Layout()
+    try:
+        ly.read(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: KLayout cannot read the layout ({exc})") from None
+    if abs(ly.dbu - 1e-3) > 1e-12:
+        raise InputError(f"{path}: database unit {ly.dbu} um, expected 0.001 um (1 nm)")
+    top = ly.cell(TOP_CELL)
+    if top is None:
+        raise InputError(f"{path}: no top cell {TOP_CELL!r}")
+    prov = None
+    for li in ly.layer_indexes():
+        for sh in top.shapes(li).each():
+            if sh.is_text() and sh.text.string.startswith("{"):
+                prov = json.loads(sh.text.string)
+    if prov is None:
+        prop = top.property(PROPERTY)
+        prov = json.loads(prop) if prop else None
+    if prov is None:
+        raise InputError(f"{path}: no provenance: not written by metadesign")
+    n = int(prov["n_cells"])
+    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
+    n_atoms = int(prov["n_atoms"])
+    layer = ly.find_layer(prov["layer"][0], prov["layer"][1])
+    widths = np.zeros((n_atoms, 2), np.int64)
+    centres2 = np.zeros((n_atoms, 2), np.int64)
+    index_of = {}
+    for a in range(n_atoms):
+        c = ly.cell(f"ATOM_{a:03d}")
+        if c is None:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} missing")
+        shapes = list(c.shapes(layer).each())
+        if len(shapes) != 1:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
+        b = shapes[0].bbox()
+        widths[a] = b.width(), b.height()
+        centres2[a] = b.left + b.right, b.bottom + b.top
+        index_of[c.cell_index()] = a
+    xs = {a: [] for a in range(n_atoms)}
+    ys = {a: [] for a in range(n_atoms)}
+    count = 0
+    for inst in top.each_inst():
+        a = index_of.get(inst.cell_index)
+        if a is None:
+            raise InputError(f"{path}: unexpected instance of cell {ly.cell(inst.cell_index).name!r}")
+        if inst.is_regular_array():
+            na, nb = inst.na, inst.nb
+            base = inst.trans.disp
+            for i in range(na):
+                for j in range(nb):
+                    v = base + inst.a * i + inst.b * j
+                    xs[a].append(v.x)
+                    ys[a].append(v.y)
+            count += na * nb
+        else:
+            d = inst.trans.disp
+            xs[a].append(d.x)
+            ys[a].append(d.y)
+            count += 1
+    im = np.full((n, n), -1, np.int32)
+    dup = off = 0
+    for a in range(n_atoms):
+        if xs[a]:
+            d, o = _place(im, n, p_nm, x0, a, np.asarray(xs[a], float), np.asarray(ys[a], float))
+            dup += d
+            off += o
+    return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
+
+
+def verify_against_design(lc: LayoutContents, design, grid_nm: int = 1) -> dict:
+    """Exact comparison of every pillar (position, atom, size) with the design."""
+    spec = design.spec
+    want = design.index_map.astype(np.int64)
+    if design.empty is not None:
+        want = np.where(design.index_map == design.empty, -1, want)
+    problems = []
+    if lc.index_map.shape != want.shape:
+        problems.append(f"grid {lc.index_map.shape} vs design {want.shape}")
+        mismatched = -1
+    else:
+        mismatched = int(np.count_nonzero(lc.index_map != want))
+        if mismatched:
+            problems.append(f"{mismatched} cells hold another atom than the design")
+    wx, _ = snap_widths(design.atoms.wx, grid_nm)
+    wy, _ = snap_widths(design.atoms.wy, grid_nm)
+    exp_w = np.stack([wx, wy], axis=1)
+    if lc.atom_widths_nm.shape != exp_w.shape or np.any(lc.atom_widths_nm != exp_w):
+        problems.append("atom rectangle sizes differ from the design's snapped widths")
+    # centres: exactly 0, or -1 (half a nm, doubled) for odd widths
+    if np.any((lc.atom_centres_nm != 0) & (lc.atom_centres_nm != -(exp_w % 2))):
+        problems.append("atom rectangles are not centred on their cell origin")
+    p_nm, x0 = layout_geometry(spec.n_cells, spec.period)
+    if (lc.period_nm, lc.origin_nm) != (p_nm, x0):
+        problems.append(f"lattice {lc.period_nm} nm / origin {lc.origin_nm} vs design {p_nm} / {x0}")
+    if lc.duplicates:
+        problems.append(f"{lc.duplicates} cells placed more than once")
+    if lc.off_lattice:
+        problems.append(f"{lc.off_lattice} pillars off the {p_nm} nm lattice or outside the aperture")
+    expected = int(np.count_nonzero(want >= 0))
+    if lc.n_placements != expected:
+        problems.append(f"{lc.n_placements} pillars placed, design has {expected}")
+    return {"exact": not problems, "problems": problems, "pillars": lc.n_placements, "expected": expected,
+            "mismatched_cells": mismatched, "read_seconds": lc.seconds,
+            "counts_per_atom": np.bincount(lc.index_map[lc.index_map >= 0].ravel(),
+                                           minlength=len(design.atoms)).tolist()}
+
+
+def drc_check(lc: LayoutContents, min_feature_nm: int, min_gap_nm: int, window_cells: int = 64) -> dict:
+    """Design rules: from the atom table, and geometrically with KLayout regions
+    on a central window of the layout as read back from the file (merged
+    semantics off, so abutting pillars are not fused; one window, no tiles, so
+    no violation is counted twice)."""
+    import klayout.db as kdb
+
+    w = lc.atom_widths_nm
+    p_nm, x0 = lc.period_nm, lc.origin_nm
+    table = {
+        "min_feature_nm": int(w.min()),
+        "min_gap_x_nm": int(p_nm - w[:, 0].max()),
+        "min_gap_y_nm": int(p_nm - w[:, 1].max()),
+    }
+    n = lc.index_map.shape[0]
+    c = min(window_cells, n)
+    s = (n - c) // 2
+    region = kdb.Region()
+    sub = lc.index_map[s:s + c, s:s + c]
+    for j, i in zip(*np.nonzero(sub >= 0)):
+        a = int(sub[j, i])
+        cx2 = 2 * ((s + int(i)) * p_nm + x0) + int(lc.atom_centres_nm[a, 0])
+        cy2 = 2 * ((s + int(j)) * p_nm + x0) + int(lc.atom_centres_nm[a, 1])
+        ww, hh = int(w[a, 0]), int(w[a, 1])
+        region.insert(kdb.Box((cx2 - ww) // 2, (cy2 - hh) // 2, (cx2 - ww) // 2 + ww, (cy2 - hh) // 2 + hh))
+    region.merged_semantics = False
+    width_v = region.width_check(min_feature_nm)
+    space_v = region.space_check(min_gap_nm)
+    geo = {"window_cells": c, "pillars_in_window": region.count(),
+           "width_violations": width_v.count(), "space_violations": space_v.count()}
+    passed = (table["min_feature_nm"] >= min_feature_nm and min(table["min_gap_x_nm"], table["min_gap_y_nm"])
+              >= min_gap_nm and geo["width_violations"] == 0 and geo["space_violations"] == 0)
+    return {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm}, "from_atom_table": table,
+            "geometric_window": geo, "passed": passed}
