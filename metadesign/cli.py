@@ -294,6 +294,132 @@ def _cmd_layout_preview(a: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- sensing
+
+
+def _sensing_recipe(a):
+    from .paths import repo_root
+    from .sensing.model import load_sensing_recipe
+
+    return load_sensing_recipe(a.sensor or repo_root() / "sensing" / "paper.toml")
+
+
+def _perturbation(bias_x_nm, bias_y_nm, jitter_nm, corner_nm, seed):
+    from .sensing.transmission import Perturbation
+
+    for name, v in (("--jitter-nm", jitter_nm), ("--corner-nm", corner_nm)):
+        if v < 0:
+            raise InputError(f"{name}: expected a number >= 0, got {v}")
+    for name, v in (("--bias-nm", bias_x_nm), ("--bias-nm", bias_y_nm)):
+        if abs(v) > 200:
+            raise InputError(f"{name}: expected a bias in [-200, 200] nm, got {v}")
+    return Perturbation(bias_x_nm * 1e-9, bias_y_nm * 1e-9, jitter_nm * 1e-9, corner_nm * 1e-9, seed)
+
+
+def _cmd_psf(a: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .io import write_npz
+    from .sensing.model import AsFabricated, render_frames
+    from .sensing.plot import plot_frames
+    from .sensing.sensor import add_noise, psf_tensor
+
+    sr = _sensing_recipe(a)
+    if len(a.bias_nm) > 2:
+        raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
+    pert = _perturbation(a.bias_nm[0], a.bias_nm[-1], a.jitter_nm, a.corner_nm, a.seed)
+    fab = AsFabricated.from_files(a.layout, a.library)
+    e_in = None
+    if a.wavefront:
+        from .io import read_npz
+
+        z = read_npz(a.wavefront, "wavefront file")
+        if "field" not in z or z["field"].ndim != 2 or z["field"].shape[0] != z["field"].shape[1]:
+            raise InputError(f"{a.wavefront}: expected a square complex array 'field' on the pupil grid")
+        e_in = z["field"]
+    frames, cp = render_frames(fab, sr, pert, None, _progress_bar("pupil", unit="block-row"))
+    if e_in is not None:
+        from .sensing.forward import sensor_frames
+
+        if e_in.shape != cp.G.shape[-2:]:
+            raise InputError(f"{a.wavefront}: field is {e_in.shape}, the pupil grid is {cp.G.shape[-2:]}")
+        frames = sensor_frames(cp, sr.sensor, e_in)
+    noisy = add_noise(frames, sr.noise) if (sr.noise.gaussian_percent or sr.noise.photons_at_peak
+                                             or sr.noise.bit_depth) else frames
+    tensor = psf_tensor(noisy, sr.sensor)
+    out = Path(a.output) if a.output else Path(a.layout).with_name("psf")
+    out.mkdir(parents=True, exist_ok=True)
+    write_npz(out / "psf.npz", {"frames": noisy, "tensor": tensor})
+    fig = plot_frames(noisy, sr.sensor, out / "psf-fig-2c.png", fab.channels,
+                      f"{Path(a.layout).name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)")
+    summary = {"output": str(out), "frames_shape": list(frames.shape), "tensor_shape": list(tensor.shape),
+               "pupil_grid": list(cp.G.shape[-2:]), "block_cells": cp.block, "clamped_pillars": cp.n_clamped,
+               "power_per_frame": [float(f.sum()) for f in frames], "figure": str(fig),
+               "aperture_m2": (fab.n_cells * fab.period) ** 2}
+    text = (f"wrote {out}/psf.npz (frames 2x{sr.sensor.height_px}x{sr.sensor.width_px}, tensor {tuple(tensor.shape)}) "
+            f"and {fig.name}; coarse pupil {cp.G.shape[-1]}^2 ({cp.block}x{cp.block} cells per sample); "
+            f"power on sensor x {summary['power_per_frame'][0] / summary['aperture_m2']:.3f} "
+            f"y {summary['power_per_frame'][1] / summary['aperture_m2']:.3f} of incident; "
+            f"{cp.n_clamped} pillars outside the library range (clamped)")
+    _emit(summary, a.json, text)
+    return 0
+
+
+def _cmd_fab_study(a: argparse.Namespace) -> int:
+    import csv
+    import itertools
+
+    import numpy as np
+
+    from .io import atomic_path, atomic_write_text
+    from .sensing.model import AsFabricated, channel_metrics
+    from .sensing.plot import plot_fab_study
+
+    sr = _sensing_recipe(a)
+    if a.seeds < 1:
+        raise InputError(f"--seeds: expected an integer >= 1, got {a.seeds}")
+    fab = AsFabricated.from_files(a.layout, a.library)
+    if not fab.channels[0]:
+        raise InputError(f"{a.layout}: layout provenance lacks the design recipe (channel focal lengths)")
+    cases = list(itertools.product(a.bias_nm, a.jitter_nm, a.corner_nm, range(a.seeds)))
+    rows = []
+    bar = _progress_bar("fab-study", unit="case")
+    for i, (b, j, c, s) in enumerate(cases):
+        pert = _perturbation(b, b, j, c, a.seed + s)
+        cp = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert)
+        label = f"bias {b:+g} jit {j:g} cr {c:g}"
+        for r in channel_metrics(cp, sr.sensor, fab):
+            rows.append({"case": i // a.seeds, "label": label, "bias_nm": b, "jitter_nm": j,
+                         "corner_nm": c, "seed": a.seed + s, "clamped_pillars": cp.n_clamped, **r})
+        bar(i + 1, len(cases))
+    out = Path(a.output) if a.output else Path(a.layout).with_name("fab-study")
+    out.mkdir(parents=True, exist_ok=True)
+    cols = ["bias_nm", "jitter_nm", "corner_nm", "seed", "pol", "k", "quadrant", "design_focal_length_mm",
+            "focusing_efficiency", "strehl", "focal_shift_mm", "centroid_shift_x_um", "centroid_shift_y_um",
+            "crosstalk", "clamped_pillars"]
+    with atomic_path(out / "fab-study.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(cols)
+            for r in rows:
+                w.writerow([r["bias_nm"], r["jitter_nm"], r["corner_nm"], r["seed"], r["pol"], r["k"], r["quadrant"],
+                            f"{r['design_focal_length_mm']:.4f}", f"{r['focusing_efficiency']:.6f}",
+                            f"{r['strehl']:.5f}", f"{r['focal_shift_mm']:.5f}", f"{r['centroid_shift_um'][0]:.4f}",
+                            f"{r['centroid_shift_um'][1]:.4f}", f"{r['crosstalk']:.5f}", r["clamped_pillars"]])
+    fig = plot_fab_study(rows, out / "fab-study.png")
+    atomic_write_text(out / "fab-study.json", json.dumps(rows, indent=1, default=float))
+    lines = [f"wrote {out}/fab-study.csv, fab-study.png ({len(cases)} cases x 8 channels)",
+             "  bias  jitter corner | mean eff  mean Strehl  mean |focal shift| mm  mean crosstalk  clamped"]
+    for b, j, c in itertools.product(a.bias_nm, a.jitter_nm, a.corner_nm):
+        rr = [r for r in rows if (r["bias_nm"], r["jitter_nm"], r["corner_nm"]) == (b, j, c)]
+        lines.append(f"  {b:+5g} {j:6g} {c:6g} | {np.mean([r['focusing_efficiency'] for r in rr]):.4f}    "
+                     f"{np.mean([r['strehl'] for r in rr]):.4f}       "
+                     f"{np.mean([abs(r['focal_shift_mm']) for r in rr]):.4f}                "
+                     f"{np.mean([r['crosstalk'] for r in rr]):.4f}          {rr[0]['clamped_pillars']}")
+    _emit({"rows": rows, "figure": str(fig)}, a.json, "\n".join(lines))
+    return 0
+
+
 # ------------------------------------------------------------------- demo
 
 
@@ -365,6 +491,42 @@ def build_parser() -> argparse.ArgumentParser:
                      help="preview: window of cells to draw (default: 16 x 16 at the centre)")
     lay.add_argument("--json", action="store_true", help="print the report as JSON")
     lay.set_defaults(func=_cmd_layout)
+
+    psf = sub.add_parser(
+        "psf", help="as-fabricated 8 PSFs of a layout on the sensor (Fig. 2c)",
+        description="Stage 4. Rebuild the complex transmission from the layout file itself (pillars read back, "
+        "optional fab perturbations, complex-t interpolation in the full RCWA library), propagate to the sensor "
+        "with the fast coarse-pupil Fresnel path, and write OUT/psf.npz (frames 2 x H x W, tensor 8 x S x S in "
+        "the order x-pol QI..QIV, y-pol QI..QIV) and OUT/psf-fig-2c.png.")
+    psf.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
+    psf.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
+    psf.add_argument("--library", help="unit-cell library (default: the design's)")
+    psf.add_argument("--wavefront", help=".npz with a complex 'field' on the pupil grid (default: flat)")
+    psf.add_argument("--bias-nm", type=float, nargs="+", default=[0.0], help="width bias: one value or x y")
+    psf.add_argument("--jitter-nm", type=float, default=0.0, help="random width jitter sigma (nm)")
+    psf.add_argument("--corner-nm", type=float, default=0.0, help="corner rounding radius (nm)")
+    psf.add_argument("--seed", type=int, default=0, help="jitter seed")
+    psf.add_argument("-o", "--output", help="output folder (default: psf/ beside the layout)")
+    psf.add_argument("--json", action="store_true", help="print the summary as JSON")
+    psf.set_defaults(func=_cmd_psf)
+
+    fs = sub.add_parser(
+        "fab-study", help="sweep fab perturbations: efficiency, Strehl, focal/centroid shift, crosstalk",
+        description="For every combination of --bias-nm, --jitter-nm, --corner-nm (and --seeds jitter draws), "
+        "rebuild the as-fabricated pupil and report per channel: focusing efficiency (power in the designed "
+        "quadrant / incident), Strehl ratio at best focus, focal shift, centroid shift, crosstalk into the other "
+        "quadrants. Writes OUT/fab-study.csv, .json and .png.")
+    fs.add_argument("layout", help="layout file")
+    fs.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
+    fs.add_argument("--library", help="unit-cell library (default: the design's)")
+    fs.add_argument("--bias-nm", type=float, nargs="+", default=[-10.0, 0.0, 10.0], help="width biases (nm)")
+    fs.add_argument("--jitter-nm", type=float, nargs="+", default=[0.0], help="jitter sigmas (nm)")
+    fs.add_argument("--corner-nm", type=float, nargs="+", default=[0.0], help="corner radii (nm)")
+    fs.add_argument("--seeds", type=int, default=1, help="jitter draws per case")
+    fs.add_argument("--seed", type=int, default=0, help="first jitter seed")
+    fs.add_argument("-o", "--output", help="output folder (default: fab-study/ beside the layout)")
+    fs.add_argument("--json", action="store_true", help="print the rows as JSON")
+    fs.set_defaults(func=_cmd_fab_study)
 
     lib = sub.add_parser("library", help="unit-cell library: build (RCWA sweep), show, plot, export",
                          description="Stage 1: the RCWA unit-cell library of rectangular Si pillars.")

@@ -1,0 +1,190 @@
+"""The as-fabricated forward model behind ``metadesign psf`` and ``fab-study``:
+layout file -> pillars -> (perturbed) complex t -> coarse pupils -> sensor."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import InputError, Param, Section, load_toml, parse
+from ..design.phase import LensChannel
+from ..layouts.reader import LayoutContents, read_layout
+from ..library.store import UnitCellLibrary, load_library
+from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
+from .sensor import NoiseSpec, SensorSpec, quadrant_slices
+from .transmission import Perturbation, pillar_transmission
+
+__all__ = ["SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics", "render_frames",
+           "SENSING_SECTIONS"]
+
+SENSING_SECTIONS = (
+    Section("sensor", (
+        Param("width_px", int, 640, lo=2, hi=100000),
+        Param("height_px", int, 512, lo=2, hi=100000),
+        Param("pixel_um", float, 15.0, lo=0, open_lo=True, hi=1000),
+        Param("magnification", float, 10.0, lo=0, open_lo=True, hi=10000),
+        Param("distance_mm", float, 50.0, lo=0, open_lo=True, hi=10000),
+        Param("tensor_size", int, 256, lo=2, hi=4096),
+    ), optional=True),
+    Section("pupil", (Param("grid", int, 256, lo=8, hi=8192),), optional=True),
+    Section("noise", (
+        Param("gaussian_percent", float, 0.0, lo=0, hi=100),
+        Param("photons_at_peak", float, 0.0, lo=0),
+        Param("read_noise_e", float, 0.0, lo=0),
+        Param("bit_depth", int, 0, lo=0, hi=32),
+        Param("seed", int, 0, lo=0),
+    ), optional=True),
+)
+
+
+@dataclass(frozen=True)
+class SensingRecipe:
+    sensor: SensorSpec
+    pupil_grid: int
+    noise: NoiseSpec
+
+
+def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
+    v = parse(data, SENSING_SECTIONS, source)
+    s, nz = v["sensor"], v["noise"]
+    if s["width_px"] % 4 or s["height_px"] % 4:
+        raise InputError(f"{source}: sensor.width_px and sensor.height_px must be multiples of 4 (quadrants)")
+    sensor = SensorSpec(s["width_px"], s["height_px"], s["pixel_um"], s["magnification"], s["distance_mm"],
+                        s["tensor_size"])
+    noise = NoiseSpec(nz["gaussian_percent"], nz["photons_at_peak"] or None, nz["read_noise_e"],
+                      nz["bit_depth"] or None, nz["seed"])
+    return SensingRecipe(sensor, v["pupil"]["grid"], noise)
+
+
+def load_sensing_recipe(path: str | Path) -> SensingRecipe:
+    return sensing_from_dict(load_toml(path), str(path))
+
+
+@dataclass
+class AsFabricated:
+    """A layout's pillars and the library, ready to make coarse pupils."""
+
+    layout: LayoutContents
+    lib: UnitCellLibrary
+    period: float
+    wavelength: float
+    supercell: int
+    channels: tuple[tuple[LensChannel, ...], tuple[LensChannel, ...]]
+
+    @classmethod
+    def from_files(cls, layout_path: str | Path, lib_path: str | Path | None = None) -> "AsFabricated":
+        lc = read_layout(layout_path)
+        prov = lc.provenance
+        recipe = prov.get("recipe") or {}
+        d = recipe.get("design", {})
+        path = Path(lib_path) if lib_path else None
+        if path is None:
+            cand = Path(layout_path).parent / "design.npz"
+            if cand.exists():
+                from ..design.store import load_design
+
+                path = Path(load_design(cand).meta["library"]["path"])
+            else:
+                from ..paths import default_library_path
+
+                path = default_library_path()
+        lib = load_library(path)
+        if prov.get("library_sha256") and lib.identity != prov["library_sha256"]:
+            raise InputError(f"{path}: library differs from the one the layout was designed with "
+                             f"(sha256 {lib.identity[:12]} vs {prov['library_sha256'][:12]})")
+        period = lc.period_nm * 1e-9
+        if abs(period - lib.period) > 1e-12:
+            raise InputError(f"layout period {lc.period_nm} nm does not match the library ({lib.period * 1e9:g} nm)")
+        chans = _channels_from_recipe(recipe)
+        return cls(lc, lib, period, lib.wavelength, int(d.get("supercell", 2)), chans)
+
+    @property
+    def n_cells(self) -> int:
+        return self.layout.index_map.shape[0]
+
+    @property
+    def tn_scale(self) -> float:
+        st = self.lib.meta["stack"]
+        return float(np.sqrt(st["n_superstrate"] / st["n_substrate"]))
+
+    def pupil(self, z: float, pupil_grid: int, pert: Perturbation = Perturbation(), progress=None) -> CoarsePupil:
+        rng = np.random.default_rng(pert.seed)  # one stream over the rows: same seed, same pillars
+
+        def rows(r0, r1):
+            return pillar_transmission(self.layout.index_map, self.layout.atom_widths_nm, self.lib, pert,
+                                       slice(r0, r1), rng)
+
+        block = block_size_for(self.n_cells, pupil_grid, self.supercell)
+        return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
+                            self.tn_scale, progress=progress)
+
+
+def _channels_from_recipe(recipe: dict):
+    from ..design.recipe import design_recipe_from_dict
+
+    try:
+        r = design_recipe_from_dict(recipe)
+        return r.spec.channels_x, r.spec.channels_y
+    except Exception:  # older/foreign provenance: channels unknown
+        return (), ()
+
+
+def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_span: float = 0.3e-3,
+                    n_focus: int = 7) -> list[dict]:
+    """Per channel (pol, k): focusing efficiency, Strehl at best focus, focal
+    shift, centroid shift, crosstalk.  Channel k's light is computed from its
+    own sub-lattice alone."""
+    X, Y = sensor.coords()
+    area_px = sensor.focal_pitch**2
+    aperture = (fab.n_cells * fab.period) ** 2
+    out = []
+    for p in range(2):
+        for k in range(1, 5):
+            lens = fab.channels[p][k - 1] if fab.channels[p] else None
+            ch = [k - 1]
+            frame = np.zeros((sensor.height_px, sensor.width_px), np.float32)
+            for q in range(1, 5):
+                r, c = quadrant_slices(sensor, q)
+                frame[r, c] = quadrant_fields(cp, p, X[c], Y[r], sensor.quadrant_centre(q), channels=ch) * area_px
+            r, c = quadrant_slices(sensor, k)
+            own = float(frame[r, c].sum())
+            total = float(frame.sum())
+            sub = frame[r, c]
+            ys, xs = np.meshgrid(Y[r], X[c], indexing="ij")
+            cx, cy = float((sub * xs).sum() / own), float((sub * ys).sum() / own)
+            target = (lens.offset_x, lens.offset_y) if lens else sensor.quadrant_centre(k)
+            # through focus around the designed focal length: peak intensity on a small window
+            f_k = lens.focal_length if lens else cp.z
+            zs = f_k + np.linspace(-focus_span, focus_span, n_focus)
+            win = 6 * 1.22 * cp.wavelength * f_k / (fab.n_cells * fab.period)  # a few Airy radii
+            xo = target[0] + np.linspace(-win, win, 41)
+            yo = target[1] + np.linspace(-win, win, 41)
+            peaks = np.array([quadrant_fields(cp, p, xo, yo, target, channels=ch, z=z).max() for z in zs])
+            i = int(np.argmax(peaks))
+            if 0 < i < n_focus - 1:  # parabolic refinement
+                a, b, c_ = peaks[i - 1], peaks[i], peaks[i + 1]
+                d = 0.5 * (a - c_) / (a - 2 * b + c_)
+                z_best = float(zs[i] + d * (zs[1] - zs[0]))
+                peak = float(b - 0.25 * (a - c_) * d)
+            else:
+                z_best, peak = float(zs[i]), float(peaks[i])
+            p_channel = float(np.sum(np.abs(cp.G[p, k - 1]) ** 2) * cp.pitch**2)  # propagating power
+            strehl = peak * (cp.wavelength * z_best) ** 2 / (p_channel * aperture)
+            out.append({
+                "pol": "xy"[p], "k": k, "quadrant": ["QI", "QII", "QIII", "QIV"][k - 1],
+                "design_focal_length_mm": f_k * 1e3,
+                "focusing_efficiency": own / aperture,
+                "strehl": strehl,
+                "focal_shift_mm": (z_best - f_k) * 1e3,
+                "centroid_shift_um": [1e6 * (cx - target[0]), 1e6 * (cy - target[1])],
+                "crosstalk": 1 - own / total if total > 0 else 0.0,
+            })
+    return out
+
+
+def render_frames(fab: AsFabricated, sr: SensingRecipe, pert: Perturbation = Perturbation(),
+                  e_in: np.ndarray | None = None, progress=None) -> tuple[np.ndarray, CoarsePupil]:
+    cp = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress)
+    return sensor_frames(cp, sr.sensor, e_in), cp
