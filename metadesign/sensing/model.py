@@ -134,7 +134,8 @@ def _channels_from_recipe(recipe: dict):
 def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_span: float = 0.3e-3,
                     n_focus: int = 7) -> list[dict]:
     """Per channel (pol, k): focusing efficiency, Strehl at best focus, focal
-    shift, centroid shift, crosstalk.  Channel k's light is computed from its
+    shift, centroid shift (on the sensor plane, relative to the chief ray of
+    the channel's lens), crosstalk.  Channel k's light is computed from its
     own sub-lattice alone."""
     X, Y = sensor.coords()
     area_px = sensor.focal_pitch**2
@@ -178,7 +179,9 @@ def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focu
                 "focusing_efficiency": own / aperture,
                 "strehl": strehl,
                 "focal_shift_mm": (z_best - f_k) * 1e3,
-                "centroid_shift_um": [1e6 * (cx - target[0]), 1e6 * (cy - target[1])],
+                # relative to the chief ray through the aperture centre: a channel focusing at f_k
+                # lands at offset * z / f_k on the sensor plane z
+                "centroid_shift_um": [1e6 * (cx - target[0] * cp.z / f_k), 1e6 * (cy - target[1] * cp.z / f_k)],
                 "crosstalk": 1 - own / total if total > 0 else 0.0,
             })
     return out
