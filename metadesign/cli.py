@@ -15,6 +15,8 @@ for _k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+
+import numpy as np  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -420,6 +422,77 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------- turbulence
+
+
+def _scenario(a):
+    from dataclasses import replace
+
+    from .paths import repo_root
+    from .turbulence.validate import load_scenario
+
+    sc = load_scenario(a.recipe or repo_root() / "sensing" / "turbulence.toml")
+    if getattr(a, "rytov", None) and len(a.rytov) == 1:
+        sc = replace(sc, rytov=a.rytov[0])
+    return sc
+
+
+def _cmd_turbulence(a: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .turbulence.path import check_sampling, solve_path
+
+    sc = _scenario(a)
+    if a.action == "show":
+        pm = solve_path(sc)
+        rep = check_sampling(sc, pm)
+        info = {"rytov": sc.rytov, "cn2": pm.cn2, "r0_m": pm.r0, "D_over_r0": sc.receiver_aperture / pm.r0,
+                "r0_screens_m": [float(x) for x in pm.r0_screens], "rytov_screens": pm.rytov_screens.tolist(),
+                "rytov_achieved": pm.rytov_achieved, "sampling_ok": rep.ok, "constraints": rep.constraints,
+                "failures": list(rep.failures), "magnification": sc.magnification}
+        lines = [f"Rytov {sc.rytov:g}: Cn^2 {pm.cn2:.3g} m^-2/3, r0 {pm.r0 * 100:.2f} cm, D/r0 "
+                 f"{info['D_over_r0']:.2f}, screens' Rytov " + " ".join(f"{v:.3f}" for v in pm.rytov_screens),
+                 f"sampling: {'OK' if rep.ok else 'INFEASIBLE'}"]
+        lines += [f"  {k}: {v[0]:.4g} vs {v[1]:.4g}" for k, v in rep.constraints.items()]
+        lines += [f"  ! {f}" for f in rep.failures]
+        _emit(info, a.json, "\n".join(lines))
+        return 0 if rep.ok else 2
+    from .turbulence.validate import plot_validation, validate
+
+    if a.samples < 2:
+        raise InputError(f"--samples: expected an integer >= 2, got {a.samples}")
+    rytovs = a.rytov or [0.1, 0.3, 0.5, 0.7]
+    for r in rytovs:
+        if not 0 < r <= 5:
+            raise InputError(f"--rytov: expected values in (0, 5], got {r}")
+    for r in rytovs:  # refuse infeasible sampling before any work
+        _ = check_sampling(replace(sc, rytov=r), solve_path(replace(sc, rytov=r)))
+        if not _.ok:
+            raise InputError(f"Rytov {r:g}: infeasible sampling: " + "; ".join(_.failures))
+    res = validate(sc, rytovs, a.samples, a.seed, progress=_progress_bar("turbulence", unit="sample"))
+    out = Path(a.output)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = plot_validation(res, out)
+    from .io import atomic_write_text
+
+    atomic_write_text(out / "turbulence-validation.json", json.dumps(res, default=float))
+    sf = res["structure_function"]
+    lines = [f"wrote {', '.join(f.name for f in figs)} and turbulence-validation.json to {out}",
+             "structure function / theory: " + " ".join(f"{x:.3f}" for x in sf["ratio"])
+             + f" (separations {sf['r_m'][0] * 1e3:g}..{sf['r_m'][-1] * 1e3:g} mm)",
+             "Rytov nominal -> measured (weak theory with inner scale), D/r0, NPiB complex / phase / none:"]
+    for lv in res["levels"]:
+        nb = {k: float(np.mean(v)) for k, v in lv["npib"].items()}
+        lines.append(f"  {lv['rytov_nominal']:.2f} -> {lv['rytov_measured']:.3f} ({lv['rytov_weak_theory_inner_scale']:.3f}),"
+                     f" D/r0 {lv['D_over_r0']:.2f}, NPiB {nb['complex']:.3f} / {nb['phase']:.3f} / {nb['none']:.3f}")
+    summary = {"structure_function": sf, "levels": [{k: v for k, v in lv.items() if k in (
+        "rytov_nominal", "rytov_measured", "rytov_weak_theory_inner_scale", "r0_m", "D_over_r0")}
+        | {"npib_mean": {k: float(np.mean(v)) for k, v in lv["npib"].items()}} for lv in res["levels"]],
+        "figures": [str(f) for f in figs]}
+    _emit(summary, a.json, "\n".join(lines))
+    return 0
+
+
 # ------------------------------------------------------------------- demo
 
 
@@ -527,6 +600,21 @@ def build_parser() -> argparse.ArgumentParser:
     fs.add_argument("-o", "--output", help="output folder (default: fab-study/ beside the layout)")
     fs.add_argument("--json", action="store_true", help="print the rows as JSON")
     fs.set_defaults(func=_cmd_fab_study)
+
+    tu = sub.add_parser(
+        "turbulence", help="turbulence model: show (path, r0, sampling) | validate (Figs. S5, S6)",
+        description="Stage 5. `turbulence show` solves the path (Rytov -> Cn^2 -> r0 -> per-screen r0) and checks "
+        "the split-step sampling constraints (exit 2 when infeasible). `turbulence validate` compares screens and "
+        "received fields with theory: structure function, log-amplitude variance vs nominal Rytov, coherence "
+        "factor, long-exposure MTF, and power in bucket after phase-only / complex-field / no correction.")
+    tu.add_argument("action", choices=["show", "validate"])
+    tu.add_argument("recipe", nargs="?", help="scenario recipe (default: sensing/turbulence.toml)")
+    tu.add_argument("--rytov", type=float, nargs="+", help="Rytov numbers (validate default: 0.1 0.3 0.5 0.7)")
+    tu.add_argument("--samples", type=int, default=40, help="samples per Rytov number (default 40)")
+    tu.add_argument("--seed", type=int, default=0, help="master seed")
+    tu.add_argument("-o", "--output", default="turbulence-out", help="output folder for validate")
+    tu.add_argument("--json", action="store_true", help="print the summary as JSON")
+    tu.set_defaults(func=_cmd_turbulence)
 
     lib = sub.add_parser("library", help="unit-cell library: build (RCWA sweep), show, plot, export",
                          description="Stage 1: the RCWA unit-cell library of rectangular Si pillars.")

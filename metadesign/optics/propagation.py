@@ -10,6 +10,7 @@ complex64; phases are written with cos/sin (not ``np.exp(1j*...)``).
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft as sfft
 
 __all__ = [
     "SamplingError", "cexp", "asm_transfer", "angular_spectrum", "check_asm_sampling", "mft",
@@ -81,7 +82,7 @@ def angular_spectrum(u: np.ndarray, dx: float, wavelength: float, z: float, n_me
     propagating components; pad ``u`` beforehand to avoid wrap-around."""
     u = np.asarray(u, np.complex64)
     H = asm_transfer(u.shape, dx, wavelength, z, n_medium, band_limit)
-    return np.fft.ifft2(np.fft.fft2(u) * H).astype(np.complex64)
+    return sfft.ifft2(sfft.fft2(u) * H).astype(np.complex64)
 
 
 def mft(u: np.ndarray, x: np.ndarray, y: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:

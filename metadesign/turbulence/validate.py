@@ -1,0 +1,219 @@
+"""Validation statistics of the turbulence model against theory (Figs. S5, S6),
+the scenario recipe, and the plots (the I/O edge of stage 5)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..config import Param, Section, load_toml, parse
+from .path import Scenario
+from .propagate import Turbulence
+from .screens import ScreenGrid, log_amplitude_variance_theory, screens, structure_function_theory
+
+__all__ = ["SECTIONS", "scenario_from_dict", "load_scenario", "structure_function_check", "log_amplitude",
+           "coherence", "wave_structure_theory", "validate", "plot_validation"]
+
+SECTIONS = (
+    Section("path", (
+        Param("wavelength_nm", float, 1550.0, lo=100, hi=20000),
+        Param("length_m", float, 1000.0, lo=1, hi=1e6),
+        Param("n_screens", int, 13, lo=3, hi=200),
+        Param("rytov", float, 0.3, lo=0, open_lo=True, hi=5),
+        Param("max_screen_rytov", float, 0.1, lo=0, open_lo=True, hi=1),
+        Param("inner_scale_cm", float, 1.0, lo=0, open_lo=True, hi=100),
+        Param("outer_scale_m", float, 100.0, lo=0, open_lo=True, hi=1e5),
+    ), optional=True),
+    Section("grid", (
+        Param("n", int, 256, lo=32, hi=8192),
+        Param("spacing_mm", float, 2.5, lo=0, open_lo=True, hi=1000),
+        Param("absorber_order", int, 16, lo=2, hi=64),
+        Param("subharmonics", bool, True),
+    ), optional=True),
+    Section("receiver", (
+        Param("aperture_cm", float, 10.0, lo=0, open_lo=True, hi=1000),
+        Param("metasurface_aperture_mm", float, 5.0, lo=0, open_lo=True, hi=1000),
+        Param("roi_factor", float, 4.0, lo=1, hi=20),
+    ), optional=True),
+)
+
+
+def scenario_from_dict(data: dict, source: str = "recipe") -> Scenario:
+    v = parse(data, SECTIONS, source)
+    p, g, r = v["path"], v["grid"], v["receiver"]
+    return Scenario(wavelength=p["wavelength_nm"], length=p["length_m"], n_screens=p["n_screens"], rytov=p["rytov"],
+                    max_screen_rytov=p["max_screen_rytov"], inner_scale=p["inner_scale_cm"],
+                    outer_scale=p["outer_scale_m"], n_grid=g["n"], dx=g["spacing_mm"],
+                    receiver_aperture=r["aperture_cm"], metasurface_aperture=r["metasurface_aperture_mm"],
+                    roi_factor=r["roi_factor"], absorber_order=g["absorber_order"], subharmonics=g["subharmonics"])
+
+
+def load_scenario(path) -> Scenario:
+    return scenario_from_dict(load_toml(path), str(path))
+
+
+def structure_function_check(sc: Scenario, n_screens: int = 300, seed: int = 0, r0: float = 0.05,
+                             seps=(2, 4, 8, 16, 32, 64, 128)) -> dict:
+    """Ensemble phase structure function of screens vs the theory of the same PSD."""
+    g = ScreenGrid(sc.n_grid, sc.dx, sc.inner_scale, sc.outer_scale, sc.subharmonics)
+    seps = [s for s in seps if s <= sc.n_grid // 2]
+    D = np.zeros(len(seps))
+    ss = np.random.SeedSequence(seed).spawn((n_screens + 1) // 2)
+    for s in ss:
+        for a in screens(g, [r0, r0], s):
+            for i, r in enumerate(seps):
+                D[i] += 0.5 * (np.mean((a[:, r:] - a[:, :-r]) ** 2) + np.mean((a[r:, :] - a[:-r, :]) ** 2))
+    D /= 2 * len(ss)
+    r = np.array(seps) * sc.dx
+    th = structure_function_theory(r, r0, sc.inner_scale, sc.outer_scale)
+    return {"r_m": r.tolist(), "measured": D.tolist(), "theory": th.tolist(), "ratio": (D / th).tolist()}
+
+
+def log_amplitude(tb: Turbulence, field: np.ndarray) -> np.ndarray:
+    """chi = ln(|U| / |U_vacuum|) on the receiver aperture."""
+    return np.log(np.abs(field[tb.aperture]) / np.abs(tb.vacuum[tb.aperture]))
+
+
+def coherence(tb: Turbulence, fields: list[np.ndarray], max_sep: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Modulus of the ensemble coherence factor of the collimated aperture
+    field vs separation (m), from separations along x and y."""
+    n = tb.sc.n_grid
+    max_sep = max_sep or int(tb.sc.receiver_aperture / tb.sc.dx * 0.75)
+    m = tb.aperture.astype(np.float64)
+    G = np.zeros(max_sep + 1, complex)
+    I1 = np.zeros(max_sep + 1)
+    for f in fields:
+        u = tb.collimated(f)
+        for s in range(max_sep + 1):
+            for a, b, ma, mb in ((u[:, s:], u[:, :n - s], m[:, s:], m[:, :n - s]),
+                                 (u[s:, :], u[:n - s, :], m[s:, :], m[:n - s, :])):
+                w = ma * mb
+                G[s] += np.sum(a * np.conj(b) * w) / max(w.sum(), 1)
+                I1[s] += np.sqrt(np.sum(np.abs(a) ** 2 * w) * np.sum(np.abs(b) ** 2 * w)) / max(w.sum(), 1)
+    return np.arange(max_sep + 1) * tb.sc.dx, np.abs(G) / I1
+
+
+def wave_structure_theory(tb: Turbulence, r: np.ndarray) -> np.ndarray:
+    """Spherical-wave structure function of the discrete path: a screen at z_i
+    (from the source) contributes its phase structure function at r z_i / L."""
+    sc = tb.sc
+    out = np.zeros_like(np.asarray(r, float))
+    for zi, r0 in zip(sc.z, tb.path.r0_screens):
+        if np.isfinite(r0) and zi > 0:
+            out += structure_function_theory(np.maximum(r * zi / sc.length, 1e-9), r0, sc.inner_scale, sc.outer_scale)
+    return out
+
+
+def mtf_long_exposure(tb: Turbulence, fields: list[np.ndarray], pad: int = 4):
+    """Long-exposure MTF of the collimated aperture fields (PSF averaged, then
+    |FT|) against pupil separation (m), and the diffraction-limited MTF."""
+    n = tb.sc.n_grid
+    big = np.zeros((pad * n, pad * n), np.complex64)
+    psf = np.zeros((pad * n, pad * n))
+    for f in fields:
+        big[:n, :n] = tb.collimated(f)
+        psf += np.abs(np.fft.fft2(big)) ** 2
+    otf = np.fft.ifft2(psf)
+    big[:n, :n] = tb.aperture
+    dl = np.fft.ifft2(np.abs(np.fft.fft2(big)) ** 2)
+    k = int(tb.sc.receiver_aperture / tb.sc.dx) + 2
+    sep = np.arange(k) * tb.sc.dx
+    mtf = np.abs(otf[0, :k]) / np.abs(otf[0, 0])
+    mdl = np.abs(dl[0, :k]) / np.abs(dl[0, 0])
+    return sep, mtf, mdl
+
+
+def validate(sc: Scenario, rytovs=(0.1, 0.3, 0.5, 0.7), samples: int = 40, seed: int = 0,
+             pib_samples: int | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Every check of Figs. S5/S6 for a scenario at several Rytov numbers."""
+    out = {"scenario": sc.__dict__ | {}, "structure_function": structure_function_check(sc, seed=seed), "levels": []}
+    total = len(rytovs) * samples
+    done = 0
+    for ry in rytovs:
+        tb = Turbulence(replace(sc, rytov=ry))
+        chi_var, fields, pib = [], [], {"complex": [], "phase": [], "none": []}
+        for s in range(samples):
+            smp = tb.sample(int(np.random.SeedSequence([seed, int(ry * 1e6), s]).generate_state(1)[0]))
+            chi = log_amplitude(tb, smp.field)
+            chi_var.append(chi)
+            fields.append(smp.field)
+            if s < (pib_samples if pib_samples is not None else samples):
+                for mode in pib:
+                    pib[mode].append(tb.power_in_bucket(smp.field, mode, smp.screens))
+            done += 1
+            if progress:
+                progress(done, total)
+        chis = np.array(chi_var)
+        sep, mu = coherence(tb, fields)
+        D = wave_structure_theory(tb, sep)
+        msep, mtf, mdl = mtf_long_exposure(tb, fields)
+        Dm = wave_structure_theory(tb, msep)
+        d = np.array([zi * (1 - zi / sc.length) for zi in sc.z])
+        out["levels"].append({
+            "rytov_nominal": ry,
+            "rytov_measured": float(chis.var()),
+            "rytov_per_sample": chis.var(axis=1).tolist(),
+            "rytov_weak_theory_inner_scale": log_amplitude_variance_theory(tb.path.r0_screens, d, sc.wavelength,
+                                                                           sc.inner_scale, sc.outer_scale),
+            "r0_m": tb.path.r0, "D_over_r0": sc.receiver_aperture / tb.path.r0,
+            "coherence": {"sep_m": sep.tolist(), "measured": mu.tolist(), "theory": np.exp(-D / 2).tolist()},
+            "mtf": {"sep_m": msep.tolist(), "measured": mtf.tolist(), "diffraction": mdl.tolist(),
+                    "theory": (mdl * np.exp(-Dm / 2)).tolist()},
+            "npib": pib,
+        })
+    return out
+
+
+def plot_validation(res: dict, out_dir: Path) -> list[Path]:
+    from ..plotting import pyplot, save_figure
+
+    plt = pyplot()
+    out_dir = Path(out_dir)
+    figs = []
+    lv = res["levels"]
+    fig, ax = plt.subplots(1, 4, figsize=(20, 4.6), constrained_layout=True)
+    sf = res["structure_function"]
+    ax[0].loglog(sf["r_m"], sf["theory"], "k-", label="theory (same PSD)")
+    ax[0].loglog(sf["r_m"], sf["measured"], "o", label="screens (ensemble)")
+    ax[0].set(xlabel="separation [m]", ylabel="D_phi [rad^2]", title="phase structure function (r0 = 5 cm)")
+    ax[0].legend()
+    nom = [l_["rytov_nominal"] for l_ in lv]
+    ax[1].boxplot([l_["rytov_per_sample"] for l_ in lv], positions=nom, widths=0.05, manage_ticks=False)
+    ax[1].plot(nom, [l_["rytov_measured"] for l_ in lv], "o", color="tab:blue", label="ensemble")
+    ax[1].plot(nom, [l_["rytov_weak_theory_inner_scale"] for l_ in lv], "s", mfc="none", color="tab:green",
+               label="weak theory with inner scale")
+    lim = [0, max(nom) * 1.15]
+    ax[1].plot(lim, lim, "k--", lw=0.8, label="nominal")
+    ax[1].set(xlim=lim, xlabel="nominal Rytov", ylabel="measured sigma_chi^2", title="(S5a) log-amplitude variance")
+    ax[1].legend(fontsize=8)
+    for l_ in lv:
+        c = l_["coherence"]
+        x = np.array(c["sep_m"]) / l_["r0_m"]
+        h = ax[2].plot(x, c["theory"], "-")[0]
+        ax[2].plot(x, c["measured"], "o", ms=3, color=h.get_color(), label=f"Rytov {l_['rytov_nominal']:g}")
+        m = l_["mtf"]
+        x = np.array(m["sep_m"]) / res["scenario"]["receiver_aperture"]
+        h = ax[3].plot(x, m["theory"], "-")[0]
+        ax[3].plot(x, m["measured"], "o", ms=3, color=h.get_color(), label=f"Rytov {l_['rytov_nominal']:g}")
+    ax[2].set(xlabel="r / r0", ylabel="|mu|", title="(S5b) coherence factor (lines: theory)", xlim=(0, 3))
+    ax[2].legend(fontsize=8)
+    ax[3].plot(x, lv[0]["mtf"]["diffraction"], "k:", label="diffraction limit")
+    ax[3].set(xlabel="separation / D (normalised frequency)", ylabel="MTF", title="(S5c) long-exposure MTF")
+    ax[3].legend(fontsize=8)
+    figs.append(save_figure(fig, out_dir / "turbulence-fig-s5.png"))
+    fig, ax = plt.subplots(figsize=(7, 4.6), constrained_layout=True)
+    for mode, col, dx in (("complex", "tab:blue", -0.012), ("phase", "tab:red", 0.012), ("none", "0.5", 0.0)):
+        data = [l_["npib"][mode] for l_ in lv]
+        if not data[0]:
+            continue
+        b = ax.boxplot(data, positions=np.array(nom) + dx, widths=0.02, manage_ticks=False, patch_artist=True)
+        for p in b["boxes"]:
+            p.set_facecolor(col)
+        ax.plot(np.array(nom) + dx, [np.mean(d) for d in data], "^", color=col, label=f"{mode} correction")
+    ax.set(xlabel="nominal Rytov", ylabel="normalised PiB", title="(S6) correction by back-propagation")
+    ax.legend()
+    figs.append(save_figure(fig, out_dir / "turbulence-fig-s6.png"))
+    return figs
