@@ -54,7 +54,7 @@ def naive_oas(design, crop, path):
 
 
 def main() -> int:
-    from metadesign.design.store import load_design, save_design, Design
+    from metadesign.design.store import Design, load_design
     from metadesign.layouts import write_layout
 
     design_dir = REPO / "layouts" / "paper-5mm"

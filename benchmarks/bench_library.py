@@ -85,7 +85,7 @@ def main() -> int:
     res["s_per_cell_naive"] = timeit(lambda: naive_cell(*next(it2), stack, settings), 3)
     res["ratio_naive_over_ours"] = res["s_per_cell_naive"] / res["s_per_cell_1core"]
 
-    many = [tuple(c) for c in rng.uniform(0.1e-6, 0.5e-6, size=(40, 2))]
+    many = [tuple(c) for c in rng.uniform(0.1e-6, 0.5e-6, size=(160, 2))]  # enough to amortise worker start-up
     t0 = time.perf_counter()
     solve_cells(many, stack, settings, workers=1)
     t1 = time.perf_counter() - t0

@@ -22,7 +22,7 @@ from pathlib import Path  # noqa: E402
 
 from . import __version__  # noqa: E402
 from .config import InputError  # noqa: E402
-from .paths import default_library_path, repo_root  # noqa: E402
+from .paths import default_library_path  # noqa: E402
 
 __all__ = ["main"]
 
@@ -319,8 +319,6 @@ def _perturbation(bias_x_nm, bias_y_nm, jitter_nm, corner_nm, seed):
 
 
 def _cmd_psf(a: argparse.Namespace) -> int:
-    import numpy as np
-
     from .io import write_npz
     from .sensing.model import AsFabricated, render_frames
     from .sensing.plot import plot_frames
@@ -507,6 +505,13 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 # ------------------------------------------------------------------ parser
 
 
+def _forward_args(p: argparse.ArgumentParser) -> None:
+    """Arguments shared by the stage-4 commands."""
+    p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
+    p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
+    p.add_argument("--library", help="unit-cell library (default: the design's)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="metadesign",
@@ -571,9 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
         "optional fab perturbations, complex-t interpolation in the full RCWA library), propagate to the sensor "
         "with the fast coarse-pupil Fresnel path, and write OUT/psf.npz (frames 2 x H x W, tensor 8 x S x S in "
         "the order x-pol QI..QIV, y-pol QI..QIV) and OUT/psf-fig-2c.png.")
-    psf.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
-    psf.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
-    psf.add_argument("--library", help="unit-cell library (default: the design's)")
+    _forward_args(psf)
     psf.add_argument("--wavefront", help=".npz with a complex 'field' on the pupil grid (default: flat)")
     psf.add_argument("--bias-nm", type=float, nargs="+", default=[0.0], help="width bias: one value or x y")
     psf.add_argument("--jitter-nm", type=float, default=0.0, help="random width jitter sigma (nm)")
@@ -589,9 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
         "rebuild the as-fabricated pupil and report per channel: focusing efficiency (power in the designed "
         "quadrant / incident), Strehl ratio at best focus, focal shift, centroid shift, crosstalk into the other "
         "quadrants. Writes OUT/fab-study.csv, .json and .png.")
-    fs.add_argument("layout", help="layout file")
-    fs.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
-    fs.add_argument("--library", help="unit-cell library (default: the design's)")
+    _forward_args(fs)
     fs.add_argument("--bias-nm", type=float, nargs="+", default=[-10.0, 0.0, 10.0], help="width biases (nm)")
     fs.add_argument("--jitter-nm", type=float, nargs="+", default=[0.0], help="jitter sigmas (nm)")
     fs.add_argument("--corner-nm", type=float, nargs="+", default=[0.0], help="corner radii (nm)")

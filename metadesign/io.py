@@ -24,7 +24,8 @@ import numpy as np
 
 from .config import InputError
 
-__all__ = ["atomic_path", "atomic_write_text", "write_npz", "read_npz", "json_array", "from_json_array"]
+__all__ = ["atomic_path", "atomic_write_text", "write_npz", "read_npz", "read_product", "json_array",
+           "from_json_array"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
@@ -101,3 +102,20 @@ def read_npz(path: str | Path, what: str = "file") -> dict[str, np.ndarray]:
             return {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
         raise InputError(f"{path}: not a readable {what} (corrupt or truncated: {exc})") from None
+
+
+def read_product(path: str | Path, what: str, need: tuple[str, ...], fmt: str) -> tuple[dict, dict]:
+    """Read a metadesign ``.npz`` product: its arrays and its JSON ``meta``,
+    checking the required arrays and the format tag (one-line InputError)."""
+    path = Path(path)
+    z = read_npz(path, what)
+    missing = [k for k in (*need, "meta") if k not in z]
+    if missing:
+        raise InputError(f"{path}: not a {what} (missing {', '.join(missing)})")
+    try:
+        meta = from_json_array(z["meta"])
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{path}: {what} metadata unreadable ({exc})") from None
+    if meta.get("format") != fmt:
+        raise InputError(f"{path}: unsupported {what} format {meta.get('format')!r} (expected {fmt})")
+    return z, meta

@@ -8,7 +8,7 @@ import pytest
 from conftest import run_cli
 from metadesign.config import InputError
 from metadesign.design import AtomTable, SupercellSpec, paper_channels
-from metadesign.design.store import Design, save_design
+from metadesign.design.store import Design
 from metadesign.layouts import (
     LayoutOptions, drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout,
 )

@@ -14,7 +14,7 @@ from metadesign.design.store import run_design
 from metadesign.layouts import write_layout
 from metadesign.sensing.forward import asm_reference_intensity, quadrant_fields
 from metadesign.sensing.model import AsFabricated, channel_metrics, load_sensing_recipe, render_frames
-from metadesign.sensing.sensor import NoiseSpec, SensorSpec, add_noise, psf_tensor, quadrant_slices
+from metadesign.sensing.sensor import NoiseSpec, add_noise, psf_tensor, quadrant_slices
 from metadesign.sensing.transmission import Perturbation, interpolate_t, perturb_widths, pillar_transmission
 
 

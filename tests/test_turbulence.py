@@ -9,7 +9,7 @@ import pytest
 from conftest import run_cli
 from metadesign.turbulence.path import Scenario, check_sampling, solve_path
 from metadesign.turbulence.propagate import Turbulence, split_step, split_step_torch
-from metadesign.turbulence.screens import ScreenGrid, psd_mvk, screens, structure_function_theory
+from metadesign.turbulence.screens import ScreenGrid, screens, structure_function_theory
 from metadesign.turbulence.validate import coherence, log_amplitude, structure_function_check, wave_structure_theory
 
 SC = Scenario()

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import ConfigError, InputError
-from ..io import atomic_write_text, from_json_array, json_array, read_npz, write_npz
+from ..io import atomic_write_text, json_array, read_product, write_npz
 from ..library.store import UnitCellLibrary, load_library
 from .build import DesignResult, discretize_design, empty_index
 from .discretize import AtomTable, select_atoms
@@ -133,17 +133,8 @@ def load_design(path: str | Path) -> Design:
     path = Path(path)
     if path.is_dir():
         path = path / "design.npz"
-    z = read_npz(path, "design file")
-    need = ("index_map", "atom_wx_m", "atom_wy_m", "atom_t", "atom_T0", "atom_lib_index", "meta")
-    missing = [k for k in need if k not in z]
-    if missing:
-        raise InputError(f"{path}: not a design file (missing {', '.join(missing)})")
-    try:
-        meta = from_json_array(z["meta"])
-    except (ValueError, TypeError) as exc:
-        raise InputError(f"{path}: design metadata unreadable ({exc})") from None
-    if meta.get("format") != DESIGN_FORMAT:
-        raise InputError(f"{path}: unsupported design format {meta.get('format')!r}")
+    z, meta = read_product(path, "design file",
+                           ("index_map", "atom_wx_m", "atom_wy_m", "atom_t", "atom_T0", "atom_lib_index"), DESIGN_FORMAT)
     spec = _spec_from_dict(meta["spec"])
     im = z["index_map"]
     n = len(z["atom_wx_m"])

@@ -192,8 +192,10 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
         widths[a] = b.width(), b.height()
         centres2[a] = b.left + b.right, b.bottom + b.top
         index_of[c.cell_index()] = a
-    xs = {a: [] for a in range(n_atoms)}
-    ys = {a: [] for a in range(n_atoms)}
+    from array import array
+
+    xs = {a: array("q") for a in range(n_atoms)}  # compact: paper scale is 51 M instances
+    ys = {a: array("q") for a in range(n_atoms)}
     count = 0
     for inst in top.each_inst():
         a = index_of.get(inst.cell_index)
@@ -216,8 +218,9 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
     im = np.full((n, n), -1, np.int32)
     dup = off = 0
     for a in range(n_atoms):
-        if xs[a]:
-            d, o = _place(im, n, p_nm, x0, a, np.asarray(xs[a], float), np.asarray(ys[a], float))
+        if len(xs[a]):
+            d, o = _place(im, n, p_nm, x0, a, np.frombuffer(xs[a], np.int64).astype(float),
+                          np.frombuffer(ys[a], np.int64).astype(float))
             dup += d
             off += o
     return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)

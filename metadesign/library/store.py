@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import InputError
-from ..io import atomic_path, from_json_array, json_array, read_npz, write_npz
+from ..io import atomic_path, json_array, read_product, write_npz
 
 __all__ = ["UnitCellLibrary", "load_library", "save_library", "export_csv", "FORMAT"]
 
@@ -117,17 +117,7 @@ def save_library(path: str | Path, lib: UnitCellLibrary) -> None:
 def load_library(path: str | Path) -> UnitCellLibrary:
     """Load and validate a library file; problems raise a one-line InputError."""
     path = Path(path)
-    z = read_npz(path, "unit-cell library")
-    need = ("wx_m", "wy_m", "jones", "T0", "T_total", "R_total", "meta")
-    missing = [k for k in need if k not in z]
-    if missing:
-        raise InputError(f"{path}: not a unit-cell library (missing {', '.join(missing)})")
-    try:
-        meta = from_json_array(z["meta"])
-    except (ValueError, TypeError) as exc:
-        raise InputError(f"{path}: unit-cell library metadata unreadable ({exc})") from None
-    if meta.get("format") != FORMAT:
-        raise InputError(f"{path}: unsupported library format {meta.get('format')!r} (expected {FORMAT})")
+    z, meta = read_product(path, "unit-cell library", ("wx_m", "wy_m", "jones", "T0", "T_total", "R_total"), FORMAT)
     wx, wy = z["wx_m"], z["wy_m"]
     nx, ny = len(wx), len(wy)
     shapes = {"jones": (nx, ny, 2, 2), "T0": (nx, ny, 2), "T_total": (nx, ny, 2), "R_total": (nx, ny, 2)}
