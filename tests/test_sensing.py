@@ -166,6 +166,15 @@ def test_psf_and_fab_study_cli(demo, repo):
     assert len(lines) == 1 + 4 * 8 and (out / "fs" / "fab-study.png").exists()
     bad = run_cli("psf", layout, "--sensor", repo / "sensing" / "demo.toml", "--jitter-nm", "-1", "-o", out / "x")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and not (out / "x").exists()
+    p = run_cli("psf", layout, "--sensor", repo / "sensing" / "demo.toml", "--full-resolution", "32", "--json",
+                "-o", out / "full")
+    assert p.returncode == 0, p.stderr
+    assert max(json.loads(p.stdout)["full_resolution_check"]["rel_l2_per_channel"]) < 0.01
+    from metadesign.io import write_npz
+    write_npz(out / "wf.npz", {"field": np.ones((10, 10), np.complex64)})
+    bad = run_cli("psf", layout, "--sensor", repo / "sensing" / "demo.toml", "--wavefront", out / "wf.npz",
+                  "-o", out / "y")
+    assert bad.returncode == 2 and "coarse pupil grid" in bad.stderr and not (out / "y").exists()
 
 
 def test_paper_scale_channels_focus_at_table_s1(repo, tmp_path):
