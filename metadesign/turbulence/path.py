@@ -88,15 +88,20 @@ def solve_path(sc: Scenario) -> PathModel:
     x0 = 0.423 * k * k * cn2 * dz  # uniform split (S4)
     ub = np.where(w_chi > 0, sc.max_screen_rytov / np.maximum(w_chi, 1e-300), np.inf)
     ub = np.minimum(ub, 1e6 * x0.max() + 1.0)
+    # a screen that neither Rytov nor r0 sees (the one on the point source) has no
+    # observable effect: it gets no turbulence and is never drawn
+    seen = (w_chi > 0) | (w_r0 > 0)
     b = np.array([sc.rytov, r0 ** (-5 / 3)])
     A = np.stack([w_chi, w_r0])
-    A_s = A / b[:, None]  # relative residuals
+    A_s = A[:, seen] / b[:, None]  # relative residuals
     lam = 1e-3
     s = x0.max()
-    A_aug = np.vstack([A_s * s, lam * np.eye(sc.n_screens)])
-    b_aug = np.concatenate([np.ones(2), lam * x0 / s])
-    sol = lsq_linear(A_aug, b_aug, bounds=(np.zeros(sc.n_screens), ub / s), method="bvls")
-    x = sol.x * s
+    m = int(seen.sum())
+    A_aug = np.vstack([A_s * s, lam * np.eye(m)])
+    b_aug = np.concatenate([np.ones(2), lam * x0[seen] / s])
+    sol = lsq_linear(A_aug, b_aug, bounds=(np.zeros(m), ub[seen] / s), method="bvls")
+    x = np.zeros(sc.n_screens)
+    x[seen] = sol.x * s
     with np.errstate(divide="ignore"):
         r0s = np.where(x > 0, x ** (-3 / 5), np.inf)
     chi = A[0] @ x

@@ -40,17 +40,18 @@ def _absorber(sc: Scenario) -> np.ndarray:
     return np.exp(-((r / (0.47 * n * dx)) ** sc.absorber_order)).astype(np.float32)
 
 
-def split_step(u: np.ndarray, phases: np.ndarray | None, H: np.ndarray, absorber: np.ndarray,
-               reverse: bool = False) -> np.ndarray:
+def split_step(u: np.ndarray, phases: np.ndarray, H: np.ndarray, absorber: np.ndarray,
+               reverse: bool = False, active=None) -> np.ndarray:
     """Apply screen 0, propagate, screen 1, ... (``reverse``: the last screen
-    first); ``phases=None`` is vacuum (with ``len(H)`` steps)."""
-    n_s = len(phases) if phases is not None else None
+    first).  ``active[i] = False`` marks a screen known to be zero (skipped)."""
+    n_s = len(phases)
     order = range(n_s) if not reverse else range(n_s - 1, -1, -1)
     u = np.asarray(u, np.complex64)
     for j, i in enumerate(order):
-        if phases is not None:
-            u = u * cexp(phases[i])
-        u = u * absorber
+        if active is None or active[i]:
+            u = u * (cexp(phases[i]) * absorber)
+        else:
+            u = u * absorber
         if j < n_s - 1:
             u = sfft.ifft2(sfft.fft2(u) * H)
     return u.astype(np.complex64)
@@ -96,7 +97,9 @@ class Turbulence:
         self.H = asm_transfer((sc.n_grid, sc.n_grid), sc.dx, sc.wavelength, sc.dz)
         self.absorber = _absorber(sc)
         self.source = point_source(sc)
-        self.vacuum = split_step(self.source, np.zeros((sc.n_screens, 1, 1), np.float32), self.H, self.absorber)
+        self.vacuum = split_step(self.source, np.zeros((sc.n_screens, 1, 1), np.float32), self.H, self.absorber,
+                                 active=[False] * sc.n_screens)
+        self.active = np.isfinite(self.path.r0_screens)
         x = (np.arange(sc.n_grid) - sc.n_grid / 2) * sc.dx
         self.x = x
         self.aperture = (x[None, :] ** 2 + x[:, None] ** 2) <= (sc.receiver_aperture / 2) ** 2
@@ -106,7 +109,7 @@ class Turbulence:
 
     def sample(self, seed: int) -> Sample:
         ph = self.screens(seed)
-        return Sample(seed, ph, split_step(self.source, ph, self.H, self.absorber), self.vacuum)
+        return Sample(seed, ph, split_step(self.source, ph, self.H, self.absorber, active=self.active), self.vacuum)
 
     def collimated(self, field: np.ndarray, mask: bool = True) -> np.ndarray:
         """Received field with the vacuum wavefront removed and the vacuum
@@ -151,10 +154,10 @@ class Turbulence:
             raise ValueError(mode)
         u = np.where(ap, u, 0).astype(np.complex64)
         u = u / np.sqrt(np.sum(np.abs(u) ** 2))
-        back = split_step(u, screens_, self.H, self.absorber, reverse=True)
+        back = split_step(u, screens_, self.H, self.absorber, reverse=True, active=self.active)
         ideal = np.where(ap, np.exp(-1j * np.angle(self.vacuum)), 0).astype(np.complex64)
         ideal = ideal / np.sqrt(np.sum(np.abs(ideal) ** 2))
-        back0 = split_step(ideal, np.zeros_like(screens_), self.H, self.absorber, reverse=True)
+        back0 = split_step(ideal, screens_, self.H, self.absorber, reverse=True, active=[False] * len(screens_))
         r = np.sqrt(self.x[None, :] ** 2 + self.x[:, None] ** 2)
         bucket = r <= 1.029 * sc.wavelength * sc.length / sc.receiver_aperture / 2
         return float(np.sum(np.abs(back[bucket]) ** 2) / np.sum(np.abs(back0[bucket]) ** 2))

@@ -135,13 +135,15 @@ def screens(grid: ScreenGrid, r0s, seed) -> np.ndarray:
     hf_ss, sh_ss = ss.spawn(2)
     rng_hf, rng_sh = np.random.default_rng(hf_ss), np.random.default_rng(sh_ss)
     r0s = list(r0s)
-    out = np.empty((len(r0s), grid.n, grid.n), np.float32)
-    for i in range(0, len(r0s), 2):
-        pair = (r0s[i], r0s[i + 1] if i + 1 < len(r0s) else r0s[i])
-        a, b = screen_pair(grid, pair, rng_hf, rng_sh)
-        out[i] = a
-        if i + 1 < len(r0s):
-            out[i + 1] = b
+    out = np.zeros((len(r0s), grid.n, grid.n), np.float32)
+    live = [i for i, r in enumerate(r0s) if np.isfinite(r)]  # r0 = inf: no turbulence, nothing drawn
+    for j in range(0, len(live), 2):
+        i0 = live[j]
+        i1 = live[j + 1] if j + 1 < len(live) else None
+        a, b = screen_pair(grid, (r0s[i0], r0s[i1] if i1 is not None else r0s[i0]), rng_hf, rng_sh)
+        out[i0] = a
+        if i1 is not None:
+            out[i1] = b
     return out
 
 
