@@ -365,7 +365,7 @@ def _cmd_psf(a: argparse.Namespace) -> int:
                 errs.append(float(np.linalg.norm(full[p][r, c][m] - frames[p][r, c][m])
                                   / np.linalg.norm(full[p][r, c][m])))
         full_check = {"window_px": a.full_resolution, "rel_l2_per_channel": errs}
-    noisy = add_noise(frames, sr.noise) if (sr.noise.gaussian_percent or sr.noise.photons_at_peak
+    noisy = add_noise(frames, sr.noise) if (sr.noise.gaussian_sigma or sr.noise.photons_at_peak
                                              or sr.noise.bit_depth) else frames
     tensor = psf_tensor(noisy, sr.sensor)
     out = Path(a.output) if a.output else Path(a.layout).with_name("psf")

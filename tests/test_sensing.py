@@ -139,11 +139,21 @@ def test_interpolation_perturbations_and_clamping(paper_library):
     assert np.std(a[0]) == pytest.approx(5e-9, rel=0.1)
 
 
+def test_noise_recipe_percent_is_converted_once(tmp_path):
+    from metadesign.sensing.model import sensing_from_dict
+    sr = sensing_from_dict({"noise": {"gaussian_percent": 5.0, "seed": 2}})
+    assert sr.noise.gaussian_sigma == pytest.approx(0.05)
+    f = np.zeros((2, 64, 64), np.float32)
+    f[:, 10, 10] = 2.0
+    n = add_noise(f, sr.noise)
+    assert np.std(n[0][f[0] == 0]) == pytest.approx(0.1, rel=0.05)  # 5 % of the peak (2.0)
+
+
 def test_noise_models_seeded():
     f = np.zeros((2, 64, 64), np.float32)
     f[:, 32, 32] = 1.0
-    n1 = add_noise(f, NoiseSpec(gaussian_percent=5.0, seed=4))
-    n2 = add_noise(f, NoiseSpec(gaussian_percent=5.0, seed=4))
+    n1 = add_noise(f, NoiseSpec(gaussian_sigma=0.05, seed=4))
+    n2 = add_noise(f, NoiseSpec(gaussian_sigma=0.05, seed=4))
     np.testing.assert_array_equal(n1, n2)
     assert np.std(n1[0][f[0] == 0]) == pytest.approx(0.05, rel=0.05)
     q = add_noise(f + 0.3, NoiseSpec(bit_depth=2, seed=0))

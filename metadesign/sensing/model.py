@@ -53,6 +53,7 @@ def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
         raise InputError(f"{source}: sensor.width_px and sensor.height_px must be multiples of 4 (quadrants)")
     sensor = SensorSpec(s["width_px"], s["height_px"], s["pixel_um"], s["magnification"], s["distance_mm"],
                         s["tensor_size"])
+    # "gaussian_percent" is a fraction once loaded (unit suffix converted at the edge)
     noise = NoiseSpec(nz["gaussian_percent"], nz["photons_at_peak"] or None, nz["read_noise_e"],
                       nz["bit_depth"] or None, nz["seed"])
     return SensingRecipe(sensor, v["pupil"]["grid"], noise)

@@ -82,7 +82,7 @@ def psf_tensor(frames: np.ndarray, sensor: SensorSpec) -> np.ndarray:
 
 @dataclass(frozen=True)
 class NoiseSpec:
-    gaussian_percent: float = 0.0  # additive Gaussian, sigma as % of each frame's peak (paper: 0-10 %)
+    gaussian_sigma: float = 0.0  # additive Gaussian, sigma as a fraction of each frame's peak (paper: 0-0.1)
     photons_at_peak: float | None = None  # shot noise: Poisson with this many photo-electrons at the peak
     read_noise_e: float = 0.0  # read noise (electrons, Gaussian), needs photons_at_peak
     bit_depth: int | None = None  # ADC quantisation of [0, peak]
@@ -101,8 +101,8 @@ def add_noise(frames: np.ndarray, noise: NoiseSpec, rng: np.random.Generator | N
         if noise.read_noise_e:
             e += rng.normal(0.0, noise.read_noise_e, e.shape)
         x = e / noise.photons_at_peak
-    if noise.gaussian_percent:
-        x = x + rng.normal(0.0, noise.gaussian_percent / 100.0, x.shape)
+    if noise.gaussian_sigma:
+        x = x + rng.normal(0.0, noise.gaussian_sigma, x.shape)
     if noise.bit_depth:
         levels = 2**noise.bit_depth - 1
         x = np.round(np.clip(x, 0.0, 1.0) * levels) / levels
