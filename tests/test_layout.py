@@ -52,6 +52,14 @@ def test_round_trip_exact_and_klayout_agrees(tmp_path, fmt, n, circular):
     assert side["provenance"]["n_cells"] == n and side["pillars"] == rep["pillars"]
 
 
+@pytest.mark.parametrize("fmt", ["oas", "gds"])
+def test_same_design_same_bytes(tmp_path, fmt):
+    d = synthetic_design(n=12, circular=True)
+    write_layout(d, tmp_path / f"a.{fmt}", fmt)
+    write_layout(d, tmp_path / f"b.{fmt}", fmt)
+    assert (tmp_path / f"a.{fmt}").read_bytes() == (tmp_path / f"b.{fmt}").read_bytes()
+
+
 def test_corner_pillars_orientation_and_sizes_with_klayout(tmp_path):
     """Cell (ix, iy) at x = (ix - (n-1)/2) p, y = (iy - (n-1)/2) p: no half-period shift, no axis swap, no mirror."""
     import klayout.db as kdb

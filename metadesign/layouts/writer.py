@@ -16,6 +16,7 @@ Geometry (database unit 1 nm, user unit 1 nm):
 
 from __future__ import annotations
 
+import datetime
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -166,7 +167,8 @@ def write_layout(design, out: Path, fmt: str = "oas", opts: LayoutOptions = Layo
         if fmt == "oas":
             lib.write_oas(str(tmp), compression_level=opts.compression_level, validation="crc32")
         elif fmt == "gds":
-            lib.write_gds(str(tmp))
+            # fixed timestamp: same design, same bytes (GDSII otherwise stores the write time)
+            lib.write_gds(str(tmp), timestamp=datetime.datetime(2000, 1, 1))
         else:
             raise InputError(f"--format: expected oas, gds or both, got {fmt!r}")
     seconds = time.perf_counter() - t0

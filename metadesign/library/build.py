@@ -74,15 +74,9 @@ def _solve_chunk(args) -> tuple[int, dict]:
     }
 
 
-def _init_worker() -> None:  # spawned workers: one thread each
+def _init_worker() -> None:  # spawned workers: one thread each (set before numpy loads in the child)
     for k in THREAD_ENV:
         os.environ[k] = "1"
-    try:  # torch may be imported by a user's plugin; keep it single-threaded too
-        import torch  # noqa: F401
-
-        torch.set_num_threads(1)
-    except Exception:  # pragma: no cover
-        pass
 
 
 class _Pool:

@@ -212,7 +212,8 @@ def plot_validation(res: dict, out_dir: Path) -> list[Path]:
         b = ax.boxplot(data, positions=np.array(nom) + dx, widths=0.02, manage_ticks=False, patch_artist=True)
         for p in b["boxes"]:
             p.set_facecolor(col)
-        ax.plot(np.array(nom) + dx, [np.mean(d) for d in data], "^", color=col, label=f"{mode} correction")
+        label = {"complex": "complex-field conjugate", "phase": "phase-only conjugate", "none": "uncorrected"}[mode]
+        ax.plot(np.array(nom) + dx, [np.mean(d) for d in data], "^", color=col, label=label)
     ax.set(xlabel="nominal Rytov", ylabel="normalised PiB", title="(S6) correction by back-propagation")
     ax.legend()
     figs.append(save_figure(fig, out_dir / "turbulence-fig-s6.png"))
