@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..optics.propagation import angular_spectrum, cexp, mft
+from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
 __all__ = ["CoarsePupil", "coarse_pupil", "quadrant_fields", "sensor_frames", "full_resolution_frames",
@@ -210,6 +210,8 @@ def asm_reference_intensity(tn_map: np.ndarray, period: float, wavelength: float
     (``[iy, ix]``, the aperture) zero-padded to ``pad_to`` and propagated by z.
     Returns (intensity ``[y, x]``, coordinates of the padded grid)."""
     n = tn_map.shape[0]
+    aperture = n * period
+    check_asm_sampling(pad_to, period, wavelength, z, aperture, min(0.999, aperture / (2 * z)))
     u = np.zeros((pad_to, pad_to), np.complex64)
     s = (pad_to - n) // 2
     u[s:s + n, s:s + n] = tn_map

@@ -128,7 +128,7 @@ def _channels_from_recipe(recipe: dict):
     try:
         r = design_recipe_from_dict(recipe)
         return r.spec.channels_x, r.spec.channels_y
-    except Exception:  # older/foreign provenance: channels unknown
+    except (InputError, KeyError, TypeError, ValueError):  # foreign provenance: channels unknown
         return (), ()
 
 
