@@ -46,15 +46,20 @@ def split_step(u: np.ndarray, phases: np.ndarray, H: np.ndarray, absorber: np.nd
     first).  ``active[i] = False`` marks a screen known to be zero (skipped)."""
     n_s = len(phases)
     order = range(n_s) if not reverse else range(n_s - 1, -1, -1)
-    u = np.asarray(u, np.complex64)
+    u = np.array(u, np.complex64)  # a private copy, updated in place
+    t = np.empty(u.shape, np.complex64)
     for j, i in enumerate(order):
         if active is None or active[i]:
-            u = u * (cexp(phases[i]) * absorber)
+            np.multiply(np.cos(phases[i]), absorber, out=t.real)  # screen and absorber in one factor
+            np.multiply(np.sin(phases[i]), absorber, out=t.imag)
+            u *= t
         else:
-            u = u * absorber
+            u *= absorber
         if j < n_s - 1:
-            u = sfft.ifft2(sfft.fft2(u) * H)
-    return u.astype(np.complex64)
+            f = sfft.fft2(u, overwrite_x=True)
+            f *= H
+            u = sfft.ifft2(f, overwrite_x=True)
+    return u
 
 
 def split_step_torch(u, phases, H, absorber, reverse: bool = False):
