@@ -132,7 +132,7 @@ def _stage_turbulence(out: Path, log) -> dict:
                             "demo metasurface, scintillated beacon at Rytov 0.3"))
     lv = res["levels"]
     sf = res["structure_function"]["ratio"]
-    line = (f"structure function / theory {min(sf):.3f}..{max(sf):.3f}; Rytov nominal -> measured "
+    line = (f"structure function / theory {min(sf):.3f}..{max(sf):.3f}; Rytov nominal -> measured (10 samples) "
             + ", ".join(f"{x['rytov_nominal']:g} -> {x['rytov_measured']:.3f}" for x in lv)
             + "; NPiB complex/phase/none at 0.5: "
             + "/".join(f"{np.mean(lv[-1]['npib'][m]):.2f}" for m in ("complex", "phase", "none")))
