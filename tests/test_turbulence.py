@@ -124,13 +124,21 @@ def test_turbulence_cli_show_and_refusal():
 
 @pytest.mark.slow
 def test_rytov_sweep_coherence_mtf_and_pib():
-    """Fig. S5/S6 checks.  In the Kolmogorov limit the grid supports (inner scale 4 mm, 512^2
-    grid) the log-amplitude variance follows the nominal Rytov number within 10 % for 0.1-0.5."""
-    sc = replace(SC, inner_scale=4e-3, dx=1.5e-3, n_grid=512)
+    """Fig. S5/S6 checks (default scenario, inner scale 1 cm).  Log-amplitude variance within 10 %
+    of nominal at Rytov 0.3 and 0.5; at 0.1 the inner scale (a quarter of the Fresnel zone) lowers it,
+    and the measurement must lie between the weak-fluctuation theory of the same PSD and nominal."""
+    from metadesign.turbulence.screens import log_amplitude_variance_theory
+
     for ry in (0.1, 0.3, 0.5):
-        tb = Turbulence(replace(sc, rytov=ry))
-        chis = np.array([log_amplitude(tb, tb.sample(100 + s).field) for s in range(60)])
-        assert chis.var() == pytest.approx(ry, rel=0.10), ry
+        tb = Turbulence(replace(SC, rytov=ry))
+        var = np.array([log_amplitude(tb, tb.sample(100 + s).field) for s in range(150)]).var()
+        if ry >= 0.3:
+            assert var == pytest.approx(ry, rel=0.10), ry
+        else:
+            d = SC.z * (1 - SC.z / SC.length)
+            weak = log_amplitude_variance_theory(tb.path.r0_screens, d, SC.wavelength, SC.inner_scale,
+                                                 SC.outer_scale)
+            assert 0.95 * weak <= var <= ry, (var, weak)
     for ry in (0.1, 0.5):
         tb = Turbulence(replace(SC, rytov=ry))
         smps = [tb.sample(s) for s in range(40)]
