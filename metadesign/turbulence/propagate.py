@@ -70,8 +70,7 @@ def split_step_torch(u, phases, H, absorber, reverse: bool = False):
     n_s = phases.shape[0]
     order = range(n_s) if not reverse else range(n_s - 1, -1, -1)
     for j, i in enumerate(order):
-        u = u * torch.polar(torch.ones_like(phases[i]), phases[i])
-        u = u * absorber
+        u = u * torch.polar(absorber, phases[i])  # absorber * exp(i phase) in one factor
         if j < n_s - 1:
             u = torch.fft.ifft2(torch.fft.fft2(u) * H)
     return u

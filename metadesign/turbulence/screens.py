@@ -94,6 +94,7 @@ class ScreenGrid:
         E = np.concatenate([ex for ex, _ in self.levels]) if self.levels else np.zeros((0, n), np.complex64)
         self._Er = np.ascontiguousarray(E.real, np.float32)
         self._Ei = np.ascontiguousarray(E.imag, np.float32)
+        self._EE = np.concatenate([self._Er, -self._Ei])
 
     def low_frequency(self, rng: np.random.Generator) -> np.ndarray:
         """Subharmonic screen (r0 = 1 m), piston removed, shape (n, n): all
@@ -102,11 +103,12 @@ class ScreenGrid:
         C = np.zeros((3 * L, 3 * L), np.complex128)
         for i, (_, a) in enumerate(self.levels):
             C[3 * i:3 * i + 3, 3 * i:3 * i + 3] = (rng.standard_normal((3, 3)) + 1j * rng.standard_normal((3, 3))) * a
-        # Re(E^T C E) = Er^T (Cr Er - Ci Ei) - Ei^T (Ci Er + Cr Ei), in real float32 products
+        # Re(E^T C E) = [Er; -Ei]^T [Cr Er - Ci Ei; Ci Er + Cr Ei], one real float32 product
         Er, Ei = self._Er, self._Ei
-        Cr, Ci = C.real, C.imag
-        lo = Er.T @ (Cr @ Er - Ci @ Ei) - Ei.T @ (Ci @ Er + Cr @ Ei)
-        return lo - np.float32(lo.mean(dtype=np.float64))
+        Cr, Ci = C.real.astype(np.float32), C.imag.astype(np.float32)
+        lo = self._EE.T @ np.concatenate([Cr @ Er - Ci @ Ei, Ci @ Er + Cr @ Ei])
+        lo -= np.float32(lo.mean(dtype=np.float64))
+        return lo
 
 
 def screen_pair(grid: ScreenGrid, r0s: tuple[float, float], rng_hf: np.random.Generator,
@@ -119,11 +121,12 @@ def screen_pair(grid: ScreenGrid, r0s: tuple[float, float], rng_hf: np.random.Ge
     rng_hf.standard_normal(out=cn.view(np.float32), dtype=np.float32)
     cn *= grid.amp
     hf = sfft.ifft2(cn, overwrite_x=True)
-    a = hf.real * np.float32(r0s[0] ** (-5 / 6))
-    b = hf.imag * np.float32(r0s[1] ** (-5 / 6))
+    a, b = hf.real, hf.imag  # views: the sums below happen in place
     if grid.subharmonics and rng_sh is not None:
-        a += grid.low_frequency(rng_sh) * np.float32(r0s[0] ** (-5 / 6))
-        b += grid.low_frequency(rng_sh) * np.float32(r0s[1] ** (-5 / 6))
+        a += grid.low_frequency(rng_sh)
+        b += grid.low_frequency(rng_sh)
+    a *= np.float32(r0s[0] ** (-5 / 6))
+    b *= np.float32(r0s[1] ** (-5 / 6))
     return a, b
 
 
