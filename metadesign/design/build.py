@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from .discretize import AtomTable, Metric, NearestAtom, optimal_offsets
-from .phase import SupercellSpec, aperture_mask_rows, design_phase_rows, wrap
+from .phase import SupercellSpec, aperture_mask, aperture_mask_rows, design_phase, design_phase_rows, wrap
 
 __all__ = ["DesignResult", "discretize_design", "empty_index", "OFFSET_GRID"]
 
@@ -44,18 +44,11 @@ def _sample_rows(n: int, target: int = 1024) -> np.ndarray:
 
 
 def _phase_sample(spec: SupercellSpec, idx: np.ndarray):
-    """Design phases (unwrapped offsets not applied) on the sampled sub-grid."""
-    px, py = [], []
-    for r in idx:
-        mask = aperture_mask_rows(spec, r, r + 1)
-        ax = design_phase_rows(spec, 0, r, r + 1, wrapped=False)[0, idx]
-        ay = design_phase_rows(spec, 1, r, r + 1, wrapped=False)[0, idx]
-        if mask is not None:
-            m = mask[0, idx]
-            ax, ay = ax[m], ay[m]
-        px.append(ax)
-        py.append(ay)
-    return np.concatenate(px), np.concatenate(py)
+    """Design phases (no offsets) on the sampled sub-grid ``idx x idx``, inside the clear aperture."""
+    mask = aperture_mask(spec, idx, idx)
+    keep = np.ones((idx.size, idx.size), bool) if mask is None else mask
+    return (design_phase(spec, 0, idx, idx, wrapped=False)[keep],
+            design_phase(spec, 1, idx, idx, wrapped=False)[keep])
 
 
 def discretize_design(

@@ -35,6 +35,7 @@ __all__ = [
     "cell_coordinates",
     "lens_phase",
     "channel_of_cell",
+    "design_phase",
     "design_phase_rows",
     "wrap",
 ]
@@ -111,37 +112,48 @@ def channel_of_cell(ix, iy, m: int = 2):
     return 1 + np.asarray(ix) % m + m * (np.asarray(iy) % m)
 
 
-def design_phase_rows(spec: SupercellSpec, pol: int, row0: int, row1: int,
-                      offset: float = 0.0, wrapped: bool = True, dtype=np.float64) -> np.ndarray:
-    """Design phase of rows ``row0:row1`` (all columns), shape ``(row1-row0, n)``.
-
-    ``offset`` is the per-polarisation constant added before wrapping.
-    """
-    n, m = spec.n_cells, spec.supercell
-    out = np.empty((row1 - row0, n), dtype=dtype)
-    ys_all = cell_coordinates(n, spec.period, np.arange(row0, row1))
+def design_phase(spec: SupercellSpec, pol: int, iy: np.ndarray, ix: np.ndarray, offset: float = 0.0,
+                 wrapped: bool = True, dtype=np.float64) -> np.ndarray:
+    """Design phase on the grid of cell indices ``iy x ix`` (1D index arrays),
+    shape ``(len(iy), len(ix))``; ``offset`` is the per-polarisation constant
+    added before wrapping."""
+    iy, ix = np.asarray(iy), np.asarray(ix)
+    m = spec.supercell
+    out = np.empty((iy.size, ix.size), dtype=dtype)
+    y_all = cell_coordinates(spec.n_cells, spec.period, iy)
+    x_all = cell_coordinates(spec.n_cells, spec.period, ix)
     for b in range(m):
-        rows = np.arange((b - row0) % m, row1 - row0, m)
+        rows = np.nonzero(iy % m == b)[0]
         if rows.size == 0:
             continue
-        y = ys_all[rows][:, None]
+        y = y_all[rows][:, None]
         for a in range(m):
-            lens = spec.channels(pol)[a + m * b]
-            cols = np.arange(a, n, m)
-            x = cell_coordinates(n, spec.period, cols)[None, :]
-            ph = lens_phase(x, y, lens, spec.wavelength)
+            cols = np.nonzero(ix % m == a)[0]
+            if cols.size == 0:
+                continue
+            ph = lens_phase(x_all[cols][None, :], y, spec.channels(pol)[a + m * b], spec.wavelength)
             if offset:
                 ph += offset
             out[np.ix_(rows, cols)] = wrap(ph) if wrapped else ph
     return out
 
 
-def aperture_mask_rows(spec: SupercellSpec, row0: int, row1: int) -> np.ndarray | None:
-    """Boolean clear-aperture mask of rows ``row0:row1`` (None: full square)."""
+def design_phase_rows(spec: SupercellSpec, pol: int, row0: int, row1: int,
+                      offset: float = 0.0, wrapped: bool = True, dtype=np.float64) -> np.ndarray:
+    """Design phase of rows ``row0:row1`` (all columns), shape ``(row1-row0, n)``."""
+    return design_phase(spec, pol, np.arange(row0, row1), np.arange(spec.n_cells), offset, wrapped, dtype)
+
+
+def aperture_mask(spec: SupercellSpec, iy: np.ndarray, ix: np.ndarray) -> np.ndarray | None:
+    """Boolean clear-aperture mask on the grid ``iy x ix`` (None: full square)."""
     if not spec.circular_aperture:
         return None
-    n = spec.n_cells
-    x = cell_coordinates(n, spec.period)
-    y = cell_coordinates(n, spec.period, np.arange(row0, row1))
+    x = cell_coordinates(spec.n_cells, spec.period, ix)
+    y = cell_coordinates(spec.n_cells, spec.period, iy)
     r = spec.aperture / 2
     return x[None, :] ** 2 + y[:, None] ** 2 <= r * r
+
+
+def aperture_mask_rows(spec: SupercellSpec, row0: int, row1: int) -> np.ndarray | None:
+    """Boolean clear-aperture mask of rows ``row0:row1`` (None: full square)."""
+    return aperture_mask(spec, np.arange(row0, row1), np.arange(spec.n_cells))

@@ -109,25 +109,33 @@ class _Pool:
             self.pool.join()
 
 
-def solve_cells(cells: Sequence[tuple[float, float]], stack: Stack, settings: SolverSettings,
-                workers: int = 1) -> dict:
-    """Solve a list of (wx, wy) cells; returns stacked result arrays in order."""
-    pool = _Pool(workers)
+def solve_cells(cells: Sequence[tuple[float, float]], stack: Stack, settings,
+                workers: int = 1, pool: "_Pool | None" = None) -> dict:
+    """Solve a list of (wx, wy) cells; returns stacked result arrays in order.
+
+    ``settings`` is one :class:`SolverSettings` or one per cell; ``pool`` (kept
+    open) reuses a caller's workers instead of starting new ones."""
+    per_cell = settings if isinstance(settings, (list, tuple)) else [settings] * len(cells)
+    own = pool is None
+    pool = _Pool(workers) if own else pool
     try:
-        jobs = [(i, [c], stack, settings) for i, c in enumerate(cells)]
+        jobs = [(i, [c], stack, s) for i, (c, s) in enumerate(zip(cells, per_cell))]
         out = dict(pool.imap(_solve_chunk, jobs))
     finally:
-        pool.close()
+        if own:
+            pool.close()
     return {k: np.concatenate([out[i][k] for i in range(len(cells))]) for k in out[0]}
 
 
-def certify_convergence(recipe: LibraryRecipe, workers: int = 1) -> ConvergenceReport:
-    """Solve the check cells at the recipe's setting and at the reference one."""
+def certify_convergence(recipe: LibraryRecipe, workers: int = 1, pool: "_Pool | None" = None) -> ConvergenceReport:
+    """Solve the check cells at the recipe's setting and at the reference one (one batch)."""
     cells = list(recipe.check_cells)
     ref_settings = SolverSettings(recipe.reference_n_harmonics, recipe.settings.truncation,
                                   recipe.settings.factorization, recipe.settings.use_symmetry)
-    a = solve_cells(cells, recipe.stack, recipe.settings, workers)
-    b = solve_cells(cells, recipe.stack, ref_settings, workers)
+    k = len(cells)
+    both = solve_cells(cells + cells, recipe.stack, [recipe.settings] * k + [ref_settings] * k, workers, pool)
+    a = {key: v[:k] for key, v in both.items()}
+    b = {key: v[k:] for key, v in both.items()}
     ja, jb = a["jones"], b["jones"]
     dphi = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
     dT = np.abs(a["T0"] - b["T0"])
@@ -177,7 +185,17 @@ def build_library(
     t_start = time.perf_counter()
     log(f"convergence check on {len(recipe.check_cells)} cells "
         f"(nG {recipe.settings.n_harmonics} vs {recipe.reference_n_harmonics}) ...")
-    conv = certify_convergence(recipe, workers)
+    pool = _Pool(workers)  # one set of workers for the check and the sweep
+    try:
+        return _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log,
+                      _stop_after_chunks, t_start)
+    finally:
+        pool.close()
+
+
+def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log, _stop_after_chunks,
+           t_start):
+    conv = certify_convergence(recipe, workers, pool)
     log(f"  max phase change {conv.max_phase_change_rad:.4f} rad "
         f"(tolerance {conv.tolerance_rad:g}), max T0 change {conv.max_T0_change:.2e}")
     if not conv.passed and not allow_unconverged:
@@ -223,20 +241,15 @@ def build_library(
     if progress:
         progress(n_done, n_cells_total)
     t_sweep = time.perf_counter()
-    pool = _Pool(workers)
-    try:
-        jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings)
-                for k in todo]
-        for count, (k, res) in enumerate(pool.imap(_solve_chunk, jobs), 1):
-            write_npz(part_dir / f"chunk-{k:05d}.npz", res)
-            done[k] = res
-            n_done += len(chunks[k])
-            if progress:
-                progress(n_done, n_cells_total)
-            if _stop_after_chunks is not None and count >= _stop_after_chunks:
-                raise KeyboardInterrupt("simulated kill")
-    finally:
-        pool.close()
+    jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings) for k in todo]
+    for count, (k, res) in enumerate(pool.imap(_solve_chunk, jobs), 1):
+        write_npz(part_dir / f"chunk-{k:05d}.npz", res)
+        done[k] = res
+        n_done += len(chunks[k])
+        if progress:
+            progress(n_done, n_cells_total)
+        if _stop_after_chunks is not None and count >= _stop_after_chunks:
+            raise KeyboardInterrupt("simulated kill")
     sweep_s = time.perf_counter() - t_sweep
 
     jones = np.zeros((n, n, 2, 2), complex)

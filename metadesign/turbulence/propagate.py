@@ -146,7 +146,6 @@ class Turbulence:
         conjugate, flat amplitude), ``"none"`` (flat, uncorrected).  The bucket
         is the FWHM of the diffraction-limited Airy disk (1.029 lambda L / D2);
         normalised by the same flat beam back-propagated through vacuum."""
-        sc = self.sc
         ap = self.aperture
         if mode == "complex":
             u = np.conj(received)
@@ -159,9 +158,19 @@ class Turbulence:
         u = np.where(ap, u, 0).astype(np.complex64)
         u = u / np.sqrt(np.sum(np.abs(u) ** 2))
         back = split_step(u, screens_, self.H, self.absorber, reverse=True, active=self.active)
-        ideal = np.where(ap, np.exp(-1j * np.angle(self.vacuum)), 0).astype(np.complex64)
-        ideal = ideal / np.sqrt(np.sum(np.abs(ideal) ** 2))
-        back0 = split_step(ideal, screens_, self.H, self.absorber, reverse=True, active=[False] * len(screens_))
-        r = np.sqrt(self.x[None, :] ** 2 + self.x[:, None] ** 2)
-        bucket = r <= 1.029 * sc.wavelength * sc.length / sc.receiver_aperture / 2
-        return float(np.sum(np.abs(back[bucket]) ** 2) / np.sum(np.abs(back0[bucket]) ** 2))
+        bucket, ideal_pib = self._vacuum_bucket()
+        return float(np.sum(np.abs(back[bucket]) ** 2) / ideal_pib)
+
+    def _vacuum_bucket(self) -> tuple[np.ndarray, float]:
+        """The bucket mask and the PiB of the flat beam back-propagated through
+        vacuum: the same for every sample, computed once."""
+        if getattr(self, "_bucket", None) is None:
+            sc = self.sc
+            ideal = np.where(self.aperture, np.exp(-1j * np.angle(self.vacuum)), 0).astype(np.complex64)
+            ideal = ideal / np.sqrt(np.sum(np.abs(ideal) ** 2))
+            back0 = split_step(ideal, np.zeros((sc.n_screens, 1, 1), np.float32), self.H, self.absorber,
+                               reverse=True, active=[False] * sc.n_screens)
+            r = np.sqrt(self.x[None, :] ** 2 + self.x[:, None] ** 2)
+            bucket = r <= 1.029 * sc.wavelength * sc.length / sc.receiver_aperture / 2
+            self._bucket = (bucket, float(np.sum(np.abs(back0[bucket]) ** 2)))
+        return self._bucket
