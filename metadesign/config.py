@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-__all__ = ["ConfigError", "InputError", "Param", "Section", "parse", "load_toml", "UNIT_SCALE"]
+from .validation import ConfigError, ValidationError
+
+__all__ = ["ConfigError", "InputError", "ValidationError", "Param", "Section", "parse", "load_toml", "UNIT_SCALE"]
 
 #: SI scale factors of the unit suffixes used in recipe keys.
 UNIT_SCALE = {
@@ -32,16 +34,9 @@ UNIT_SCALE = {
 _REQUIRED = object()
 
 
-class InputError(Exception):
-    """A user-facing input problem: printed as one line, exit status 2."""
 
-
-class ConfigError(InputError):
-    """A recipe field is missing, unknown, mistyped or out of range."""
-
-    def __init__(self, where: str, message: str):
-        self.field = where
-        super().__init__(f"{where}: {message}")
+#: historical name of :class:`~metadesign.validation.ValidationError`
+InputError = ValidationError
 
 
 @dataclass(frozen=True)

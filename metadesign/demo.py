@@ -51,6 +51,8 @@ def _stage_design(out: Path, log) -> dict:
     recipe = load_design_recipe(repo_root() / "layouts" / "demo.toml")
     d, path = run_design(recipe, out / "design")
     fig = plot_design(d, out / "design-fig-s2.png", load_library(recipe.library_path))
+    if not (d.metrics["n_empty_bins"] == 0 and d.metrics["n_atoms"] > 0):
+        raise RuntimeError("demo design: the library does not cover every phase bin")
     m = d.metrics
     line = (f"{d.spec.n_cells}x{d.spec.n_cells} cells, {m['n_atoms']} atoms, RMSE x {m['rmse_rad'][0]:.3f} "
             f"y {m['rmse_rad'][1]:.3f} rad, peak {m['peak_error_rad'][0]:.3f}/{m['peak_error_rad'][1]:.3f} rad, "
@@ -75,60 +77,51 @@ def _stage_layout(out: Path, log) -> dict:
             f"{v['exact']} (gdstk) / {k['exact']} (KLayout); DRC {'pass' if drc['passed'] else 'FAIL'} (min feature "
             f"{drc['from_atom_table']['min_feature_nm']} nm, min gap {min(drc['from_atom_table']['min_gap_x_nm'], drc['from_atom_table']['min_gap_y_nm'])} nm)")
     log(f"layout: {line}")
-    return {"line": line, "write": rep, "verify_gdstk": v, "verify_klayout": k, "drc": drc, "figures": [str(fig)]}
+    return {"line": line, "write": rep, "verify_gdstk": v, "verify_klayout": k, "drc": drc, "figures": [str(fig)],
+            "passed": bool(v["exact"] and k["exact"] and drc["passed"])}
 
 
 def _stage_sensing(out: Path, log) -> dict:
-    from .io import write_npz
-    from .sensing.model import AsFabricated, channel_metrics, load_sensing_recipe, render_frames
+    from .sensing.model import AsFabricated, load_sensing_recipe
     from .sensing.plot import plot_fab_study, plot_frames
-    from .sensing.sensor import psf_tensor
-    from .sensing.transmission import Perturbation
+    from .sensing.render import fab_study, render_psf, save_psf
 
     fab = AsFabricated.from_files(out / "design" / "layout.oas")
     sr = load_sensing_recipe(repo_root() / "sensing" / "demo.toml")
-    frames, cp = render_frames(fab, sr)
-    write_npz(out / "design" / "psf.npz", {"frames": frames, "tensor": psf_tensor(frames, sr.sensor)})
-    figs = [plot_frames(frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
+    res = render_psf(fab, sr)
+    save_psf(out / "design" / "psf.npz", res, fab, sr)
+    figs = [plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
                         "demo layout: as-fabricated sensor frames (flat wavefront)")]
-    rows = []
-    for i, (label, pert) in enumerate((("nominal", Perturbation()), ("bias -10 nm", Perturbation(-10e-9, -10e-9)),
-                                       ("bias +10 nm", Perturbation(10e-9, 10e-9)),
-                                       ("jitter 5 nm", Perturbation(jitter=5e-9, seed=1)))):
-        cpp = cp if i == 0 else fab.pupil(sr.sensor.distance, sr.pupil_grid, pert)
-        for r in channel_metrics(cpp, sr.sensor, fab):
-            rows.append({"case": i, "label": label, "clamped_pillars": cpp.n_clamped, **r})
+    rows = fab_study(fab, sr, [0.0], [0.0], [0.0]) + fab_study(fab, sr, [-10.0, 10.0], [0.0], [0.0]) \
+        + fab_study(fab, sr, [0.0], [5.0], [0.0], seed=1)
+    names = ["nominal", "bias -10 nm", "bias +10 nm", "jitter 5 nm"]
+    for i, r in enumerate(rows):
+        r["case"] = i // 8
+        r["label"] = names[i // 8]
     figs.append(plot_fab_study(rows, out / "fab-study.png"))
     nom = [r for r in rows if r["case"] == 0]
     line = (f"8 PSFs from the layout file: focusing efficiency {np.mean([r['focusing_efficiency'] for r in nom]):.3f} "
             f"per channel, Strehl {min(r['strehl'] for r in nom):.3f}..{max(r['strehl'] for r in nom):.3f}, "
             f"crosstalk {max(r['crosstalk'] for r in nom):.3f}; fab study: Strehl "
-            + ", ".join(f"{lab} {np.mean([r['strehl'] for r in rows if r['label'] == lab]):.3f}"
-                        for lab in dict.fromkeys(r["label"] for r in rows)))
+            + ", ".join(f"{lab} {np.mean([r['strehl'] for r in rows if r['label'] == lab]):.3f}" for lab in names))
     log(f"sensing: {line}")
     return {"line": line, "channels": nom, "fab_study": rows, "figures": [str(f) for f in figs]}
 
 
 def _stage_turbulence(out: Path, log) -> dict:
-    from dataclasses import replace
-
-    from .sensing.forward import sensor_frames
+    from .sensing.chain import BeaconChain
     from .sensing.model import AsFabricated, load_sensing_recipe
     from .sensing.plot import plot_frames
-    from .turbulence.propagate import Turbulence
     from .turbulence.validate import load_scenario, plot_validation, validate
 
     sc = load_scenario(repo_root() / "sensing" / "turbulence.toml")
     res = validate(sc, rytovs=(0.1, 0.3, 0.5), samples=10, pib_samples=5)
     figs = plot_validation(res, out)
-    # one scintillated wavefront through the demo metasurface, mapped onto its aperture
-    fab = AsFabricated.from_files(out / "design" / "layout.oas")
-    sr = load_sensing_recipe(repo_root() / "sensing" / "demo.toml")
-    cp = fab.pupil(sr.sensor.distance, sr.pupil_grid)
-    tb = Turbulence(replace(sc, rytov=0.3, metasurface_aperture=fab.n_cells * fab.period))
-    e_in = tb.to_metasurface(tb.sample(1).field, cp.G.shape[-1])
-    frames = sensor_frames(cp, sr.sensor, e_in)
-    figs.append(plot_frames(frames, sr.sensor, out / "psf-turbulent.png", fab.channels,
+    # one scintillated beacon through the demo metasurface onto the sensor (the stage API's chain)
+    chain = BeaconChain(AsFabricated.from_files(out / "design" / "layout.oas"),
+                        load_sensing_recipe(repo_root() / "sensing" / "demo.toml"), sc)
+    smp = chain.sample(seed=1, rytov=0.3)
+    figs.append(plot_frames(smp.frames, chain.sensing.sensor, out / "psf-turbulent.png", chain.fab.channels,
                             "demo metasurface, scintillated beacon at Rytov 0.3"))
     lv = res["levels"]
     sf = res["structure_function"]["ratio"]
@@ -153,10 +146,12 @@ def run_demo(out: Path, log: Callable[[str], None] = print) -> dict:
     for name, fn in STAGES:
         result["stages"][name] = fn(out, log)
     result["seconds"] = time.perf_counter() - t0
+    result["passed"] = all(st.get("passed", True) for st in result["stages"].values())
     figs = [Path(f).name for st in result["stages"].values() for f in st["figures"]]
     lines = [f"metadesign demo -> {out}/"]
     lines += [f"  {i}. {name:<9} {st['line']}" for i, (name, st) in enumerate(result["stages"].items(), 1)]
-    lines += [f"  figures      {', '.join(figs)}", f"  time         {result['seconds']:.1f} s"]
+    lines += [f"  figures      {', '.join(figs)}", f"  time         {result['seconds']:.1f} s",
+              f"  checks       {'all passed' if result['passed'] else 'FAILED (see summary.json)'}"]
     result["text"] = "\n".join(lines)
     atomic_write_text(out / "summary.json", json.dumps({k: v for k, v in result.items() if k != "text"},
                                                       indent=2, sort_keys=True, default=float))

@@ -93,14 +93,28 @@ def write_npz(target: str | Path, arrays: Mapping[str, np.ndarray], compress: bo
 
 
 def read_npz(path: str | Path, what: str = "file") -> dict[str, np.ndarray]:
-    """Load every array of a ``.npz`` (no pickle); errors are one line."""
+    """Load every array of a ``.npz`` (never unpickles); errors are one line."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such {what}")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, expected a {what} (.npz)")
+    if not zipfile.is_zipfile(path):
+        with open(path, "rb") as fh:
+            head = fh.read(6)
+        if head[:2] == b"PK":
+            raise InputError(f"{path}: not a readable {what} (corrupt or truncated .npz)")
+        raise InputError(f"{path}: not a {what} (expected a .npz archive of named arrays"
+                         + (", got a single .npy array)" if head == b"\x93NUMPY" else ")"))
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+    except ValueError as exc:
+        if "allow_pickle" in str(exc) or "pickle" in str(exc).lower():
+            raise InputError(f"{path}: not a {what}: it holds Python objects (pickled data is never loaded)") \
+                from None
+        raise InputError(f"{path}: not a readable {what} (corrupt or truncated: {exc})") from None
+    except (zipfile.BadZipFile, OSError, EOFError, KeyError) as exc:
         raise InputError(f"{path}: not a readable {what} (corrupt or truncated: {exc})") from None
 
 

@@ -33,3 +33,26 @@ def run_cli(*args, cwd=None):
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     return subprocess.run([sys.executable, "-m", "metadesign", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, env=env, timeout=600)
+
+
+try:  # torch: one thread per process, like the workers
+    import torch  # noqa: E402
+
+    torch.set_num_threads(1)
+except ImportError:  # pragma: no cover
+    pass
+
+
+@pytest.fixture(scope="session")
+def demo_products(tmp_path_factory):
+    """The demo design and its OASIS layout, built once per test session (read-only for tests)."""
+    from metadesign.design.recipe import load_design_recipe
+    from metadesign.design.store import run_design
+    from metadesign.layouts import write_layout
+
+    base = tmp_path_factory.mktemp("demo-products")
+    d, out = run_design(load_design_recipe(REPO / "layouts" / "demo.toml"), base / "design")
+    from metadesign.design.store import load_design
+
+    write_layout(load_design(out), out / "layout.oas", "oas")
+    return {"design": out, "layout": out / "layout.oas", "sensor": REPO / "sensing" / "demo.toml"}

@@ -89,7 +89,7 @@ def discretize_design(
             "sampled_cells": int(ax.size),
         }
 
-    dtype, empty = empty_index(len(atoms), spec.circular_aperture)
+    dtype, empty = empty_index(len(atoms), spec.bounded)
     index_map = np.empty((n, n), dtype)
     sse = np.zeros(2)
     peak = np.zeros(2)

@@ -61,8 +61,11 @@ class SupercellSpec:
     channels_x: tuple[LensChannel, ...]  # x-pol lenses, k = 1..m*m
     channels_y: tuple[LensChannel, ...]  # y-pol lenses
     circular_aperture: bool = False  # clear aperture: inscribed circle instead of the full square
+    aperture_wkt: str | None = None  # clear aperture: a polygon (WKT, metres, aperture-centred coordinates)
 
     def __post_init__(self) -> None:
+        if self.circular_aperture and self.aperture_wkt:
+            raise ValueError("a clear aperture is either circular or a polygon, not both")
         m2 = self.supercell**2
         if len(self.channels_x) != m2 or len(self.channels_y) != m2:
             raise ValueError(f"need {m2} channels per polarisation for a {self.supercell}x{self.supercell} supercell")
@@ -72,6 +75,17 @@ class SupercellSpec:
     @property
     def aperture(self) -> float:
         return self.n_cells * self.period
+
+    @property
+    def bounded(self) -> bool:
+        """True when some cells of the square lie outside the clear aperture (no pillar there)."""
+        return self.circular_aperture or self.aperture_wkt is not None
+
+    def aperture_record(self) -> dict:
+        """The clear aperture as data (layout provenance, PSF products)."""
+        if self.aperture_wkt:
+            return {"kind": "polygon", "wkt_m": self.aperture_wkt}
+        return {"kind": "circle" if self.circular_aperture else "square", "size_m": self.aperture}
 
     def channels(self, pol: int) -> tuple[LensChannel, ...]:
         return self.channels_x if pol == 0 else self.channels_y
@@ -145,13 +159,33 @@ def design_phase_rows(spec: SupercellSpec, pol: int, row0: int, row1: int,
 
 
 def aperture_mask(spec: SupercellSpec, iy: np.ndarray, ix: np.ndarray) -> np.ndarray | None:
-    """Boolean clear-aperture mask on the grid ``iy x ix`` (None: full square)."""
-    if not spec.circular_aperture:
+    """Boolean clear-aperture mask on the grid ``iy x ix`` (None: full square).
+    A cell belongs to the aperture when its centre lies in (or on) the outline."""
+    if not spec.bounded:
         return None
     x = cell_coordinates(spec.n_cells, spec.period, ix)
     y = cell_coordinates(spec.n_cells, spec.period, iy)
+    if spec.aperture_wkt:
+        return polygon_mask(spec.aperture_wkt, x, y)
     r = spec.aperture / 2
     return x[None, :] ** 2 + y[:, None] ** 2 <= r * r
+
+
+_PREPARED: dict = {}
+
+
+def polygon_mask(wkt: str, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``[len(y), len(x)]`` mask of the points inside or on the polygon (shapely's vectorised predicate
+    on a prepared geometry: ~16 M points/s, 3 s for the paper's 51 M cells)."""
+    import shapely
+
+    g = _PREPARED.get(wkt)
+    if g is None:
+        g = _PREPARED[wkt] = shapely.from_wkt(wkt)
+        shapely.prepare(g)
+    X = np.broadcast_to(np.asarray(x, float)[None, :], (len(y), len(x)))
+    Y = np.broadcast_to(np.asarray(y, float)[:, None], (len(y), len(x)))
+    return shapely.intersects_xy(g, X, Y)
 
 
 def aperture_mask_rows(spec: SupercellSpec, row0: int, row1: int) -> np.ndarray | None:

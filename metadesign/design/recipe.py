@@ -35,7 +35,10 @@ SECTIONS = (
             Param("wavelength_nm", float, lo=0, open_lo=True, hi=1e5),
             Param("period_um", float, lo=0, open_lo=True, hi=100),
             Param("aperture_mm", float, lo=0, open_lo=True, hi=300),
-            Param("clear_aperture", str, "square", choices=["square", "circle"]),
+            Param("clear_aperture", str, "square", choices=["square", "circle", "polygon"]),
+            # clear_aperture = "polygon": vertices (um, aperture-centred) or a WKT / GeoJSON file (um)
+            Param("aperture_polygon_um", list, None, pairs=True, lo=-1.5e5, hi=1.5e5),
+            Param("aperture_file", str, None),
             Param("supercell", int, 2, lo=1, hi=8),
         ),
     ),
@@ -77,6 +80,9 @@ def design_recipe_from_dict(data: dict, name: str = "design", source: Path | Non
     v = parse(data, SECTIONS, str(source) if source else "recipe")
     d, dz = v["design"], v["discretizer"]
     m = d["supercell"]
+    if m != 2:
+        raise ConfigError("design.supercell", f"expected 2 (four lenses per polarisation, one per sensor quadrant: "
+                                              f"the layout, PSF and reconstruction stages need it), got {m}")
     chans = {}
     for pol in ("x_pol", "y_pol"):
         f, o = v[pol]["focal_lengths_mm"], v[pol]["offsets_um"]
@@ -90,9 +96,11 @@ def design_recipe_from_dict(data: dict, name: str = "design", source: Path | Non
         raise ConfigError("design.aperture_mm",
                           f"{d['aperture_mm'] * 1e3:g} mm is smaller than one {m}x{m} supercell "
                           f"({m * d['period_um'] * 1e3:g} mm)")
+    wkt = _polygon_wkt(d, source, n_cells * d["period_um"])
     spec = SupercellSpec(
         wavelength=d["wavelength_nm"], period=d["period_um"], n_cells=n_cells, supercell=m,
         channels_x=chans["x_pol"], channels_y=chans["y_pol"], circular_aperture=d["clear_aperture"] == "circle",
+        aperture_wkt=wkt,
     )
     lib = Path(d["library"])
     if not lib.is_absolute():
@@ -102,6 +110,58 @@ def design_recipe_from_dict(data: dict, name: str = "design", source: Path | Non
         bins=dz["bins"], metric=Metric(dz["metric"]), optimise_offsets=dz["optimise_offsets"],
         tile_rows=dz["tile_rows"], raw=data,
     )
+
+
+def _polygon_wkt(d: dict, source: Path | None, side: float) -> str | None:
+    """The polygon clear aperture as WKT in metres (validated), or None."""
+    import shapely
+
+    kind, verts, file = d["clear_aperture"], d["aperture_polygon_um"], d["aperture_file"]
+    if kind != "polygon":
+        for key, v in (("aperture_polygon_um", verts), ("aperture_file", file)):
+            if v is not None:
+                raise ConfigError(f"design.{key}", f"only with clear_aperture = \"polygon\" (got {kind!r})")
+        return None
+    if (verts is None) == (file is None):
+        raise ConfigError("design.clear_aperture", "\"polygon\" needs exactly one of aperture_polygon_um "
+                                                   "(vertices in um) or aperture_file (WKT or GeoJSON, um)")
+    where = "design.aperture_polygon_um" if verts is not None else "design.aperture_file"
+    if verts is not None:
+        if len(verts) < 3:
+            raise ConfigError(where, f"expected >= 3 vertices, got {len(verts)}")
+        geom = shapely.Polygon(verts)  # already in metres
+    else:
+        path = Path(file)
+        if not path.is_absolute():
+            path = (source.parent if source else Path.cwd()) / path
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(where, f"cannot read {path} ({exc.__class__.__name__})") from None
+        try:
+            if path.suffix.lower() in (".json", ".geojson"):
+                import json
+
+                obj = json.loads(text)
+                if obj.get("type") == "FeatureCollection" and len(obj.get("features", ())) == 1:
+                    obj = obj["features"][0]
+                if obj.get("type") == "Feature":
+                    obj = obj["geometry"]
+                geom = shapely.from_geojson(json.dumps(obj))
+            else:
+                geom = shapely.from_wkt(text.strip())
+        except (ValueError, TypeError, AttributeError, shapely.errors.GEOSException) as exc:
+            raise ConfigError(where, f"{path} is not a WKT / GeoJSON polygon ({str(exc).splitlines()[0]})") \
+                from None
+        if geom.geom_type not in ("Polygon", "MultiPolygon"):
+            raise ConfigError(where, f"{path}: expected a Polygon or MultiPolygon, got {geom.geom_type}")
+        geom = shapely.transform(geom, lambda c: c * 1e-6)  # um -> m, once, here
+    if not geom.is_valid or geom.is_empty or geom.area <= 0:
+        raise ConfigError(where, "the polygon is empty or invalid (self-intersecting?)")
+    square = shapely.box(-side / 2, -side / 2, side / 2, side / 2)
+    if not geom.intersects(square) or geom.intersection(square).area < 1e-6 * side * side:
+        raise ConfigError(where, f"the polygon does not overlap the {side * 1e3:g} mm aperture square")
+    return shapely.to_wkt(geom, rounding_precision=-1, trim=True)
 
 
 def load_design_recipe(path: str | Path) -> DesignRecipe:

@@ -121,7 +121,12 @@ def build_gdstk_library(design, opts: LayoutOptions, provenance: dict):
         top.add(ref)
     if opts.outline_layer is not None:
         half = (n * p_nm) // 2
-        if spec.circular_aperture:
+        if spec.aperture_wkt:
+            outline = gdstk.boolean(gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000)),
+                                    _wkt_polygons_nm(spec.aperture_wkt), "not", layer=opts.outline_layer,
+                                    datatype=opts.datatype)
+            top.add(*outline)
+        elif spec.circular_aperture:
             o = gdstk.ellipse((0, 0), half, tolerance=10, layer=opts.outline_layer, datatype=opts.datatype)
             outline = gdstk.boolean(gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000)), o,
                                     "not", layer=opts.outline_layer, datatype=opts.datatype)
@@ -143,10 +148,33 @@ def build_gdstk_library(design, opts: LayoutOptions, provenance: dict):
     return lib, snapping
 
 
+def _wkt_polygons_nm(wkt: str) -> list:
+    """gdstk polygons (nm) of a WKT (multi)polygon in metres, holes included."""
+    import gdstk
+    import shapely
+
+    g = shapely.from_wkt(wkt)
+    polys = []
+    for part in getattr(g, "geoms", [g]):
+        shell = gdstk.Polygon((np.asarray(part.exterior.coords) * 1e9).tolist())
+        holes = [gdstk.Polygon((np.asarray(h.coords) * 1e9).tolist()) for h in part.interiors]
+        polys += gdstk.boolean(shell, holes, "not") if holes else [shell]
+    return polys
+
+
+def channel_table(spec) -> list[dict]:
+    """The lenses as data: one row per (polarisation, k = 1..4)."""
+    return [{"pol": pol, "k": k, "focal_length_m": c.focal_length, "offset_x_m": c.offset_x,
+             "offset_y_m": c.offset_y}
+            for pol, chans in (("x", spec.channels_x), ("y", spec.channels_y)) for k, c in enumerate(chans, 1)]
+
+
 def provenance_of(design, opts: LayoutOptions) -> dict:
     p_nm, x0 = layout_geometry(design.spec.n_cells, design.spec.period)
     return {
         "tool": "metadesign", "version": __version__, "design": design.meta.get("name"),
+        "wavelength_m": design.spec.wavelength, "supercell": design.spec.supercell,
+        "channels": channel_table(design.spec), "clear_aperture": design.spec.aperture_record(),
         "recipe": design.meta.get("recipe"), "library_sha256": design.meta.get("library", {}).get("sha256"),
         "n_cells": design.spec.n_cells, "period_nm": p_nm, "origin_nm": [x0, x0],
         "n_atoms": len(design.atoms), "layer": [opts.layer, opts.datatype],
@@ -161,6 +189,11 @@ def write_layout(design, out: Path, fmt: str = "oas", opts: LayoutOptions = Layo
     out = Path(out)
     t0 = time.perf_counter()
     prov = provenance_of(design, opts)
+    lib_rec = design.meta.get("library", {}).get("path")
+    if lib_rec and design.meta.get("_file"):
+        from ..library.locate import relative_to_product
+
+        prov["library_path"] = relative_to_product(Path(design.meta["_file"]).parent / lib_rec, out.parent)
     lib, snapping = build_gdstk_library(design, opts, prov)
     t_build = time.perf_counter() - t0
     with atomic_path(out) as tmp:

@@ -119,9 +119,14 @@ def recipe_from_dict(data: dict, name: str = "recipe", source: str = "recipe") -
     p_um = stack.period * 1e6
     if sw["w_max_um"] >= stack.period:
         raise ConfigError("sweep.w_max_um", f"must be < the period ({p_um:g} um), got {sw['w_max_um']*1e6:g}")
-    if sw["w_min_um"] > sw["w_max_um"]:
-        raise ConfigError("sweep.w_min_um", f"must be <= sweep.w_max_um ({sw['w_max_um']*1e6:g} um)")
+    if sw["w_min_um"] >= sw["w_max_um"]:
+        raise ConfigError("sweep.w_min_um", f"must be < sweep.w_max_um ({sw['w_max_um']*1e6:g} um)")
     n = int(np.floor((sw["w_max_um"] - sw["w_min_um"]) / sw["step_nm"] + 1e-6)) + 1
+    if n < 2:
+        raise ConfigError("sweep.step_nm", f"gives {n} width (the library needs >= 2 per axis): "
+                                           "lower the step or widen [w_min_um, w_max_um]")
+    if not cv["check_cells_um"]:
+        raise ConfigError("convergence.check_cells_um", "expected at least one [wx, wy] pair (um)")
     # integer nanometre grid (0.1 nm resolution) so widths are exactly representable in layouts
     widths = np.round((sw["w_min_um"] + sw["step_nm"] * np.arange(n)) * 1e10) / 1e10
     for i, (wx, wy) in enumerate(cv["check_cells_um"]):

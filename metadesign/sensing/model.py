@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import InputError, Param, Section, load_toml, parse
+from ..config import ConfigError, InputError, Param, Section, load_toml, parse
 from ..design.phase import LensChannel
 from ..layouts.reader import LayoutContents, read_layout
 from ..library.store import UnitCellLibrary, load_library
@@ -31,7 +31,7 @@ SENSING_SECTIONS = (
     Section("pupil", (Param("grid", int, 256, lo=8, hi=8192),), optional=True),
     Section("noise", (
         Param("gaussian_percent", float, 0.0, lo=0, hi=100),
-        Param("photons_at_peak", float, 0.0, lo=0),
+        Param("photons_at_peak", float, 0.0, lo=0, hi=1e15),
         Param("read_noise_e", float, 0.0, lo=0),
         Param("bit_depth", int, 0, lo=0, hi=32),
         Param("seed", int, 0, lo=0),
@@ -49,8 +49,12 @@ class SensingRecipe:
 def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
     v = parse(data, SENSING_SECTIONS, source)
     s, nz = v["sensor"], v["noise"]
-    if s["width_px"] % 4 or s["height_px"] % 4:
-        raise InputError(f"{source}: sensor.width_px and sensor.height_px must be multiples of 4 (quadrants)")
+    for key in ("width_px", "height_px"):
+        if s[key] % 4:
+            raise ConfigError(f"sensor.{key}", f"must be a multiple of 4 (four quadrants of even size), got {s[key]}")
+    if nz["read_noise_e"] and not nz["photons_at_peak"]:
+        raise ConfigError("noise.read_noise_e", "needs noise.photons_at_peak > 0 (read noise is counted in "
+                                                "photo-electrons)")
     sensor = SensorSpec(s["width_px"], s["height_px"], s["pixel_um"], s["magnification"], s["distance_mm"],
                         s["tensor_size"])
     # "gaussian_percent" is a fraction once loaded (unit suffix converted at the edge)
@@ -74,23 +78,27 @@ class AsFabricated:
     supercell: int
     channels: tuple[tuple[LensChannel, ...], tuple[LensChannel, ...]]
 
+    aperture: dict | None = None  # clear-aperture record of the layout (None: the full square)
+    path: Path | None = None  # the layout file
+
     @classmethod
     def from_files(cls, layout_path: str | Path, lib_path: str | Path | None = None) -> "AsFabricated":
+        """Read a layout written by ``metadesign layout`` and find its library: ``lib_path`` if given, else
+        the path recorded in the layout (relative to it), else any library with the recorded sha256."""
+        from ..library.locate import find_library
+
+        layout_path = Path(layout_path)
         lc = read_layout(layout_path)
         prov = lc.provenance
-        recipe = prov.get("recipe") or {}
-        d = recipe.get("design", {})
-        path = Path(lib_path) if lib_path else None
-        if path is None:
-            cand = Path(layout_path).parent / "design.npz"
-            if cand.exists():
+        if lib_path is not None:
+            path = Path(lib_path)
+        else:
+            recorded = prov.get("library_path")
+            if recorded is None and (layout_path.parent / "design.npz").exists():  # layouts before provenance v2
                 from ..design.store import load_design
 
-                path = Path(load_design(cand).meta["library"]["path"])
-            else:
-                from ..paths import default_library_path
-
-                path = default_library_path()
+                recorded = str(Path(load_design(layout_path.parent / "design.npz").meta["library"]["path"]))
+            path = find_library(prov.get("library_sha256"), recorded, layout_path.parent)
         lib = load_library(path)
         if prov.get("library_sha256") and lib.identity != prov["library_sha256"]:
             raise InputError(f"{path}: library differs from the one the layout was designed with "
@@ -98,8 +106,24 @@ class AsFabricated:
         period = lc.period_nm * 1e-9
         if abs(period - lib.period) > 1e-12:
             raise InputError(f"layout period {lc.period_nm} nm does not match the library ({lib.period * 1e9:g} nm)")
-        chans = _channels_from_recipe(recipe)
-        return cls(lc, lib, period, lib.wavelength, int(d.get("supercell", 2)), chans)
+        chans, m = channels_from_provenance(prov)
+        if m != 2:
+            raise InputError(f"{layout_path}: supercell {m}x{m}: the forward model needs 2x2 (one lens per quadrant)")
+        return cls(lc, lib, period, lib.wavelength, m, chans, prov.get("clear_aperture"), layout_path)
+
+    def aperture_mask_rows(self, r0: int, r1: int) -> np.ndarray | None:
+        """Clear-aperture mask of pillar rows ``r0:r1`` (None: everything transmits)."""
+        ap = self.aperture or {}
+        if ap.get("kind") not in ("circle", "polygon"):
+            return None
+        from ..design.phase import cell_coordinates, polygon_mask
+
+        x = cell_coordinates(self.n_cells, self.period)
+        y = x[r0:r1]
+        if ap["kind"] == "polygon":
+            return polygon_mask(ap["wkt_m"], x, y)
+        r = self.n_cells * self.period / 2
+        return x[None, :] ** 2 + y[:, None] ** 2 <= r * r
 
     @property
     def n_cells(self) -> int:
@@ -114,22 +138,38 @@ class AsFabricated:
         rng = np.random.default_rng(pert.seed)  # one stream over the rows: same seed, same pillars
 
         def rows(r0, r1):
-            return pillar_transmission(self.layout.index_map, self.layout.atom_widths_nm, self.lib, pert,
-                                       slice(r0, r1), rng)
+            t, clamped = pillar_transmission(self.layout.index_map, self.layout.atom_widths_nm, self.lib, pert,
+                                             slice(r0, r1), rng)
+            mask = self.aperture_mask_rows(r0, r1)
+            if mask is not None:  # the clear aperture is a stop: opaque outside the outline
+                t[~mask] = 0
+            return t, clamped
 
         block = block_size_for(self.n_cells, pupil_grid, self.supercell)
         return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
                             self.tn_scale, progress=progress)
 
 
-def _channels_from_recipe(recipe: dict):
+def channels_from_provenance(prov: dict):
+    """((x-pol lenses), (y-pol lenses)), supercell m: from the channel table stored in the layout (data), or
+    for layouts written before it, from the embedded design recipe."""
+    if prov.get("channels"):
+        rows = prov["channels"]
+        try:
+            chans = tuple(tuple(LensChannel(float(r["focal_length_m"]), float(r["offset_x_m"]), float(r["offset_y_m"]))
+                                for r in sorted((r for r in rows if r["pol"] == pol), key=lambda r: r["k"]))
+                          for pol in ("x", "y"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"layout provenance: unreadable channel table ({exc})") from None
+        return chans, int(prov.get("supercell", 2))
     from ..design.recipe import design_recipe_from_dict
 
     try:
-        r = design_recipe_from_dict(recipe)
-        return r.spec.channels_x, r.spec.channels_y
-    except (InputError, KeyError, TypeError, ValueError):  # foreign provenance: channels unknown
-        return (), ()
+        r = design_recipe_from_dict(prov.get("recipe") or {})
+    except (InputError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"layout provenance has neither a channel table nor a readable design recipe ({exc})") \
+            from None
+    return (r.spec.channels_x, r.spec.channels_y), r.spec.supercell
 
 
 def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_span: float = 0.3e-3,

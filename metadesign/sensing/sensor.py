@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise"]
+from ..validation import ConfigError, check_int, check_number
+
+__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "area_weights"]
 
 
 @dataclass(frozen=True)
@@ -32,10 +34,19 @@ class SensorSpec:
     tensor_size: int = 256  # network input: 8 x tensor_size x tensor_size
 
     def __post_init__(self) -> None:
-        if self.width_px < 2 or self.height_px < 2 or self.width_px % 2 or self.height_px % 2:
-            raise ValueError("sensor width and height must be even numbers of pixels >= 2")
-        if self.pixel_pitch <= 0 or self.magnification <= 0 or self.distance <= 0 or self.tensor_size < 2:
-            raise ValueError("pixel pitch, magnification, distance and tensor size must be positive")
+        for name in ("width_px", "height_px"):
+            v = check_int(f"sensor.{name}", getattr(self, name), 4, 100000)
+            if v % 4:
+                raise ConfigError(f"sensor.{name}", f"must be a multiple of 4 (four quadrants of even size), got {v}")
+        check_number("sensor.pixel_pitch", self.pixel_pitch, 0, 1e-3, open_lo=True, unit="m")
+        check_number("sensor.magnification", self.magnification, 0, 1e4, open_lo=True)
+        check_number("sensor.distance", self.distance, 0, 10.0, open_lo=True, unit="m")
+        check_int("sensor.tensor_size", self.tensor_size, 2, 4096)
+
+    def to_dict(self) -> dict:
+        return {"width_px": self.width_px, "height_px": self.height_px, "pixel_um": self.pixel_pitch * 1e6,
+                "magnification": self.magnification, "distance_mm": self.distance * 1e3,
+                "tensor_size": self.tensor_size}
 
     @property
     def focal_pitch(self) -> float:
@@ -63,11 +74,22 @@ def quadrant_slices(sensor: SensorSpec, k: int) -> tuple[slice, slice]:
     return rows, cols
 
 
-def _resample(img: np.ndarray, size: int) -> np.ndarray:
-    """Area-weighted resampling of a 2D image to size x size (bilinear via zoom)."""
-    from scipy.ndimage import zoom
+def area_weights(n_in: int, n_out: int) -> np.ndarray:
+    """``(n_out, n_in)`` overlap matrix of area-weighted resampling along one axis: output pixel ``i`` covers
+    input coordinates ``[i, i + 1) n_in / n_out``; entry ``(i, j)`` is the fraction of input pixel ``j``
+    inside it, so every column sums to 1 (power is conserved)."""
+    edges = np.arange(n_out + 1) * (n_in / n_out)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    j = np.arange(n_in)[None, :]
+    return np.clip(np.minimum(hi, j + 1) - np.maximum(lo, j), 0.0, None)
 
-    return zoom(img, (size / img.shape[0], size / img.shape[1]), order=1, prefilter=False)
+
+def _resample(img: np.ndarray, size: int) -> np.ndarray:
+    """Area-weighted resampling of a 2D image of power per pixel to ``size x size`` pixels: each output
+    pixel holds the power falling on it (the total is conserved)."""
+    ry = area_weights(img.shape[0], size)
+    rx = area_weights(img.shape[1], size)
+    return (ry @ np.asarray(img, np.float64) @ rx.T).astype(np.float32)
 
 
 def psf_tensor(frames: np.ndarray, sensor: SensorSpec) -> np.ndarray:
@@ -87,6 +109,27 @@ class NoiseSpec:
     read_noise_e: float = 0.0  # read noise (electrons, Gaussian), needs photons_at_peak
     bit_depth: int | None = None  # ADC quantisation of [0, peak]
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_number("noise.gaussian_sigma", self.gaussian_sigma, 0, 1)
+        if self.photons_at_peak is not None:
+            # Poisson sampling needs lam < ~1e18; beyond ~1e15 photo-electrons shot noise is < 3e-8 of the peak
+            check_number("noise.photons_at_peak", self.photons_at_peak, 0, 1e15, open_lo=True)
+        check_number("noise.read_noise_e", self.read_noise_e, 0, 1e6)
+        if self.read_noise_e and not self.photons_at_peak:
+            raise ConfigError("noise.read_noise_e", "needs noise.photons_at_peak > 0 (read noise is counted in "
+                                                    "photo-electrons)")
+        if self.bit_depth is not None:
+            check_int("noise.bit_depth", self.bit_depth, 1, 32)
+        check_int("noise.seed", self.seed, 0, 2**63 - 1)
+
+    @property
+    def active(self) -> bool:
+        return bool(self.gaussian_sigma or self.photons_at_peak or self.bit_depth)
+
+    def to_dict(self) -> dict:
+        return {"gaussian_percent": self.gaussian_sigma * 100, "photons_at_peak": self.photons_at_peak or 0.0,
+                "read_noise_e": self.read_noise_e, "bit_depth": self.bit_depth or 0, "seed": self.seed}
 
 
 def add_noise(frames: np.ndarray, noise: NoiseSpec, rng: np.random.Generator | None = None) -> np.ndarray:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..library.store import UnitCellLibrary
+from ..validation import check_int, check_number
 
 __all__ = ["Perturbation", "interpolate_t", "perturb_widths", "pillar_transmission"]
 
@@ -33,6 +34,17 @@ class Perturbation:
     jitter: float = 0.0  # m (sigma)
     corner_radius: float = 0.0  # m
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("bias_x", "bias_y"):
+            check_number(f"perturbation.{name}", getattr(self, name), -200e-9, 200e-9, unit="m")
+        check_number("perturbation.jitter", self.jitter, 0, 100e-9, unit="m")
+        check_number("perturbation.corner_radius", self.corner_radius, 0, 500e-9, unit="m")
+        check_int("perturbation.seed", self.seed, 0, 2**63 - 1)
+
+    def to_dict(self) -> dict:
+        return {"bias_x_nm": self.bias_x * 1e9, "bias_y_nm": self.bias_y * 1e9, "jitter_nm": self.jitter * 1e9,
+                "corner_radius_nm": self.corner_radius * 1e9, "seed": self.seed}
 
     @property
     def is_null(self) -> bool:

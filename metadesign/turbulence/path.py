@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from ..validation import available_memory, check_int, check_number, MEMORY_FRACTION
+
 __all__ = ["Scenario", "PathModel", "solve_path", "SamplingReport", "check_sampling"]
 
 
@@ -36,6 +38,37 @@ class Scenario:
     roi_factor: float = 4.0  # point-source illuminated region DROI = roi_factor * D2
     absorber_order: int = 16  # super-Gaussian boundary exp(-(r / (0.47 N dx))^order)
     subharmonics: bool = True
+
+    def __post_init__(self) -> None:
+        check_number("path.wavelength", self.wavelength, 100e-9, 20e-6, unit="m")
+        check_number("path.length", self.length, 1.0, 1e6, unit="m")
+        check_int("path.n_screens", self.n_screens, 3, 1000)
+        check_number("path.rytov", self.rytov, 0, 5, open_lo=True)
+        check_number("path.max_screen_rytov", self.max_screen_rytov, 0, 1, open_lo=True)
+        check_number("path.inner_scale", self.inner_scale, 0, 1.0, open_lo=True, unit="m")
+        check_number("path.outer_scale", self.outer_scale, 0, 1e5, open_lo=True, unit="m")
+        check_int("grid.n", self.n_grid, 32, 8192)
+        check_number("grid.spacing", self.dx, 0, 1.0, open_lo=True, unit="m")
+        check_number("receiver.aperture", self.receiver_aperture, 0, 10.0, open_lo=True, unit="m")
+        check_number("receiver.metasurface_aperture", self.metasurface_aperture, 0, 1.0, open_lo=True, unit="m")
+        check_number("receiver.roi_factor", self.roi_factor, 1, 20)
+        check_int("grid.absorber_order", self.absorber_order, 2, 64)
+
+    @property
+    def sample_bytes(self) -> int:
+        """Planned peak memory of one sample: the float32 screens plus ~8 complex64 grids."""
+        return int(self.n_grid**2 * (4 * self.n_screens + 8 * 8))
+
+    def to_dict(self) -> dict:
+        return {"path": {"wavelength_nm": self.wavelength * 1e9, "length_m": self.length,
+                         "n_screens": self.n_screens, "rytov": self.rytov,
+                         "max_screen_rytov": self.max_screen_rytov, "inner_scale_cm": self.inner_scale * 100,
+                         "outer_scale_m": self.outer_scale},
+                "grid": {"n": self.n_grid, "spacing_mm": self.dx * 1e3, "absorber_order": self.absorber_order,
+                         "subharmonics": self.subharmonics},
+                "receiver": {"aperture_cm": self.receiver_aperture * 100,
+                             "metasurface_aperture_mm": self.metasurface_aperture * 1e3,
+                             "roi_factor": self.roi_factor}}
 
     @property
     def k(self) -> float:
@@ -134,6 +167,8 @@ def check_sampling(sc: Scenario, pm: PathModel, c: float = 2.0) -> SamplingRepor
         "C4 dz <= dx^2 N / lambda": (sc.dz, dx * dx * n / sc.wavelength),
         "receiver aperture inside the absorber (D2 <= 0.6 N dx)": (d2, 0.6 * n * dx),
         "screen Rytov cap reaches the nominal Rytov": (sc.rytov, pm.rytov_achieved * (1 + 1e-3)),
+        "memory per sample (GiB) within the available memory": (sc.sample_bytes / 2**30,
+                                                                available_memory() * MEMORY_FRACTION / 2**30),
     }
     fails = []
     hints = {
@@ -143,6 +178,7 @@ def check_sampling(sc: Scenario, pm: PathModel, c: float = 2.0) -> SamplingRepor
         "C4": "use more screens or a larger grid",
         "receiver": "raise n_grid or dx",
         "screen": f"raise n_screens or max_screen_rytov (the cap allows {pm.rytov_achieved:.3g})",
+        "memory": "lower grid.n or path.n_screens",
     }
     for name, (lhs, rhs) in cons.items():
         if lhs > rhs:

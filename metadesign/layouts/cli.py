@@ -1,0 +1,152 @@
+"""``metadesign layout write|verify|preview`` (stage 3 CLI).  ``layout DESIGN``
+is kept as the spelling of ``layout write DESIGN``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..cliutil import emit, integer, out_file
+from ..config import InputError
+
+__all__ = ["register", "SUBCOMMANDS", "DEFAULT", "MAX_PREVIEW_CELLS"]
+
+SUBCOMMANDS = ("write", "verify", "preview")
+DEFAULT = "write"
+#: a preview draws one patch per pillar: beyond this it is a picture of noise (and minutes of matplotlib)
+MAX_PREVIEW_CELLS = 256
+
+
+def _find_design_for(layout: Path, given: str | None):
+    from ..design.store import load_design
+
+    if given:
+        return load_design(given)
+    cand = layout.parent / "design.npz"
+    if not cand.exists():
+        raise InputError(f"{layout}: no design.npz beside it; pass --design DESIGN")
+    return load_design(cand)
+
+
+def _cmd_write(a: argparse.Namespace) -> int:
+    from ..design.store import load_design
+    from . import LayoutOptions, write_layout
+
+    base = Path(a.design)
+    folder = base if base.is_dir() else base.parent
+    stem = Path(a.output) if a.output else folder / "layout"
+    if stem.suffix in (".oas", ".gds"):
+        stem = stem.with_suffix("")
+    fmts = ["oas", "gds"] if a.format == "both" else [a.format]
+    for fmt in fmts:
+        out_file(stem.with_suffix("." + fmt))
+    d = load_design(a.design)
+    opts = LayoutOptions(layer=a.layer, datatype=a.datatype, grid_nm=a.grid_nm,
+                         outline_layer=None if a.no_outline else a.outline_layer,
+                         label_layer=a.label_layer, label=a.label)
+    reports = []
+    for fmt in fmts:
+        if fmt == "gds" and d.index_map.size > 1_000_000:
+            print(f"metadesign: warning: GDSII cannot store irregular repetitions: {d.index_map.size:,} pillars "
+                  "expand into one SREF each (expect a file of GB size and minutes)", file=sys.stderr)
+        reports.append(write_layout(d, stem.with_suffix("." + fmt), fmt, opts))
+    text = "\n".join(
+        f"wrote {r['file']}: {r['pillars']:,} pillars, {r['atoms']} atoms, {r['bytes'] / 1e6:.2f} MB in "
+        f"{r['seconds']:.1f} s; widths snapped to {r['snapping']['grid_nm']} nm (max error "
+        f"{r['snapping']['max_error_nm']:.3f} nm, {r['snapping']['odd_width_atoms']} atoms with an odd-nm width "
+        "centred 0.5 nm low)" for r in reports)
+    emit({"layouts": reports}, a.json, text)
+    return 0
+
+
+def _cmd_verify(a: argparse.Namespace) -> int:
+    from . import drc_check, read_layout, read_layout_klayout, verify_against_design
+
+    path = Path(a.layout)
+    lc = read_layout(path)
+    d = _find_design_for(path, a.design)
+    grid = int(lc.provenance.get("grid_nm", 1)) if "grid_nm" in lc.provenance else 1
+    rep = {"file": str(path), "gdstk": verify_against_design(lc, d, grid)}
+    if a.klayout:
+        rep["klayout"] = verify_against_design(read_layout_klayout(path), d, grid)
+    rep["drc"] = drc_check(lc, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
+    ok = rep["gdstk"]["exact"] and rep["drc"]["passed"] and rep.get("klayout", {"exact": True})["exact"]
+    rep["passed"] = ok
+    g = rep["gdstk"]
+    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'}",
+             f"  gdstk read-back: {g['pillars']:,} pillars, exact {g['exact']} ({g['read_seconds']:.1f} s)"
+             + "".join(f"\n    - {p}" for p in g["problems"])]
+    if "klayout" in rep:
+        k = rep["klayout"]
+        lines.append(f"  KLayout read-back: {k['pillars']:,} pillars, exact {k['exact']}, per-atom counts "
+                     f"{'agree' if k['counts_per_atom'] == g['counts_per_atom'] else 'DIFFER'} "
+                     f"({k['read_seconds']:.1f} s)" + "".join(f"\n    - {p}" for p in k["problems"]))
+    t, w = rep["drc"]["from_atom_table"], rep["drc"]["geometric_window"]
+    lines.append(f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm): atom table min "
+                 f"feature {t['min_feature_nm']} nm, min gap x {t['min_gap_x_nm']} / y {t['min_gap_y_nm']} nm; "
+                 f"KLayout window {w['window_cells']}x{w['window_cells']} cells: {w['width_violations']} width, "
+                 f"{w['space_violations']} space violations -> {'pass' if rep['drc']['passed'] else 'FAIL'}")
+    emit(rep, a.json, "\n".join(lines))
+    return 0 if ok else 1
+
+
+def _cmd_preview(a: argparse.Namespace) -> int:
+    from . import read_layout
+    from .preview import preview_layout
+
+    path = Path(a.layout)
+    if a.window and not 1 <= a.window[2] <= MAX_PREVIEW_CELLS:
+        raise InputError(f"--window: CELLS expected an integer in [1, {MAX_PREVIEW_CELLS}], got {a.window[2]}")
+    out = out_file(Path(a.output) if a.output else path.with_name(path.stem + "-preview.png"), suffixes=(".png",))
+    lc = read_layout(path)
+    n = lc.index_map.shape[0]
+    if a.window and (a.window[0] >= n or a.window[1] >= n):
+        raise InputError(f"--window: IX0 and IY0 must be < {n} (cells per side of this layout), got "
+                         f"{a.window[0]} {a.window[1]}")
+    preview_layout(lc, out, tuple(a.window) if a.window else None)
+    print(f"wrote {out}")
+    return 0
+
+
+def register(sub) -> None:
+    lay = sub.add_parser(
+        "layout", help="stage 3: layout write DESIGN | layout verify LAYOUT | layout preview LAYOUT",
+        description="Stage 3. `layout write DESIGN` (or `layout DESIGN`) writes the design as OASIS (default) "
+        "and/or GDS with gdstk (one cell per atom, one repetition per atom; 1 nm database unit), with provenance "
+        "in the file and a JSON side-car. `layout verify LAYOUT` reads every pillar back and compares it exactly "
+        "with the design (add --klayout for KLayout's independent reader), and runs the design-rule checks. "
+        "`layout preview LAYOUT` renders a pillar window and a thumbnail.")
+    lsub = lay.add_subparsers(dest="layout_command", metavar="ACTION")
+    lsub.required = True
+    w = lsub.add_parser("write", help="write the OASIS/GDS layout of a design")
+    w.add_argument("design", help="design folder or design.npz")
+    w.add_argument("-o", "--output", help="layout path without suffix (default DESIGN/layout)")
+    w.add_argument("--format", default="oas", choices=["oas", "gds", "both"], help="oas (default), gds or both")
+    w.add_argument("--layer", type=integer(0, 65535), default=1, help="pillar layer (default 1)")
+    w.add_argument("--datatype", type=integer(0, 65535), default=0, help="pillar datatype (default 0)")
+    w.add_argument("--grid-nm", type=integer(1, 100), default=1, help="width snapping grid in nm (default 1)")
+    w.add_argument("--outline-layer", type=integer(0, 65535), default=10, help="aperture outline layer (default 10)")
+    w.add_argument("--no-outline", action="store_true", help="no aperture outline")
+    w.add_argument("--label-layer", type=integer(0, 65535), default=11, help="text/provenance layer (default 11)")
+    w.add_argument("--label", help="label text written beside the aperture (default: the design name)")
+    w.add_argument("--json", action="store_true", help="print the report as JSON")
+    w.set_defaults(func=_cmd_write)
+
+    v = lsub.add_parser("verify", help="read every pillar back, compare with the design, design rules")
+    v.add_argument("layout", help="layout file (.oas/.gds)")
+    v.add_argument("--design", help="the design to compare with (default: design.npz beside the layout)")
+    v.add_argument("--klayout", action="store_true", help="also read the file with KLayout and compare")
+    v.add_argument("--min-feature-nm", type=integer(1, 100000), default=100, help="minimum pillar width rule (100)")
+    v.add_argument("--min-gap-nm", type=integer(1, 100000), default=150, help="minimum gap rule (150)")
+    v.add_argument("--drc-window-cells", type=integer(2, 4096), default=64,
+                   help="geometric DRC window in cells per side, 2..4096 (default 64)")
+    v.add_argument("--json", action="store_true", help="print the report as JSON")
+    v.set_defaults(func=_cmd_verify)
+
+    p = lsub.add_parser("preview", help="render a pillar window and a thumbnail of the aperture")
+    p.add_argument("layout", help="layout file (.oas/.gds)")
+    p.add_argument("-o", "--output", help="preview PNG (default: beside the layout)")
+    p.add_argument("--window", type=integer(0, 10**7), nargs=3, metavar=("IX0", "IY0", "CELLS"),
+                   help=f"window of cells to draw (default: 16 x 16 at the centre; CELLS <= {MAX_PREVIEW_CELLS})")
+    p.set_defaults(func=_cmd_preview)

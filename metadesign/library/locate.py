@@ -1,0 +1,59 @@
+"""Find a product's unit-cell library: by its recorded path (relative to the
+product file), then by its sha256 among the libraries a user keeps."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from ..validation import ValidationError
+
+__all__ = ["file_sha256", "find_library", "relative_to_product"]
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def relative_to_product(target: str | Path, product_dir: str | Path) -> str:
+    """``target`` as a path relative to the folder holding the product (posix separators)."""
+    try:
+        return Path(os.path.relpath(Path(target).resolve(), Path(product_dir).resolve())).as_posix()
+    except ValueError:  # another drive (Windows)
+        return Path(target).resolve().as_posix()
+
+
+def find_library(sha256: str | None, recorded: str | None, product_dir: str | Path) -> Path:
+    """The library a product was made with.
+
+    Tries the recorded path relative to ``product_dir`` (and as given), then
+    every ``*.npz`` in the repository's ``library/`` folder, the product's
+    folder and the working directory, accepting the first whose sha256 equals
+    the recorded one (any existing file when no sha256 was recorded)."""
+    from ..paths import repo_root
+
+    product_dir = Path(product_dir)
+    tried: list[Path] = []
+    cands: list[Path] = []
+    if recorded:
+        r = Path(recorded)
+        cands += [r] if r.is_absolute() else [product_dir / r, r]
+    for folder in (repo_root() / "library", product_dir, Path.cwd()):
+        if folder.is_dir():
+            cands += sorted(folder.glob("*.npz"))
+    seen = set()
+    for c in cands:
+        key = str(c.resolve()) if c.exists() else str(c)
+        if key in seen:
+            continue
+        seen.add(key)
+        tried.append(c)
+        if c.is_file() and (sha256 is None or file_sha256(c) == sha256):
+            return c
+    raise ValidationError(f"no unit-cell library with sha256 {str(sha256)[:12]} found (recorded path {recorded!r}, "
+                          f"searched {len(tried)} files); pass --library")

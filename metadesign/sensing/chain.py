@@ -1,0 +1,65 @@
+"""One turbulent beacon sample through to the sensor: screens -> split step ->
+collimated receiver field -> beam reducer -> as-fabricated metasurface ->
+8 PSFs.  The demo, ``metadesign dataset`` and the tests all call
+:class:`BeaconChain` (one code path)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..turbulence.path import Scenario
+from ..turbulence.propagate import Turbulence
+from .model import AsFabricated, SensingRecipe
+from .render import render_psf
+from .transmission import Perturbation
+
+__all__ = ["BeaconChain", "BeaconSample"]
+
+
+@dataclass
+class BeaconSample:
+    seed: int  # the screens' seed: Turbulence.screens(seed) regenerates them bit for bit
+    rytov: float  # nominal Rytov number of the path
+    received: np.ndarray  # (n, n) complex64: collimated field on the turbulence grid, 0 outside the receiver
+    e_in: np.ndarray  # (N, N) complex64: that field imaged onto the metasurface's coarse pupil grid
+    frames: np.ndarray  # (2, H, W) float32 sensor frames (noise-free)
+    tensor: np.ndarray  # (8, S, S) float32 PSF tensor (noise-free)
+    timings: dict
+
+
+class BeaconChain:
+    """A device (layout + sensor) and a turbulence scenario, ready to draw samples.
+
+    The coarse pupil of the device (the costly part: every pillar) is built once;
+    a sample then costs one turbulence draw plus eight matrix Fourier transforms."""
+
+    def __init__(self, fab: AsFabricated, sensing: SensingRecipe, scenario: Scenario,
+                 pert: Perturbation = Perturbation(), progress=None):
+        self.fab, self.sensing, self.pert = fab, sensing, pert
+        ap = fab.n_cells * fab.period
+        self.turbulence = Turbulence(replace(scenario, metasurface_aperture=ap))
+        self.pupil = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
+
+    def at(self, rytov: float) -> Turbulence:
+        return self.turbulence.at_rytov(rytov)
+
+    def sample(self, seed: int, rytov: float) -> BeaconSample:
+        import time
+
+        tb = self.at(rytov)
+        t0 = time.perf_counter()
+        ph = tb.screens(seed)
+        t1 = time.perf_counter()
+        from .. turbulence.propagate import split_step
+
+        field = split_step(tb.source, ph, tb.H, tb.absorber, active=tb.active)
+        t2 = time.perf_counter()
+        received = tb.collimated(field)
+        e_in = tb.to_metasurface(field, self.pupil.G.shape[-1])
+        t3 = time.perf_counter()
+        res = render_psf(self.fab, self.sensing, e_in, self.pert, pupil=self.pupil)
+        t4 = time.perf_counter()
+        return BeaconSample(seed, rytov, received, e_in, res.frames, res.tensor,
+                            {"screens": t1 - t0, "split_step": t2 - t1, "to_metasurface": t3 - t2, "psf": t4 - t3})

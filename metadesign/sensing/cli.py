@@ -1,0 +1,155 @@
+"""``metadesign psf`` and ``metadesign fab-study`` (stage 4 CLI)."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+import numpy as np
+
+from ..cliutil import SEED, emit, integer, num, out_dir, progress_bar
+from ..config import InputError
+
+__all__ = ["register"]
+
+BIAS = num(-200, 200, unit="nm")
+JITTER = num(0, 100, unit="nm")
+CORNER = num(0, 500, unit="nm")
+
+
+def _sensing_recipe(a):
+    from ..paths import repo_root
+    from .model import load_sensing_recipe
+
+    return load_sensing_recipe(a.sensor or repo_root() / "sensing" / "paper.toml")
+
+
+def _read_wavefront(path: str):
+    from ..io import read_npz
+
+    z = read_npz(path, "wavefront file")
+    if "field" not in z:
+        raise InputError(f"{path}: expected a complex array 'field' on the coarse pupil grid")
+    from ..validation import check_finite_array
+
+    return check_finite_array(f"{path}: field", z["field"])
+
+
+def _cmd_psf(a: argparse.Namespace) -> int:
+    from .model import AsFabricated
+    from .plot import plot_frames
+    from .render import check_field, full_resolution_check, render_psf, save_psf
+    from .transmission import Perturbation
+
+    sr = _sensing_recipe(a)
+    if len(a.bias_nm) > 2:
+        raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
+    pert = Perturbation(a.bias_nm[0] * 1e-9, a.bias_nm[-1] * 1e-9, a.jitter_nm * 1e-9, a.corner_nm * 1e-9, a.seed)
+    if a.full_resolution is not None:
+        qmax = min(sr.sensor.width_px, sr.sensor.height_px) // 2
+        if not 1 <= a.full_resolution <= qmax:
+            raise InputError(f"--full-resolution: expected an integer in [1, {qmax}] (pixels of a quadrant), "
+                             f"got {a.full_resolution}")
+        if a.wavefront:
+            raise InputError("--full-resolution checks the flat-wavefront PSFs; omit --wavefront")
+    out = out_dir(a.output if a.output else Path(a.layout).with_name("psf"))
+    field = _read_wavefront(a.wavefront) if a.wavefront else None
+    fab = AsFabricated.from_files(a.layout, a.library)
+    pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
+    if field is not None:
+        field = check_field(field, pupil, f"{a.wavefront}: field")
+    res = render_psf(fab, sr, field, pert, pupil=pupil, noise=sr.noise if sr.noise.active else None)
+    full_check = None
+    if a.full_resolution:
+        clean = res.frames if not sr.noise.active else render_psf(fab, sr, None, pert, pupil=pupil).frames
+        full_check = full_resolution_check(fab, sr, clean, a.full_resolution, pert,
+                                           progress_bar("full resolution", unit="row"))
+    out.mkdir(exist_ok=True)
+    save_psf(out / "psf.npz", res, fab, sr, {"wavefront": str(a.wavefront) if a.wavefront else None})
+    fig = plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
+                      f"{Path(a.layout).name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)")
+    cp = res.pupil
+    summary = {"output": str(out), "frames_shape": list(res.frames.shape), "tensor_shape": list(res.tensor.shape),
+               "pupil_grid": list(cp.G.shape[-2:]), "block_cells": cp.block, "clamped_pillars": cp.n_clamped,
+               "power_per_frame": [float(f.sum()) for f in res.frames], "figure": str(fig),
+               "aperture_m2": (fab.n_cells * fab.period) ** 2, "full_resolution_check": full_check}
+    text = (f"wrote {out}/psf.npz (frames 2x{sr.sensor.height_px}x{sr.sensor.width_px}, tensor "
+            f"{tuple(res.tensor.shape)}) and {Path(fig).name}; coarse pupil {cp.G.shape[-1]}^2 ({cp.block}x{cp.block} "
+            f"cells per sample); power on sensor x {summary['power_per_frame'][0] / summary['aperture_m2']:.3f} "
+            f"y {summary['power_per_frame'][1] / summary['aperture_m2']:.3f} of incident; "
+            f"{cp.n_clamped} pillars outside the library range (clamped)")
+    if full_check:
+        text += (f"\nfull-resolution check ({a.full_resolution}x{a.full_resolution} px per quadrant, every pillar): "
+                 f"fast path within {max(full_check['rel_l2_per_channel']):.2e} relative L2")
+    emit(summary, a.json, text)
+    return 0
+
+
+def _cmd_fab_study(a: argparse.Namespace) -> int:
+    from .model import AsFabricated
+    from .render import fab_study, write_fab_study
+
+    sr = _sensing_recipe(a)
+    if a.seed + a.seeds - 1 > 2**63 - 1:
+        raise InputError("--seed: the last jitter seed (--seed + --seeds - 1) exceeds 2^63 - 1")
+    out = out_dir(a.output if a.output else Path(a.layout).with_name("fab-study"))
+    fab = AsFabricated.from_files(a.layout, a.library)
+    rows = fab_study(fab, sr, a.bias_nm, a.jitter_nm, a.corner_nm, a.seeds, a.seed,
+                     progress_bar("fab-study", unit="case"))
+    files = write_fab_study(rows, out)
+    n_cases = len(a.bias_nm) * len(a.jitter_nm) * len(a.corner_nm) * a.seeds
+    lines = [f"wrote {out}/fab-study.csv, fab-study.png ({n_cases} cases x 8 channels)",
+             "  bias  jitter corner | mean eff  mean Strehl  mean |focal shift| mm  mean crosstalk  clamped"]
+    for b, j, c in itertools.product(a.bias_nm, a.jitter_nm, a.corner_nm):
+        rr = [r for r in rows if (r["bias_nm"], r["jitter_nm"], r["corner_nm"]) == (b, j, c)]
+        lines.append(f"  {b:+5g} {j:6g} {c:6g} | {np.mean([r['focusing_efficiency'] for r in rr]):.4f}    "
+                     f"{np.mean([r['strehl'] for r in rr]):.4f}       "
+                     f"{np.mean([abs(r['focal_shift_mm']) for r in rr]):.4f}                "
+                     f"{np.mean([r['crosstalk'] for r in rr]):.4f}         {max(r['clamped_pillars'] for r in rr)}")
+    emit({"rows": rows, "files": [str(f) for f in files]}, a.json, "\n".join(lines))
+    return 0
+
+
+def _forward_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
+    p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
+    p.add_argument("--library", help="unit-cell library (default: the one recorded in the layout, found by sha256)")
+
+
+def register(sub) -> None:
+    psf = sub.add_parser(
+        "psf", help="stage 4: as-fabricated 8 PSFs of a layout on the sensor (Fig. 2c)",
+        description="Stage 4. Rebuild the complex transmission from the layout file itself (pillars read back, "
+        "optional fab perturbations, complex-t interpolation in the full RCWA library), propagate to the sensor "
+        "with the fast coarse-pupil Fresnel path, and write OUT/psf.npz (frames 2 x H x W, tensor 8 x S x S in "
+        "the order x-pol QI..QIV, y-pol QI..QIV, and provenance) and OUT/psf-fig-2c.png.")
+    _forward_args(psf)
+    psf.add_argument("--wavefront", help=".npz with a complex 'field' on the pupil grid (default: flat)")
+    psf.add_argument("--bias-nm", type=BIAS, nargs="+", default=[0.0], help="width bias in [-200, 200] nm: one "
+                     "value or x y")
+    psf.add_argument("--jitter-nm", type=JITTER, default=0.0, help="random width jitter sigma in [0, 100] nm")
+    psf.add_argument("--corner-nm", type=CORNER, default=0.0, help="corner rounding radius in [0, 500] nm")
+    psf.add_argument("--seed", type=SEED, default=0, help="jitter seed")
+    psf.add_argument("--full-resolution", type=integer(1, 4096), metavar="PX",
+                     help="also evaluate every pillar without block averaging on the central PX x PX pixels of "
+                     "each quadrant (chunked, bounded memory) and report the fast path's error")
+    psf.add_argument("-o", "--output", help="output folder (default: psf/ beside the layout)")
+    psf.add_argument("--json", action="store_true", help="print the summary as JSON")
+    psf.set_defaults(func=_cmd_psf)
+
+    fs = sub.add_parser(
+        "fab-study", help="stage 4: sweep fab perturbations: efficiency, Strehl, focal/centroid shift, crosstalk",
+        description="For every combination of --bias-nm, --jitter-nm, --corner-nm (and --seeds jitter draws), "
+        "rebuild the as-fabricated pupil and report per channel: focusing efficiency (power in the designed "
+        "quadrant / incident), Strehl ratio at best focus, focal shift, centroid shift, crosstalk into the other "
+        "quadrants. Writes OUT/fab-study.csv, .json and .png.")
+    _forward_args(fs)
+    fs.add_argument("--bias-nm", type=BIAS, nargs="+", default=[-10.0, 0.0, 10.0], help="width biases (nm)")
+    fs.add_argument("--jitter-nm", type=JITTER, nargs="+", default=[0.0], help="jitter sigmas (nm)")
+    fs.add_argument("--corner-nm", type=CORNER, nargs="+", default=[0.0], help="corner radii (nm)")
+    fs.add_argument("--seeds", type=integer(1, 1000), default=1, help="jitter draws per case")
+    fs.add_argument("--seed", type=SEED, default=0, help="first jitter seed")
+    fs.add_argument("-o", "--output", help="output folder (default: fab-study/ beside the layout)")
+    fs.add_argument("--json", action="store_true", help="print the rows as JSON")
+    fs.set_defaults(func=_cmd_fab_study)

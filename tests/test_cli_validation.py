@@ -1,0 +1,238 @@
+"""Every sub-command's numeric options against bad values, and the input and
+output checks of the validation layer: exit 0 or 2, one line on stderr, no
+traceback, nothing written on exit 2."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from metadesign.cli import build_parser, main
+
+REPO = Path(__file__).resolve().parents[1]
+BAD = ["nan", "inf", "-inf", "-1", "0", "1e300"]
+
+
+def _leaves(parser, prefix=()):
+    """(command words, leaf parser) of every sub-command."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield prefix, parser
+        return
+    for name, p in subs[0].choices.items():
+        yield from _leaves(p, prefix + (name,))
+
+
+def _numeric_options(p):
+    for a in p._actions:
+        if a.option_strings and getattr(a.type, "metadesign_numeric", False) or (
+                a.option_strings and a.type in (int, float)):
+            yield a
+
+
+def _base(cmd: tuple, prod: dict, out: Path) -> list[str] | None:
+    d, lay, sen = str(prod["design"]), str(prod["layout"]), str(prod["sensor"])
+    return {
+        ("library", "build"): [str(REPO / "library" / "paper.toml"), "-o", str(out / "lib.npz")],
+        ("library", "show"): [],
+        ("library", "plot"): ["-o", str(out / "s1.png")],
+        ("library", "export"): ["--csv", str(out / "lib.csv")],
+        ("design", "build"): [str(REPO / "layouts" / "demo.toml"), "-o", str(out / "d")],
+        ("design", "show"): [d],
+        ("design", "plot"): [d, "-o", str(out / "s2.png")],
+        ("layout", "write"): [d, "-o", str(out / "lay")],
+        ("layout", "verify"): [lay],
+        ("layout", "preview"): [lay, "-o", str(out / "prev.png")],
+        ("psf",): [lay, "--sensor", sen, "-o", str(out / "psf")],
+        ("fab-study",): [lay, "--sensor", sen, "--bias-nm", "0", "-o", str(out / "fs")],
+        ("turbulence", "show"): [],
+        ("turbulence", "validate"): ["--samples", "2", "--rytov", "0.3", "-o", str(out / "tv")],
+        ("demo",): ["-o", str(out / "demo")],
+    }.get(cmd)
+
+
+def _snapshot(*dirs) -> set:
+    return {(str(p), p.stat().st_size, p.stat().st_mtime_ns) for d in dirs for p in Path(d).rglob("*")}
+
+
+def _cases():
+    for cmd, p in _leaves(build_parser()):
+        for act in _numeric_options(p):
+            for v in BAD:
+                yield pytest.param(cmd, act.option_strings[-1], act.nargs, v, id=f"{' '.join(cmd)} {act.option_strings[-1]} {v}")
+
+
+def test_every_leaf_command_has_a_base_invocation(demo_products, tmp_path):
+    missing = [" ".join(c) for c, _ in _leaves(build_parser()) if _base(c, demo_products, tmp_path) is None]
+    assert not missing, f"add these sub-commands to _base(): {missing}"
+
+
+@pytest.mark.parametrize("cmd,opt,nargs,value", list(_cases()))
+def test_numeric_options_exit_0_or_2_with_one_line(cmd, opt, nargs, value, demo_products, tmp_path, capsys,
+                                                    monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = _base(cmd, demo_products, tmp_path)
+    n = 3 if nargs == 3 else 1
+    argv = [*cmd, *base, opt, *([value] * n)]
+    if opt == "--bias-nm" and "--bias-nm" in base:  # replace the base value
+        i = argv.index("--bias-nm")
+        del argv[i:i + 2]
+    before = _snapshot(tmp_path, demo_products["design"])
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse errors
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc in (0, 2), (argv, rc, err)
+    assert "Traceback" not in err
+    if rc == 2:
+        lines = [x for x in err.splitlines() if x.strip()]
+        assert len(lines) == 1 and lines[0].startswith("metadesign: error:"), err
+        assert _snapshot(tmp_path, demo_products["design"]) == before, "files written on exit 2"
+
+
+def _one_error(argv, capsys, match: str):
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("metadesign: error:"), (rc, err)
+    assert match in lines[0], lines[0]
+    return lines[0]
+
+
+def test_wrong_kinds_of_file_are_one_line(demo_products, tmp_path, capsys):
+    npy = tmp_path / "a.npy"
+    np.save(npy, np.zeros(3))
+    lay, sen = demo_products["layout"], demo_products["sensor"]
+    _one_error(["library", "show", npy], capsys, "single .npy array")
+    _one_error(["design", "show", npy], capsys, "single .npy array")
+    _one_error(["psf", lay, "--sensor", sen, "--wavefront", npy, "-o", tmp_path / "p"], capsys, "single .npy")
+    obj = tmp_path / "obj.npz"
+    np.savez(obj, field=np.array([{"a": 1}], dtype=object))
+    msg = _one_error(["psf", lay, "--sensor", sen, "--wavefront", obj, "-o", tmp_path / "p"], capsys, "never loaded")
+    assert "allow_pickle" not in msg
+    bad = tmp_path / "nan.npz"
+    np.savez(bad, field=np.full((180, 180), np.nan, np.complex64))
+    _one_error(["psf", lay, "--sensor", sen, "--wavefront", bad, "-o", tmp_path / "p"], capsys, "NaN")
+    assert not (tmp_path / "p").exists()
+
+
+def test_outputs_are_checked_before_work(demo_products, tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    lay, sen = demo_products["layout"], demo_products["sensor"]
+    _one_error(["psf", lay, "--sensor", sen, "-o", f], capsys, "not a folder")
+    _one_error(["library", "export", "--csv", tmp_path], capsys, "is a folder")
+    _one_error(["psf", lay, "--sensor", sen, "-o", tmp_path / "no" / "such"], capsys, "does not exist")
+    _one_error(["turbulence", "validate", "-o", f], capsys, "not a folder")
+    _one_error(["layout", "preview", lay, "--window", 0, 0, 100000], capsys, "CELLS")
+    _one_error(["library", "build", REPO / "library" / "paper.toml", "-j", 100000, "-o", tmp_path / "l.npz"],
+               capsys, "--workers")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+@pytest.mark.parametrize("section,change,match", [
+    ("convergence", "check_cells_um = []", "convergence.check_cells_um"),
+    ("sweep", "w_min_um = 0.3\nw_max_um = 0.3", "sweep.w_min_um"),
+])
+def test_bad_library_recipes(section, change, match, tmp_path, capsys):
+    text = (REPO / "library" / "paper.toml").read_text()
+    text = text.replace(f"[{section}]", f"[{section}]\n{change}", 1)
+    # drop the recipe's own value of each key we set
+    keys = [ln.split("=")[0].strip() for ln in change.splitlines()]
+    lines, seen = [], set()
+    for ln in text.splitlines():
+        k = ln.split("=")[0].strip()
+        if k in keys and k in seen:
+            continue
+        seen.add(k)
+        lines.append(ln)
+    r = tmp_path / "r.toml"
+    r.write_text("\n".join(lines))
+    _one_error(["library", "build", r, "-o", tmp_path / "x.npz"], capsys, match)
+    assert not (tmp_path / "x.npz").exists()
+
+
+def _design_recipe(tmp_path, **design):
+    text = (REPO / "layouts" / "demo.toml").read_text().replace('"../library/paper.npz"',
+                                                               f'"{REPO / "library" / "paper.npz"}"')
+    for k, v in design.items():
+        import re
+
+        if re.search(rf"^{k} = ", text, flags=re.M):
+            text = re.sub(rf"^{k} = .*$", f"{k} = {v}", text, flags=re.M)
+        else:
+            text = text.replace("[design]\n", f"[design]\n{k} = {v}\n", 1)
+    p = tmp_path / "r.toml"
+    p.write_text(text)
+    return p
+
+
+def test_bad_design_recipes_refused_at_the_start(tmp_path, capsys):
+    _one_error(["design", _design_recipe(tmp_path, supercell=1), "-o", tmp_path / "o"], capsys, "design.supercell")
+    big = _design_recipe(tmp_path, aperture_mm=300.0)
+    _one_error(["design", big, "-o", tmp_path / "o"], capsys, "GiB of memory")
+    _one_error(["design", _design_recipe(tmp_path, clear_aperture='"polygon"'), "-o", tmp_path / "o"], capsys,
+               "needs exactly one")
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_sensing_and_turbulence_recipes(tmp_path, capsys, demo_products):
+    from metadesign.sensing.model import sensing_from_dict
+    from metadesign.turbulence.validate import scenario_from_dict
+    from metadesign.validation import ValidationError
+
+    with pytest.raises(ValidationError, match="noise.photons_at_peak"):
+        sensing_from_dict({"noise": {"photons_at_peak": 1e20}})
+    with pytest.raises(ValidationError, match="noise.read_noise_e"):
+        sensing_from_dict({"noise": {"read_noise_e": 3.0}})
+    big = tmp_path / "t.toml"
+    big.write_text("[path]\nn_screens = 200\n[grid]\nn = 8192\nspacing_mm = 0.1\n")
+    sc = scenario_from_dict({"path": {"n_screens": 200}, "grid": {"n": 8192, "spacing_mm": 0.1}})
+    assert sc.sample_bytes > 50e9
+    try:
+        rc = main(["turbulence", "show", str(big)])
+    except SystemExit as exc:
+        rc = exc.code
+    out = capsys.readouterr().out
+    assert rc == 2 and "memory per sample" in out and "INFEASIBLE" in out
+
+
+def test_spec_dataclasses_validate_themselves():
+    from metadesign.sensing.sensor import NoiseSpec, SensorSpec
+    from metadesign.sensing.transmission import Perturbation
+    from metadesign.turbulence.path import Scenario
+    from metadesign.validation import ValidationError
+
+    for bad in (dict(bias_x=float("nan")), dict(jitter=float("inf")), dict(jitter=-1e-9), dict(seed=-1),
+                dict(corner_radius=float("nan"))):
+        with pytest.raises(ValidationError):
+            Perturbation(**bad)
+    for bad in (dict(gaussian_sigma=float("nan")), dict(photons_at_peak=1e20), dict(read_noise_e=2.0),
+                dict(bit_depth=0), dict(seed=-1)):
+        with pytest.raises(ValidationError):
+            NoiseSpec(**bad)
+    for bad in (dict(width_px=642), dict(distance=float("inf")), dict(pixel_pitch=0.0)):
+        with pytest.raises(ValidationError):
+            SensorSpec(**bad)
+    for bad in (dict(rytov=0.0), dict(rytov=float("nan")), dict(n_grid=16), dict(dx=-1.0)):
+        with pytest.raises(ValidationError):
+            Scenario(**bad)
+    assert issubclass(ValidationError, ValueError)
+
+
+def test_json_summaries_are_strict_json(demo_products, tmp_path, capsys):
+    import json
+
+    rc = main(["psf", str(demo_products["layout"]), "--sensor", str(demo_products["sensor"]), "-o",
+               str(tmp_path / "p"), "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    json.loads(out, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
