@@ -129,18 +129,48 @@ def test_energy_budget_of_interleaved_supercell(demo):
         assert frames[p].sum() / aperture <= prop * 1.001  # the sensor sees at most the propagating power
 
 
+def _predicted_strehl_ratio(fab, d, pert, pol, k):
+    """Strehl of the perturbed channel over the nominal one from the pillar transmissions alone (no
+    propagation): the focus correlates the field with the ideal lens, so the peak is
+    |sum t e^{-i phi_lens}|^2 and, at fixed propagating power, Strehl ~ |sum t e^{-i phi}|^2 / sum |t|^2."""
+    from metadesign.design.phase import design_phase
+
+    n = fab.n_cells
+    iy = np.arange((k - 1) // 2, n, 2)
+    ix = np.arange((k - 1) % 2, n, 2)
+    phi = design_phase(d.spec, pol, iy, ix, d.offsets[pol], wrapped=False)
+    w = fab.layout.atom_widths_nm[fab.layout.index_map[np.ix_(iy, ix)]] * 1e-9
+    out = []
+    for pp in (Perturbation(), pert):
+        wx, wy = perturb_widths(w[..., 0], w[..., 1], pp)
+        t = interpolate_t(fab.lib, wx, wy)[0][..., pol]
+        out.append(abs(np.sum(t * np.exp(-1j * phi))) ** 2 / np.sum(abs(t) ** 2))
+    return out[1] / out[0]
+
+
 def test_channel_metrics_and_perturbation_response(demo):
-    fab, sr, _ = demo
+    from metadesign.design.store import load_design
+
+    fab, sr, out = demo
+    d = load_design(out)
     m0 = channel_metrics(fab.pupil(sr.sensor.distance, sr.pupil_grid), sr.sensor, fab)
     assert len(m0) == 8
     for r in m0:
         assert 0.04 < r["focusing_efficiency"] < 0.07  # ~ T0 / 16, minus crosstalk
-        assert r["strehl"] > 0.95
+        assert 0.95 < r["strehl"] <= 1.0  # a Strehl ratio cannot exceed 1
         assert abs(r["focal_shift_mm"]) < 0.1
         assert r["crosstalk"] < 0.1
-    m1 = channel_metrics(fab.pupil(sr.sensor.distance, sr.pupil_grid, Perturbation(jitter=15e-9, seed=1)),
-                         sr.sensor, fab)
-    assert np.mean([r["strehl"] for r in m1]) < np.mean([r["strehl"] for r in m0])
+    for pert in (Perturbation(-10e-9, -10e-9), Perturbation(15e-9, 15e-9)):
+        m1 = channel_metrics(fab.pupil(sr.sensor.distance, sr.pupil_grid, pert), sr.sensor, fab)
+        for a, b in zip(m0, m1):
+            pol = "xy".index(a["pol"])
+            pred = _predicted_strehl_ratio(fab, d, pert, pol, a["k"])
+            assert pred < 0.99  # the bias does hurt
+            # the prediction counts all scattered power in the normalisation; the propagating-power
+            # normalisation of the Strehl leaves out what scatters past the coarse-pupil band (measured:
+            # 0.7-0.8 of the predicted drop), so the measured drop lies between 1/2 and all of the prediction
+            drop, pred_drop = 1 - b["strehl"] / a["strehl"], 1 - pred
+            assert 0.5 * pred_drop < drop <= 1.05 * pred_drop, (a["pol"], a["k"], drop, pred_drop)
 
 
 def test_interpolation_perturbations_and_clamping(paper_library):

@@ -21,10 +21,14 @@ def test_structure_function_theory_kolmogorov_limit():
 
 
 def test_screens_structure_function_matches_von_karman_with_subharmonics():
-    """Ensemble of 300 screens: within 10 % of the same PSD's theory from 2 pixels to half the screen."""
-    res = structure_function_check(SC, n_screens=300, seed=1)
+    """Ensemble of 3,000 screens vs the theory of the same PSD (measured over seeds 1-3: 0.99-1.00 up to
+    n/8, 0.98-0.995 at n/4, 0.93-0.97 at n/2, where a finite grid with five subharmonic levels falls short)."""
+    res = structure_function_check(SC, n_screens=3000, seed=1)
     assert res["r_m"][0] == pytest.approx(2 * SC.dx) and res["r_m"][-1] == pytest.approx(SC.n_grid // 2 * SC.dx)
-    np.testing.assert_allclose(res["ratio"], 1.0, atol=0.10)
+    ratio = np.array(res["ratio"])
+    np.testing.assert_allclose(ratio[:5], 1.0, atol=0.015)  # 2 .. 32 px
+    assert 0.95 <= ratio[5] <= 1.01  # n/4
+    assert 0.90 <= ratio[6] <= 0.99  # n/2
 
 
 def test_without_subharmonics_large_scales_fall_short():
@@ -150,3 +154,23 @@ def test_rytov_sweep_coherence_mtf_and_pib():
         pib_p = np.mean([tb.power_in_bucket(s.field, "phase", s.screens) for s in smps[:10]])
         pib_n = np.mean([tb.power_in_bucket(s.field, "none", s.screens) for s in smps[:10]])
         assert pib_c > pib_p > pib_n and pib_c > 0.75
+
+
+def test_torch_split_step_gradient_equals_finite_differences():
+    """gradcheck in double precision on a small grid: the phase screens and the complex input field."""
+    import torch
+
+    torch.set_num_threads(1)
+    sc = replace(SC, n_grid=32, dx=10e-3, receiver_aperture=0.1, length=300.0, n_screens=4, rytov=0.1)
+    tb = Turbulence(sc, check=False)
+    rng = np.random.default_rng(0)
+    H = torch.tensor(tb.H.astype(np.complex128))
+    ab = torch.tensor(tb.absorber.astype(np.float64))
+    ph = torch.tensor(rng.normal(0, 1.0, (4, 32, 32)), requires_grad=True)
+    u = torch.tensor((rng.normal(size=(32, 32)) + 1j * rng.normal(size=(32, 32))) * 0.1, requires_grad=True)
+
+    def bucket_power(u, ph):  # a real loss of the kind stage 6 minimises
+        out = split_step_torch(u, ph, H, ab, reverse=True)
+        return (out.abs() ** 2)[12:20, 12:20].sum().reshape(1)
+
+    assert torch.autograd.gradcheck(bucket_power, (u, ph), eps=1e-6, atol=1e-6, rtol=1e-4)

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..conventions import centered
+
 __all__ = [
     "LensChannel",
     "SupercellSpec",
@@ -107,8 +109,9 @@ def wrap(phi):
 
 def cell_coordinates(n_cells: int, period: float, index=None) -> np.ndarray:
     """Centre coordinates of cells ``index`` (default all) along one axis."""
-    i = np.arange(n_cells) if index is None else np.asarray(index)
-    return (i - (n_cells - 1) / 2.0) * period
+    if index is None:
+        return centered(n_cells, period)
+    return centered(n_cells, period)[np.asarray(index)]
 
 
 def lens_phase(x, y, lens: LensChannel, wavelength: float) -> np.ndarray:

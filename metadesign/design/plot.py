@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..conventions import centered
+
 from ..library.store import UnitCellLibrary
 from ..plotting import pyplot, save_figure
 from .build import discretized_phase
@@ -44,7 +46,7 @@ def plot_design(d: Design, out: str | Path, lib: UnitCellLibrary | None = None, 
     s -= s % d.spec.supercell
     im = d.index_map[s:s + c, s:s + c]
     p = d.spec.period * 1e3
-    lo = (s - (n - 1) / 2) * p
+    lo = centered(n, p)[s] - p / 2  # lower edge of the crop
     ext = [lo, lo + c * p, lo, lo + c * p]
     crop_note = "" if c == n else f" (central {c}x{c} of {n}x{n})"
     k = d.atom_indices()[s:s + c, s:s + c]

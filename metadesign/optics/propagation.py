@@ -10,6 +10,8 @@ complex64; phases are written with cos/sin (not ``np.exp(1j*...)``).
 from __future__ import annotations
 
 import numpy as np
+
+from ..conventions import centered
 import scipy.fft as sfft
 
 __all__ = [
@@ -23,8 +25,8 @@ class SamplingError(ValueError):
 
 
 def grid(n: int, dx: float) -> np.ndarray:
-    """Centred sample coordinates ``(i - (n-1)/2) dx``."""
-    return (np.arange(n) - (n - 1) / 2) * dx
+    """Cell-centred sample coordinates ``(i - (n-1)/2) dx`` (:func:`metadesign.conventions.centered`)."""
+    return centered(n, dx)
 
 
 def cexp(phase, dtype=np.complex64) -> np.ndarray:

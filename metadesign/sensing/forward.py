@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..conventions import centered
 from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
@@ -76,7 +77,7 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
     k0 = 2 * np.pi / wavelength
     nb = int(np.ceil(n_cells / block))
     npad = nb * block
-    x = (np.arange(npad) - (n_cells - 1) / 2) * period
+    x = centered(n_cells, period)[0] + np.arange(npad) * period  # cell-centred, padded past the aperture
     chirp = cexp(k0 * x**2 / (2 * z)).astype(np.complex64)
     chirp[n_cells:] = 0  # outside the aperture: no light
     G = np.zeros((2, m * m, nb, nb), np.complex64)
@@ -100,7 +101,7 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
         if progress:
             progress(B1, nb)
     G /= np.float32(block * block)
-    X = ((np.arange(nb) * block + (block - 1) / 2) - (n_cells - 1) / 2) * period
+    X = centered(n_cells, period)[0] + (np.arange(nb) * block + (block - 1) / 2) * period  # block centres
     return CoarsePupil(G, X, block, period, wavelength, z, clamped)
 
 
@@ -167,7 +168,7 @@ def full_resolution_frames(transmission_rows, n_cells: int, period: float, wavel
     k0 = 2 * np.pi / wavelength
     z = sensor.distance
     X, Y = sensor.coords()
-    x = (np.arange(n_cells) - (n_cells - 1) / 2) * period
+    x = centered(n_cells, period)
     chirp = cexp(k0 * x**2 / (2 * z))
     frames = np.zeros((2, sensor.height_px, sensor.width_px), np.float32)
     sel = []
@@ -216,5 +217,5 @@ def asm_reference_intensity(tn_map: np.ndarray, period: float, wavelength: float
     s = (pad_to - n) // 2
     u[s:s + n, s:s + n] = tn_map
     U = angular_spectrum(u, period, wavelength, z)
-    coords = (np.arange(pad_to) - s - (n - 1) / 2) * period
+    coords = centered(n, period)[0] + (np.arange(pad_to) - s) * period
     return (np.abs(U) ** 2).astype(np.float32), coords

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..conventions import centered
 from ..validation import ConfigError, check_int, check_number
 
 __all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "area_weights"]
@@ -56,8 +57,7 @@ class SensorSpec:
     def coords(self) -> tuple[np.ndarray, np.ndarray]:
         """Focal-plane coordinates of the pixel centres: (X of columns, Y of rows)."""
         p = self.focal_pitch
-        return ((np.arange(self.width_px) - (self.width_px - 1) / 2) * p,
-                (np.arange(self.height_px) - (self.height_px - 1) / 2) * p)
+        return centered(self.width_px, p), centered(self.height_px, p)
 
     def quadrant_centre(self, k: int) -> tuple[float, float]:
         """Focal-plane centre of quadrant k = 1..4 (reading order)."""

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+from ..conventions import fft_centered
 from ..optics.propagation import asm_transfer, cexp
 from .path import PathModel, Scenario, solve_path
 from .screens import ScreenGrid, screens
@@ -26,7 +27,7 @@ def point_source(sc: Scenario) -> np.ndarray:
     """Schmidt's sinc-Gaussian point source (Listing 9.5) illuminating a region
     ``DROI = roi_factor * D2`` at the receiver."""
     n, dx = sc.n_grid, sc.dx
-    x = (np.arange(n) - n / 2) * dx
+    x = fft_centered(n, dx)
     d1 = sc.wavelength * sc.length / (sc.roi_factor * sc.receiver_aperture)
     r2 = x[None, :] ** 2 + x[:, None] ** 2
     env = (np.sinc(x / d1)[None, :] * np.sinc(x / d1)[:, None] * np.exp(-r2 / (4 * d1) ** 2)) / d1**2
@@ -35,7 +36,7 @@ def point_source(sc: Scenario) -> np.ndarray:
 
 def _absorber(sc: Scenario) -> np.ndarray:
     n, dx = sc.n_grid, sc.dx
-    x = (np.arange(n) - n / 2) * dx
+    x = fft_centered(n, dx)
     r = np.sqrt(x[None, :] ** 2 + x[:, None] ** 2)
     return np.exp(-((r / (0.47 * n * dx)) ** sc.absorber_order)).astype(np.float32)
 
@@ -104,7 +105,7 @@ class Turbulence:
         self.vacuum = split_step(self.source, np.zeros((sc.n_screens, 1, 1), np.float32), self.H, self.absorber,
                                  active=[False] * sc.n_screens)
         self.active = np.isfinite(self.path.r0_screens)
-        x = (np.arange(sc.n_grid) - sc.n_grid / 2) * sc.dx
+        x = fft_centered(sc.n_grid, sc.dx)
         self.x = x
         self.aperture = (x[None, :] ** 2 + x[:, None] ** 2) <= (sc.receiver_aperture / 2) ** 2
 

@@ -19,6 +19,8 @@ import numpy as np
 import scipy.fft as sfft
 from scipy import integrate, special
 
+from ..conventions import fft_centered
+
 __all__ = ["psd_mvk", "structure_function_theory", "log_amplitude_variance_theory", "screen_pair", "ScreenGrid",
            "screens"]
 
@@ -81,7 +83,7 @@ class ScreenGrid:
         amp[0, 0] = 0.0  # the central cell is covered by the subharmonics (or is piston)
         self.amp = (amp * n * n).astype(np.float32)  # ifft2 divides by n^2
         self.subharmonics = subharmonics
-        x = (np.arange(n) - n / 2) * dx
+        x = fft_centered(n, dx)
         self.levels = []
         for p in range(1, levels + 1):
             dfp = df / 3**p

@@ -1,0 +1,31 @@
+# The two commands of the README.  Each creates .venv and installs the package with
+# the CPU constraints on first use (or when pyproject.toml changes), then reuses it.
+#   make demo   - the main job: every stage on the embedded demo design (writes ./demo-out/)
+#   make test   - the test suite (`make test-slow` for the long statistical checks)
+PYTHON ?= python3
+VENV   ?= .venv
+BIN     = $(VENV)/bin
+export OMP_NUM_THREADS ?= 1
+export OPENBLAS_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
+
+.PHONY: demo test test-slow install clean
+
+$(BIN)/metadesign: pyproject.toml constraints/cpu.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q -c constraints/cpu.txt -e '.[test]'
+	touch $@
+
+install: $(BIN)/metadesign
+
+demo: install
+	$(BIN)/metadesign demo
+
+test: install
+	$(BIN)/python -m pytest
+
+test-slow: install
+	$(BIN)/python -m pytest -m slow
+
+clean:
+	rm -rf demo-out .pytest_cache
