@@ -118,8 +118,8 @@ def _stage_turbulence(out: Path, log) -> dict:
     res = validate(sc, rytovs=(0.1, 0.3, 0.5), samples=10, pib_samples=5)
     figs = plot_validation(res, out)
     # one scintillated beacon through the demo metasurface onto the sensor (the stage API's chain)
-    chain = BeaconChain(AsFabricated.from_files(out / "design" / "layout.oas"),
-                        load_sensing_recipe(repo_root() / "sensing" / "demo.toml"), sc)
+    chain = BeaconChain.for_device(AsFabricated.from_files(out / "design" / "layout.oas"),
+                                   load_sensing_recipe(repo_root() / "sensing" / "demo.toml"), sc)
     smp = chain.sample(seed=1, rytov=0.3)
     figs.append(plot_frames(smp.frames, chain.sensing.sensor, out / "psf-turbulent.png", chain.fab.channels,
                             "demo metasurface, scintillated beacon at Rytov 0.3"))

@@ -56,3 +56,29 @@ def demo_products(tmp_path_factory):
 
     write_layout(load_design(out), out / "layout.oas", "oas")
     return {"design": out, "layout": out / "layout.oas", "sensor": REPO / "sensing" / "demo.toml"}
+
+
+def tiny_dataset_recipe(folder: Path, layout: Path, samples: int = 12, shard: int = 4, tensor: int = 16,
+                        extra: str = "") -> Path:
+    """A tiny dataset recipe on the demo layout (machinery tests; stage-6 data uses the paper layout)."""
+    p = Path(folder) / "tiny.toml"
+    p.write_text(f"""[dataset]
+layout = "{layout}"
+sensor = "{REPO / 'sensing' / 'demo.toml'}"
+turbulence = "{REPO / 'sensing' / 'turbulence.toml'}"
+samples = {samples}
+tensor_size = {tensor}
+shard_size = {shard}
+seed = 5
+{extra}""")
+    return p
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory, demo_products):
+    from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe
+
+    base = tmp_path_factory.mktemp("tiny-dataset")
+    rec = load_dataset_recipe(tiny_dataset_recipe(base, demo_products["layout"]))
+    build_dataset(rec, base / "ds", workers=1)
+    return base / "ds"

@@ -34,7 +34,7 @@ def _numeric_options(p):
             yield a
 
 
-def _base(cmd: tuple, prod: dict, out: Path) -> list[str] | None:
+def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str] | None:
     d, lay, sen = str(prod["design"]), str(prod["layout"]), str(prod["sensor"])
     return {
         ("library", "build"): [str(REPO / "library" / "paper.toml"), "-o", str(out / "lib.npz")],
@@ -52,6 +52,9 @@ def _base(cmd: tuple, prod: dict, out: Path) -> list[str] | None:
         ("turbulence", "show"): [],
         ("turbulence", "validate"): ["--samples", "2", "--rytov", "0.3", "-o", str(out / "tv")],
         ("demo",): ["-o", str(out / "demo")],
+        ("dataset", "build"): [str(REPO / "sensing" / "dataset-demo.toml"), "-o", str(out / "ds")],
+        ("dataset", "show"): [str(ds)],
+        ("dataset", "plot"): [str(ds), "-o", str(out / "ds.png")],
     }.get(cmd)
 
 
@@ -73,15 +76,15 @@ def test_every_leaf_command_has_a_base_invocation(demo_products, tmp_path):
 
 @pytest.mark.parametrize("cmd,opt,nargs,value", list(_cases()))
 def test_numeric_options_exit_0_or_2_with_one_line(cmd, opt, nargs, value, demo_products, tmp_path, capsys,
-                                                    monkeypatch):
+                                                    monkeypatch, tiny_dataset):
     monkeypatch.chdir(tmp_path)
-    base = _base(cmd, demo_products, tmp_path)
+    base = _base(cmd, demo_products, tmp_path, tiny_dataset)
     n = 3 if nargs == 3 else 1
     argv = [*cmd, *base, opt, *([value] * n)]
     if opt == "--bias-nm" and "--bias-nm" in base:  # replace the base value
         i = argv.index("--bias-nm")
         del argv[i:i + 2]
-    before = _snapshot(tmp_path, demo_products["design"])
+    before = _snapshot(tmp_path, demo_products["design"], tiny_dataset)
     try:
         rc = main(argv)
     except SystemExit as exc:  # argparse errors
@@ -92,7 +95,7 @@ def test_numeric_options_exit_0_or_2_with_one_line(cmd, opt, nargs, value, demo_
     if rc == 2:
         lines = [x for x in err.splitlines() if x.strip()]
         assert len(lines) == 1 and lines[0].startswith("metadesign: error:"), err
-        assert _snapshot(tmp_path, demo_products["design"]) == before, "files written on exit 2"
+        assert _snapshot(tmp_path, demo_products["design"], tiny_dataset) == before, "files written on exit 2"
 
 
 def _one_error(argv, capsys, match: str):

@@ -5,14 +5,16 @@ collimated receiver field -> beam reducer -> as-fabricated metasurface ->
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..turbulence.path import Scenario
-from ..turbulence.propagate import Turbulence
+from ..turbulence.propagate import Turbulence, split_step
+from .forward import CoarsePupil, sensor_frames
 from .model import AsFabricated, SensingRecipe
-from .render import render_psf
+from .sensor import psf_tensor
 from .transmission import Perturbation
 
 __all__ = ["BeaconChain", "BeaconSample"]
@@ -30,36 +32,39 @@ class BeaconSample:
 
 
 class BeaconChain:
-    """A device (layout + sensor) and a turbulence scenario, ready to draw samples.
+    """A device's coarse pupil, a sensor and a turbulence scenario, ready to draw samples.
 
-    The coarse pupil of the device (the costly part: every pillar) is built once;
-    a sample then costs one turbulence draw plus eight matrix Fourier transforms."""
+    The coarse pupil (the costly part: every pillar of the layout) is built once,
+    by :meth:`for_device`, and is all a worker needs; a sample then costs one
+    turbulence draw plus eight matrix Fourier transforms."""
 
-    def __init__(self, fab: AsFabricated, sensing: SensingRecipe, scenario: Scenario,
-                 pert: Perturbation = Perturbation(), progress=None):
-        self.fab, self.sensing, self.pert = fab, sensing, pert
-        ap = fab.n_cells * fab.period
-        self.turbulence = Turbulence(replace(scenario, metasurface_aperture=ap))
-        self.pupil = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
+    def __init__(self, pupil: CoarsePupil, sensing: SensingRecipe, scenario: Scenario, aperture: float):
+        self.pupil, self.sensing = pupil, sensing
+        self.turbulence = Turbulence(replace(scenario, metasurface_aperture=aperture))
+
+    @classmethod
+    def for_device(cls, fab: AsFabricated, sensing: SensingRecipe, scenario: Scenario,
+                   pert: Perturbation = Perturbation(), progress=None) -> "BeaconChain":
+        chain = cls(fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress), sensing, scenario,
+                    fab.n_cells * fab.period)
+        chain.fab = fab
+        return chain
 
     def at(self, rytov: float) -> Turbulence:
         return self.turbulence.at_rytov(rytov)
 
     def sample(self, seed: int, rytov: float) -> BeaconSample:
-        import time
-
         tb = self.at(rytov)
         t0 = time.perf_counter()
         ph = tb.screens(seed)
         t1 = time.perf_counter()
-        from .. turbulence.propagate import split_step
-
         field = split_step(tb.source, ph, tb.H, tb.absorber, active=tb.active)
         t2 = time.perf_counter()
         received = tb.collimated(field)
         e_in = tb.to_metasurface(field, self.pupil.G.shape[-1])
         t3 = time.perf_counter()
-        res = render_psf(self.fab, self.sensing, e_in, self.pert, pupil=self.pupil)
+        frames = sensor_frames(self.pupil, self.sensing.sensor, e_in)
+        tensor = psf_tensor(frames, self.sensing.sensor)
         t4 = time.perf_counter()
-        return BeaconSample(seed, rytov, received, e_in, res.frames, res.tensor,
+        return BeaconSample(seed, rytov, received, e_in, frames, tensor,
                             {"screens": t1 - t0, "split_step": t2 - t1, "to_metasurface": t3 - t2, "psf": t4 - t3})

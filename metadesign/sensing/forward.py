@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from ..conventions import centered
+from ..determinism import single_thread_blas
 from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
@@ -148,12 +149,17 @@ def sensor_frames(cp: CoarsePupil, sensor: SensorSpec, e_in: np.ndarray | None =
     X, Y = sensor.coords()
     frames = np.zeros((2, sensor.height_px, sensor.width_px), np.float32)
     area = sensor.focal_pitch**2
+    with single_thread_blas():  # the same bytes in every process (see metadesign.determinism)
+        _fill_frames(frames, cp, sensor, X, Y, area, e_in, channels)
+    return frames
+
+
+def _fill_frames(frames, cp, sensor, X, Y, area, e_in, channels) -> None:
     for p in range(2):
         for k in range(1, 5):
             r, c = quadrant_slices(sensor, k)
             ch = None if channels is None else channels.get((p, k))
             frames[p, r, c] = quadrant_fields(cp, p, X[c], Y[r], sensor.quadrant_centre(k), e_in, ch) * area
-    return frames
 
 
 def full_resolution_frames(transmission_rows, n_cells: int, period: float, wavelength: float,

@@ -20,6 +20,7 @@ import scipy.fft as sfft
 from scipy import integrate, special
 
 from ..conventions import fft_centered
+from ..determinism import single_thread_blas
 
 __all__ = ["psd_mvk", "structure_function_theory", "log_amplitude_variance_theory", "screen_pair", "ScreenGrid",
            "screens"]
@@ -136,6 +137,11 @@ def screens(grid: ScreenGrid, r0s, seed) -> np.ndarray:
     """All screens of one sample, (len(r0s), n, n) float32; ``seed`` is an int or
     a SeedSequence: it spawns one generator for the high-frequency parts and
     one for the subharmonics."""
+    with single_thread_blas():  # the same bytes in every process (see metadesign.determinism)
+        return _screens(grid, r0s, seed)
+
+
+def _screens(grid: ScreenGrid, r0s, seed) -> np.ndarray:
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     hf_ss, sh_ss = ss.spawn(2)
     rng_hf, rng_sh = np.random.default_rng(hf_ss), np.random.default_rng(sh_ss)

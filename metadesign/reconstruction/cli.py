@@ -1,0 +1,133 @@
+"""``metadesign dataset build|show|plot`` (stage 6 CLI; training and evaluation join here)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..cliutil import emit, integer, log_to, out_dir, out_file, progress_bar, workers_arg
+
+__all__ = ["register"]
+
+
+def _cmd_build(a: argparse.Namespace) -> int:
+    from .dataset import build_dataset, load_dataset_recipe
+
+    rec = load_dataset_recipe(a.recipe)
+    if a.samples is not None:
+        rec = rec.with_samples(a.samples)
+    out = out_dir(a.output or rec.default_output())
+    rep = build_dataset(rec, out, workers=a.workers, scheduler=a.scheduler, overwrite=a.overwrite,
+                        progress=progress_bar("dataset", unit="sample"), log=log_to(a.json))
+    ps = rep["per_sample_seconds"]
+    text = (f"wrote {out}: {rep['samples']} samples (8 x {rep['tensor'][1]}^2), split "
+            + "/".join(str(v) for v in rep["split_counts"].values())
+            + f", {rep['bytes_per_sample'] / 1e3:.1f} kB per sample on disk; {rep['computed_samples']} computed "
+            f"({rep['resumed_shards']} shards resumed) in {rep['sweep_seconds']:.1f} s on "
+            f"{rep['workers']} worker(s)")
+    if ps:
+        text += "\n  per sample: " + ", ".join(f"{k} {1e3 * v:.1f} ms" for k, v in ps.items())
+    emit(rep, a.json, text)
+    return 0
+
+
+def _cmd_show(a: argparse.Namespace) -> int:
+    from .dataset import open_dataset
+
+    info = open_dataset(a.dataset)
+    s = info.summary()
+    at = info.attrs
+    text = "\n".join([
+        f"dataset        {at.get('name')} ({s['path']}), format {at.get('format')}, metadesign {s['version']}",
+        f"samples        {s['samples']}: train {s['split_counts']['train']}, val {s['split_counts']['val']}, "
+        f"test {s['split_counts']['test']}; tensor {' x '.join(map(str, s['tensor']))}",
+        f"Rytov          nominal {s['rytov_nominal'][0]:.3f}..{s['rytov_nominal'][1]:.3f}, measured "
+        f"{s['rytov_measured'][0]:.3f}..{s['rytov_measured'][1]:.3f} (mean {s['rytov_measured_mean']:.3f})",
+        f"device         layout {str(s['layout_sha256'])[:12]}, library {str(s['library_sha256'])[:12]}, "
+        f"perturbation {at['provenance'].get('perturbation')}",
+        f"storage        {s['bytes_on_disk'] / 1e6:.1f} MB, {s['bytes_per_sample'] / 1e3:.1f} kB per sample; "
+        f"root seed {s['root_seed']}",
+    ])
+    emit(s | {"attributes": at}, a.json, text)
+    return 0
+
+
+def _cmd_plot(a: argparse.Namespace) -> int:
+    from .dataset import open_dataset
+    from .plot import plot_dataset
+
+    out = out_file(a.output or Path(a.dataset) / "fig-dataset.png", suffixes=(".png",))
+    info = open_dataset(a.dataset)
+    plot_dataset(info, out, a.samples)
+    print(f"wrote {out}")
+    return 0
+
+
+def _cmd_train(a: argparse.Namespace) -> int:
+    import os
+
+    from .train import load_train_recipe, train
+
+    rec = load_train_recipe(a.recipe)
+    run = Path(a.output) if a.output else Path(a.recipe).with_suffix("").parent / (rec.name + "-run")
+    if not a.resume:
+        out_dir(run)
+    if a.init is not None and not Path(a.init).exists():
+        from ..validation import ValidationError
+
+        raise ValidationError(f"--init {a.init}: no such model")
+    rank = int(os.environ.get("RANK", "0"))
+    rep = train(rec, run, dataset=a.dataset, resume=a.resume, init=a.init, log=log_to(a.json or rank != 0),
+                progress=not a.json)
+    if rank == 0:
+        h = rep["history"][-1] if rep["history"] else {}
+        text = (f"trained {rep['run']}: {rep['epochs_done']} epochs on {rep['world_size']} process(es) ({rep['device']}); "
+                f"best validation NPiB {rep['best_val_npib']:.3f}; last: U-Net {h.get('val_npib', float('nan')):.3f}, "
+                f"uncorrected {h.get('val_npib_none', float('nan')):.3f}, phase conjugate "
+                f"{h.get('val_npib_phase_conjugate', float('nan')):.3f}; model {rep['run']}/model.safetensors")
+        emit(rep, a.json, text)
+    return 0
+
+
+def register(sub) -> None:
+    tr = sub.add_parser(
+        "train", help="stage 6: train the U-Net (end-to-end PiB or MSE loss), resumable, DDP under torchrun",
+        description="Stage 6b. Train the U-Net of a recipe on a dataset: AdamW, step schedule, noise at load; "
+        "a checkpoint every epoch (--resume continues a killed run), metrics CSV/JSON and curves, the best "
+        "model by validation NPiB as safetensors + JSON card. Multi-process: `torchrun --nproc_per_node N -m "
+        "metadesign train ...` (NCCL on GPUs, gloo on CPU).")
+    tr.add_argument("recipe", help="training recipe (TOML), e.g. sensing/train-demo.toml")
+    tr.add_argument("--dataset", help="dataset folder (default: the recipe's data.dataset)")
+    tr.add_argument("-o", "--output", help="run folder (default: RECIPE-run beside the recipe)")
+    tr.add_argument("--resume", action="store_true", help="continue the run in -o from its checkpoint")
+    tr.add_argument("--init", help="start from these weights (model.safetensors): transfer learning")
+    tr.add_argument("--json", action="store_true", help="print the report as JSON")
+    tr.set_defaults(func=_cmd_train)
+
+    ds = sub.add_parser(
+        "dataset", help="stage 6: training data: dataset build RECIPE | show DATASET | plot DATASET",
+        description="Stage 6a. `dataset build RECIPE` renders seeded scintillated beacons through the "
+        "as-fabricated metasurface onto the sensor (zarr v3, sharded, resumable; a local process pool or a "
+        "Dask cluster). `dataset show` summarises a dataset, `dataset plot` draws a few samples and the "
+        "Rytov histogram.")
+    dsub = ds.add_subparsers(dest="dataset_command", metavar="ACTION")
+    dsub.required = True
+    b = dsub.add_parser("build", help="build (or resume) a dataset from a recipe")
+    b.add_argument("recipe", help="dataset recipe (TOML), e.g. sensing/dataset-demo.toml")
+    b.add_argument("-o", "--output", help="dataset folder (default: a folder named after the recipe, beside it)")
+    workers_arg(b)
+    b.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the shards on a Dask distributed scheduler (e.g. tcp://host:8786) instead of -j")
+    b.add_argument("--samples", type=integer(1, 10_000_000), help="override the recipe's sample count")
+    b.add_argument("--overwrite", action="store_true", help="replace a dataset built from a different recipe")
+    b.add_argument("--json", action="store_true", help="print the report as JSON")
+    b.set_defaults(func=_cmd_build)
+    s = dsub.add_parser("show", help="summarise a dataset")
+    s.add_argument("dataset", help="dataset folder")
+    s.add_argument("--json", action="store_true", help="print as JSON")
+    s.set_defaults(func=_cmd_show)
+    p = dsub.add_parser("plot", help="draw a few samples and the Rytov histogram")
+    p.add_argument("dataset", help="dataset folder")
+    p.add_argument("-o", "--output", help="PNG path (default: DATASET/fig-dataset.png)")
+    p.add_argument("--samples", type=integer(1, 8), default=3, help="samples to draw (1..8, default 3)")
+    p.set_defaults(func=_cmd_plot)

@@ -1,0 +1,578 @@
+"""Stage 6a: seeded, sharded datasets of 8-PSF frames from scintillated beacons
+through the as-fabricated metasurface (zarr v3), built on a local process pool
+or a Dask cluster, resumable after SIGKILL.
+
+Store layout (``OUT/``, a zarr v3 group; readable with plain ``zarr`` + numpy):
+
+* ``psf``       (N, 8, S, S) float32: the PSF tensor (x-pol QI..QIV, y-pol QI..QIV), area-resampled,
+  **normalised so that its 8 channels sum to 8** (each channel ~1): scintillation swings the received
+  power by ~10x, the network should not see it.  Noise-free: noise is applied when samples are read.
+* ``psf_power`` (N,) float32: the tensor's total power before normalisation (unit incident intensity).
+* ``received``  (N, A, A) complex64: the collimated received field (vacuum wavefront and amplitude divided
+  out) on the A x A crop of the turbulence grid that holds the receiver aperture, 0 outside it.
+  Crop start and grid in the attributes (``received_crop``).
+* ``rytov``     (N,) float32 nominal Rytov number; ``rytov_measured`` (N,) the sample's own log-amplitude
+  variance over the aperture (the x-axis of Fig. 3b).
+* ``seed``      (N,) int64: the screens' seed: ``Turbulence.at_rytov(rytov).screens(seed)`` regenerates the
+  13 screens bit for bit (the end-to-end loss back-propagates through them).
+* ``split``     (N,) uint8: 0 train, 1 validation, 2 test (a seeded permutation; fractions from the recipe).
+
+Sample ``i`` depends only on (root seed, i, recipe): the screens' seed is
+``SeedSequence(root, spawn_key=(0, i))``, its Rytov number is drawn from
+``SeedSequence(root, spawn_key=(1, i))``; so any worker count or scheduler writes the same arrays.
+Big arrays are sharded (one shard file per block of ``shard_size`` samples, one inner chunk per
+sample, so a reader decodes only the sample it needs).  A shard is finished when its marker
+``OUT/.shards/NNNNNN`` exists (written atomically after its arrays); a re-run continues from the
+unfinished shards; ``complete`` is set in the attributes at the end.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..config import ConfigError, Param, Section, load_toml, parse
+from ..io import atomic_write_text
+from ..validation import ValidationError
+
+__all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",
+           "DatasetInfo", "DATASET_FORMAT", "sample_seed", "sample_rytov", "make_sample", "ShardContext",
+           "received_crop"]
+
+DATASET_FORMAT = "metadesign.dataset/1"
+_MAX_SEED = 2**63 - 1
+
+SECTIONS = (
+    Section("dataset", (
+        Param("layout", str, None, help="OASIS/GDS layout (relative to the recipe)"),
+        Param("design", str, None, help="design recipe that builds the layout when it is missing"),
+        Param("sensor", str, "paper.toml"),
+        Param("turbulence", str, "turbulence.toml"),
+        Param("samples", int, lo=1, hi=10_000_000),
+        Param("rytov_min", float, 0.25, lo=0, open_lo=True, hi=5),
+        Param("rytov_max", float, 0.6, lo=0, open_lo=True, hi=5),
+        Param("rytov_values", list, None, lo=0, open_lo=True, hi=5),
+        Param("split", list, [0.9, 0.05, 0.05], lo=0, hi=1),
+        Param("seed", int, 0, lo=0, hi=_MAX_SEED),
+        Param("tensor_size", int, 256, lo=8, hi=1024),
+        Param("shard_size", int, 64, lo=1, hi=4096),
+    )),
+    Section("fabrication", (
+        Param("bias_x_nm", float, 0.0, lo=-200, hi=200),
+        Param("bias_y_nm", float, 0.0, lo=-200, hi=200),
+        Param("jitter_nm", float, 0.0, lo=0, hi=100),
+        Param("corner_nm", float, 0.0, lo=0, hi=500),
+        Param("seed", int, 0, lo=0, hi=_MAX_SEED),
+    ), optional=True),
+)
+
+
+@dataclass(frozen=True)
+class DatasetRecipe:
+    name: str
+    source: Path | None
+    layout: Path | None
+    design: Path | None
+    sensor: Path
+    turbulence: Path
+    samples: int
+    rytov_range: tuple[float, float]
+    rytov_values: tuple[float, ...] | None
+    split: tuple[float, float, float]
+    seed: int
+    tensor_size: int
+    shard_size: int
+    fabrication: dict
+    raw: dict = field(repr=False, default_factory=dict)
+
+    def default_output(self) -> Path:
+        return (self.source.parent if self.source else Path.cwd()) / self.name
+
+    def with_samples(self, n: int) -> "DatasetRecipe":
+        raw = json.loads(json.dumps(self.raw))
+        raw.setdefault("dataset", {})["samples"] = n
+        return replace(self, samples=n, raw=raw)
+
+
+def dataset_recipe_from_dict(data: dict, name: str = "dataset", source: Path | None = None) -> DatasetRecipe:
+    v = parse(data, SECTIONS, str(source) if source else "recipe")
+    d, fab = v["dataset"], v["fabrication"]
+    base = source.parent if source else Path.cwd()
+
+    def rel(p):
+        if p is None:
+            return None
+        p = Path(p)
+        return p if p.is_absolute() else base / p
+
+    if d["layout"] is None and d["design"] is None:
+        raise ConfigError("dataset.layout", "missing; give the layout (OASIS) or a design recipe to build one")
+    if d["rytov_min"] >= d["rytov_max"] and d["rytov_values"] is None:
+        raise ConfigError("dataset.rytov_min", f"must be < dataset.rytov_max ({d['rytov_max']:g})")
+    vals = d["rytov_values"]
+    if vals is not None and not vals:
+        raise ConfigError("dataset.rytov_values", "expected at least one Rytov number")
+    split = d["split"]
+    if len(split) != 3 or abs(sum(split) - 1) > 1e-6:
+        raise ConfigError("dataset.split", f"expected three fractions [train, val, test] summing to 1, got {list(split)}")
+    return DatasetRecipe(
+        name=name, source=source, layout=rel(d["layout"]), design=rel(d["design"]), sensor=rel(d["sensor"]),
+        turbulence=rel(d["turbulence"]), samples=d["samples"], rytov_range=(d["rytov_min"], d["rytov_max"]),
+        rytov_values=tuple(vals) if vals is not None else None, split=tuple(split), seed=d["seed"],
+        tensor_size=d["tensor_size"], shard_size=d["shard_size"], fabrication=fab, raw=data)
+
+
+def load_dataset_recipe(path: str | Path) -> DatasetRecipe:
+    path = Path(path)
+    return dataset_recipe_from_dict(load_toml(path), name=path.stem, source=path)
+
+
+# ----------------------------------------------------------------- samples
+
+
+def sample_seed(root: int, i: int) -> int:
+    """The screens' seed of sample ``i`` (63-bit, storable as int64)."""
+    return int(np.random.SeedSequence(root, spawn_key=(0, i)).generate_state(1, np.uint64)[0] & np.uint64(_MAX_SEED))
+
+
+def sample_rytov(root: int, i: int, rytov_range, rytov_values) -> float:
+    rng = np.random.default_rng(np.random.SeedSequence(root, spawn_key=(1, i)))
+    if rytov_values:
+        return float(rytov_values[int(rng.integers(len(rytov_values)))])
+    return float(rng.uniform(*rytov_range))
+
+
+def split_labels(root: int, n: int, fractions) -> np.ndarray:
+    perm = np.random.default_rng(np.random.SeedSequence(root, spawn_key=(2,))).permutation(n)
+    n_train = int(round(fractions[0] * n))
+    n_val = int(round(fractions[1] * n))
+    lab = np.full(n, 2, np.uint8)
+    lab[perm[:n_train]] = 0
+    lab[perm[n_train:n_train + n_val]] = 1
+    return lab
+
+
+def received_crop(sc) -> tuple[int, int]:
+    """(start index, size) of the square crop of the turbulence grid holding the receiver aperture
+    (FFT-centred grid: the centre is sample n/2)."""
+    half = int(np.floor(sc.receiver_aperture / 2 / sc.dx + 1e-9))
+    return sc.n_grid // 2 - half, 2 * half + 1
+
+
+@dataclass
+class ShardContext:
+    """Everything a worker needs to make a shard (no layout: the device is its coarse pupil)."""
+
+    pupil: object  # CoarsePupil
+    sensing: object  # SensingRecipe (tensor_size of the recipe)
+    scenario: object  # Scenario
+    aperture: float  # metasurface aperture (m)
+    out: str
+    root_seed: int
+    n: int
+    shard_size: int
+    rytov_range: tuple
+    rytov_values: tuple | None
+    _chain: object = None
+
+    def chain(self):
+        if self._chain is None:
+            from ..sensing.chain import BeaconChain
+
+            self._chain = BeaconChain(self.pupil, self.sensing, self.scenario, self.aperture)
+        return self._chain
+
+
+def make_sample(ctx: ShardContext, i: int) -> dict:
+    """Sample ``i`` of the dataset: arrays as stored, and the time spent per step."""
+    t0 = time.perf_counter()
+    chain = ctx.chain()
+    seed = sample_seed(ctx.root_seed, i)
+    rytov = sample_rytov(ctx.root_seed, i, ctx.rytov_range, ctx.rytov_values)
+    s = chain.sample(seed, rytov)
+    t1 = time.perf_counter()
+    c0, a = received_crop(chain.turbulence.sc)
+    rec = s.received[c0:c0 + a, c0:c0 + a]
+    ap = chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]
+    chi = np.log(np.maximum(np.abs(rec[ap]), 1e-30))
+    power = float(s.tensor.sum())
+    psf = (s.tensor * (8.0 / power)).astype(np.float32) if power > 0 else s.tensor
+    t2 = time.perf_counter()
+    return {"psf": psf, "psf_power": power, "received": rec.astype(np.complex64), "rytov": rytov,
+            "rytov_measured": float(np.var(chi)), "seed": seed,
+            "timings": {**s.timings, "other": (t2 - t1) + (t1 - t0) - sum(s.timings.values())}}
+
+
+def _marker(out: Path, shard: int) -> Path:
+    return Path(out) / ".shards" / f"{shard:06d}"
+
+
+def make_shard(ctx: ShardContext, shard: int) -> dict:
+    """Compute shard ``shard`` and write it into the store, then its marker (atomically).
+
+    BLAS runs on one thread here whatever the process was started with: a multi-threaded complex matrix
+    product sums in another order (~1e-6 relative), and the same seed must give the same bytes."""
+    import zarr
+    from threadpoolctl import threadpool_limits
+
+    i0 = shard * ctx.shard_size
+    i1 = min(ctx.n, i0 + ctx.shard_size)
+    with threadpool_limits(limits=1):
+        rows = [make_sample(ctx, i) for i in range(i0, i1)]
+    t0 = time.perf_counter()
+    g = zarr.open_group(ctx.out, mode="r+")
+    g["psf"][i0:i1] = np.stack([r["psf"] for r in rows])
+    g["received"][i0:i1] = np.stack([r["received"] for r in rows])
+    for k, dt in (("psf_power", np.float32), ("rytov", np.float32), ("rytov_measured", np.float32),
+                  ("seed", np.int64)):
+        g[k][i0:i1] = np.array([r[k] for r in rows], dt)
+    atomic_write_text(_marker(Path(ctx.out), shard), json.dumps({"samples": [i0, i1]}))
+    t_store = time.perf_counter() - t0
+    tim = {k: float(sum(r["timings"][k] for r in rows)) for k in rows[0]["timings"]}
+    tim["storage"] = t_store
+    return {"shard": shard, "samples": i1 - i0, "timings": tim}
+
+
+# ------------------------------------------------------------ the builder
+
+
+def _sha256(path: Path) -> str:
+    from ..library.locate import file_sha256
+
+    return file_sha256(path)
+
+
+def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
+    """The recipe's layout; built from its design recipe (design + OASIS + exact verify) if missing."""
+    if recipe.layout is not None and recipe.layout.exists():
+        return recipe.layout
+    if recipe.design is None:
+        raise ValidationError(f"dataset.layout: {recipe.layout}: no such layout (give dataset.design to build it)")
+    from ..design.recipe import load_design_recipe
+    from ..design.store import load_design, run_design
+    from ..layouts import read_layout, verify_against_design, write_layout
+
+    dr = load_design_recipe(recipe.design)
+    out = recipe.layout.parent if recipe.layout is not None else dr.default_output()
+    target = recipe.layout or out / "layout.oas"
+    log(f"building the layout {target} from {recipe.design} (design, OASIS, exact read-back)")
+    _, folder = run_design(dr, out)
+    d = load_design(folder)
+    write_layout(d, target, "oas")
+    v = verify_against_design(read_layout(target), d)
+    if not v["exact"]:
+        raise ValidationError(f"{target}: the layout read back differs from the design: {v['problems'][:2]}")
+    return target
+
+
+def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=None):
+    """The device's coarse pupil, cached beside the dataset (keyed by layout, library, perturbation, sensor)."""
+    from ..io import json_array, read_npz, write_npz
+    from ..sensing.forward import CoarsePupil
+
+    key = {"layout_sha256": layout_sha, "library_sha256": fab.lib.identity, "perturbation": pert.to_dict(),
+           "distance_m": sensing.sensor.distance, "pupil_grid": sensing.pupil_grid}
+    if cache.exists():
+        try:
+            z = read_npz(cache, "device pupil")
+            if json.loads(str(z["key"])) == key:
+                return CoarsePupil(z["G"], z["X"], int(z["block"]), float(z["period"]), float(z["wavelength"]),
+                                   float(z["z"]), int(z["n_clamped"]))
+        except (ValidationError, KeyError, ValueError):
+            pass
+    cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
+    write_npz(cache, {"G": cp.G, "X": cp.X, "block": cp.block, "period": cp.period, "wavelength": cp.wavelength,
+                      "z": cp.z, "n_clamped": cp.n_clamped, "key": np.array(json.dumps(key, sort_keys=True))})
+    return cp
+
+
+def _recipe_hash(parts: dict) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray):
+    import zarr
+
+    g = zarr.open_group(str(out), mode="w")
+    # fill values no sample can hold: zarr does not store chunks equal to the fill value
+    g.create_array("psf", shape=(n, 8, s, s), chunks=(1, 8, s, s), shards=(shard, 8, s, s), dtype="float32",
+                   fill_value=float("nan"), dimension_names=("sample", "channel", "row", "col"))
+    g.create_array("received", shape=(n, a, a), chunks=(1, a, a), shards=(shard, a, a), dtype="complex64",
+                   fill_value=0j, dimension_names=("sample", "y", "x"))
+    for k, dt, fv in (("psf_power", "float32", float("nan")), ("rytov", "float32", float("nan")),
+                      ("rytov_measured", "float32", float("nan")), ("seed", "int64", -1)):
+        g.create_array(k, shape=(n,), chunks=(shard,), dtype=dt, fill_value=fv, dimension_names=("sample",))
+    sp = g.create_array("split", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=255,
+                        dimension_names=("sample",))
+    sp[:] = split
+    g.attrs.update(attrs)
+    return g
+
+
+class _LocalPool:
+    """Spawned single-threaded worker processes (one BLAS/FFT/torch thread each), or in-process for 1."""
+
+    def __init__(self, workers: int, ctx: ShardContext):
+        import multiprocessing as mp
+
+        self.pool = None
+        self.ctx = ctx
+        if workers > 1:
+            saved = {k: os.environ.get(k) for k in _THREAD_ENV}
+            os.environ.update({k: "1" for k in _THREAD_ENV})
+            try:
+                self.pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(ctx,))
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+                    else:
+                        os.environ[k] = v
+
+    def run(self, shards):
+        if self.pool is None:
+            return (make_shard(self.ctx, i) for i in shards)
+        return self.pool.imap_unordered(_worker_shard, shards)
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+
+
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_WORKER_CTX: ShardContext | None = None
+
+
+def _init_worker(ctx: ShardContext) -> None:
+    global _WORKER_CTX
+    os.environ.update({k: "1" for k in _THREAD_ENV})
+    _WORKER_CTX = ctx
+
+
+def _worker_shard(i: int) -> dict:
+    return make_shard(_WORKER_CTX, i)
+
+
+def _dask_shard(ctx: ShardContext, i: int) -> dict:
+    os.environ.update({k: "1" for k in _THREAD_ENV})
+    return make_shard(ctx, i)
+
+
+def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int = 1, scheduler: str | None = None,
+                  overwrite: bool = False, progress: Callable[[int, int], None] | None = None,
+                  log: Callable[[str], None] = lambda s: None, client=None) -> dict:
+    """Build (or resume) the dataset of ``recipe`` into ``out``; returns a report.
+
+    ``scheduler``: address of a running Dask scheduler (or ``client``, a ``dask.distributed.Client``);
+    default: a local pool of ``workers`` spawned processes."""
+    from ..sensing.model import AsFabricated, load_sensing_recipe
+    from ..sensing.transmission import Perturbation
+    from ..turbulence.path import check_sampling, solve_path
+    from ..turbulence.validate import load_scenario
+
+    out = Path(out or recipe.default_output())
+    if out.exists() and not out.is_dir():
+        raise ValidationError(f"-o/--output {out}: exists and is not a folder")
+    existing = _read_attrs(out) if (out / "zarr.json").exists() else None
+    if out.exists() and existing is None and any(not (p.name.startswith(".") or p.name.startswith("device-pupil"))
+                                                 for p in out.iterdir()):
+        raise ValidationError(f"{out}: exists and is not a metadesign dataset (refusing to write into it)")
+    sensing = load_sensing_recipe(recipe.sensor)
+    sensing = replace(sensing, sensor=replace(sensing.sensor, tensor_size=recipe.tensor_size))
+    scenario = load_scenario(recipe.turbulence)
+    for r in ([*recipe.rytov_values] if recipe.rytov_values else list(recipe.rytov_range)):
+        sc = replace(scenario, rytov=r)
+        rep = check_sampling(sc, solve_path(sc))
+        if not rep.ok:
+            raise ValidationError(f"dataset: Rytov {r:g}: infeasible turbulence sampling: {rep.failures[0]}")
+    f = recipe.fabrication
+    pert = Perturbation(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"])
+    layout = ensure_layout(recipe, log)
+    layout_sha = _sha256(layout)
+    fab = AsFabricated.from_files(layout)
+    parts = {"format": DATASET_FORMAT, "recipe": recipe.raw, "sensor": sensing.sensor.to_dict(),
+             "pupil_grid": sensing.pupil_grid, "scenario": scenario.to_dict(), "layout_sha256": layout_sha,
+             "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}
+    rhash = _recipe_hash(parts)
+    if existing is not None and existing.get("recipe_hash") != rhash:
+        if not overwrite:
+            raise ValidationError(f"{out}: holds a dataset built from a different recipe (or device); "
+                                  "use --overwrite to replace it, or -o for another folder")
+        log(f"--overwrite: removing the dataset in {out}")
+        shutil.rmtree(out)
+        existing = None
+    n, shard = recipe.samples, recipe.shard_size
+    n_shards = (n + shard - 1) // shard
+    t_start = time.perf_counter()
+    out.mkdir(exist_ok=True)
+    c0, a = received_crop(scenario)
+    if existing is None:
+        attrs = {
+            "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
+            "name": recipe.name, "samples": n, "shard_size": shard, "n_shards": n_shards,
+            "tensor_size": recipe.tensor_size, "root_seed": recipe.seed, "split_fractions": list(recipe.split),
+            "rytov": {"range": list(recipe.rytov_range), "values": list(recipe.rytov_values or []) or None},
+            "provenance": {**parts, "layout": str(layout), "design": fab.layout.provenance.get("design"),
+                           "channels": fab.layout.provenance.get("channels")},
+            "received_crop": {"start": c0, "size": a, "n_grid": scenario.n_grid, "dx_m": scenario.dx,
+                              "centring": "FFT-centred grid: x = (i - n/2) dx; crop rows/cols start..start+size"},
+            "normalisation": "psf: each sample's 8 channels sum to 8 (psf_power holds the raw total)",
+            "seeds": "screens: Turbulence.at_rytov(rytov).screens(seed); seed_i = SeedSequence(root, "
+                     "spawn_key=(0, i)) & (2^63-1); Rytov from SeedSequence(root, spawn_key=(1, i))",
+            "split_labels": {"0": "train", "1": "val", "2": "test"},
+        }
+        _create_store(out, n, recipe.tensor_size, shard, a, attrs, split_labels(recipe.seed, n, recipe.split))
+    cp = _device_pupil(fab, sensing, pert, out / "device-pupil.npz", layout_sha)  # after the store (mode "w")
+    done = {i for i in range(n_shards) if _marker(out, i).exists()}
+    pending = [i for i in range(n_shards) if i not in done]
+    ctx = ShardContext(cp, sensing, scenario, fab.n_cells * fab.period, str(out), recipe.seed, n, shard,
+                       recipe.rytov_range, recipe.rytov_values)
+    log(f"dataset {recipe.name}: {n} samples in {n_shards} shards ({len(done)} done), "
+        f"tensor 8x{recipe.tensor_size}^2 -> {out}")
+    timings: dict = {}
+    samples_done = sum(min(n, (i + 1) * shard) - i * shard for i in done)
+    if progress:
+        progress(samples_done, n)
+    t_sweep = time.perf_counter()
+    results = _run(ctx, pending, workers, scheduler, client)
+    for r in results:
+        for k, v in r["timings"].items():
+            timings[k] = timings.get(k, 0.0) + v
+        samples_done += r["samples"]
+        if progress:
+            progress(samples_done, n)
+    sweep = time.perf_counter() - t_sweep
+    import zarr
+
+    g = zarr.open_group(str(out), mode="r+")
+    g.attrs.update({"complete": True})
+    shutil.rmtree(out / ".shards", ignore_errors=True)
+    info = open_dataset(out)
+    computed = sum(min(n, (i + 1) * shard) - i * shard for i in pending)
+    return {"output": str(out), "samples": n, "shards": n_shards, "resumed_shards": len(done),
+            "computed_samples": computed, "seconds": time.perf_counter() - t_start, "sweep_seconds": sweep,
+            "per_sample_seconds": {k: v / max(computed, 1) for k, v in timings.items()},
+            "workers": workers if scheduler is None and client is None else "dask", **info.summary()}
+
+
+def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | None, client):
+    if not pending:
+        return
+    if scheduler is not None or client is not None:
+        from dask.distributed import Client, as_completed
+
+        own = client is None
+        if own:
+            try:
+                client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
+                                      f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+        try:
+            ctx_f = client.scatter(ctx, broadcast=True)
+            futures = [client.submit(_dask_shard, ctx_f, i, pure=False, key=f"metadesign-shard-{ctx.out}-{i}")
+                       for i in pending]
+            for fut in as_completed(futures):
+                yield fut.result()
+        finally:
+            if own:
+                client.close()
+        return
+    pool = _LocalPool(min(workers, len(pending)), ctx)
+    try:
+        yield from pool.run(pending)
+    finally:
+        pool.close()
+
+
+# ------------------------------------------------------------------ reading
+
+
+def _read_attrs(out: Path) -> dict | None:
+    try:
+        meta = json.loads((Path(out) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return None
+    attrs = meta.get("attributes", {}) if isinstance(meta, dict) else {}
+    return attrs if attrs.get("format") == DATASET_FORMAT else None
+
+
+_ARRAYS = ("psf", "psf_power", "received", "rytov", "rytov_measured", "seed", "split")
+
+
+@dataclass
+class DatasetInfo:
+    path: Path
+    attrs: dict
+    n: int
+    tensor_size: int
+    split: np.ndarray
+    rytov: np.ndarray
+    rytov_measured: np.ndarray
+    seed: np.ndarray
+    bytes_on_disk: int
+
+    def indices(self, split: str) -> np.ndarray:
+        lab = {"train": 0, "val": 1, "test": 2}
+        if split == "all":
+            return np.arange(self.n)
+        return np.nonzero(self.split == lab[split])[0]
+
+    def summary(self) -> dict:
+        counts = {k: int(np.sum(self.split == v)) for k, v in (("train", 0), ("val", 1), ("test", 2))}
+        return {"path": str(self.path), "samples": self.n, "tensor": [8, self.tensor_size, self.tensor_size],
+                "split_counts": counts, "rytov_nominal": [float(self.rytov.min()), float(self.rytov.max())],
+                "rytov_measured": [float(self.rytov_measured.min()), float(self.rytov_measured.max())],
+                "rytov_measured_mean": float(self.rytov_measured.mean()),
+                "bytes_on_disk": self.bytes_on_disk, "bytes_per_sample": self.bytes_on_disk / max(self.n, 1),
+                "root_seed": self.attrs.get("root_seed"), "version": self.attrs.get("version"),
+                "layout_sha256": self.attrs.get("provenance", {}).get("layout_sha256"),
+                "library_sha256": self.attrs.get("provenance", {}).get("library_sha256"),
+                "complete": bool(self.attrs.get("complete"))}
+
+
+def open_dataset(path: str | Path) -> DatasetInfo:
+    """Open and check a dataset store: format tag, completeness, every array and every shard file present.
+    Problems raise one-line :class:`ValidationError`."""
+    import zarr
+
+    path = Path(path)
+    if not path.is_dir():
+        raise ValidationError(f"{path}: no such dataset folder")
+    attrs = _read_attrs(path)
+    if attrs is None:
+        raise ValidationError(f"{path}: not a metadesign dataset (no zarr.json with format {DATASET_FORMAT})")
+    if not attrs.get("complete"):
+        raise ValidationError(f"{path}: incomplete dataset (the build was interrupted): rerun the same "
+                              "`metadesign dataset build` to finish it")
+    n = int(attrs["samples"])
+    try:
+        g = zarr.open_group(str(path), mode="r")
+        arrays = {k: g[k] for k in _ARRAYS}
+    except (KeyError, ValueError, OSError, FileNotFoundError) as exc:
+        raise ValidationError(f"{path}: truncated or damaged dataset ({exc.__class__.__name__}: {exc})") from None
+    for k, a in arrays.items():
+        if a.shape[0] != n:
+            raise ValidationError(f"{path}: array {k} has {a.shape[0]} samples, expected {n}")
+        n_files = sum(1 for p in (path / k / "c").rglob("*") if p.is_file() and p.stat().st_size > 0) \
+            if (path / k / "c").exists() else 0
+        grid = int(np.ceil(n / (a.shards or a.chunks)[0]))
+        if n_files < grid:
+            raise ValidationError(f"{path}: truncated dataset: array {k} has {n_files} of {grid} chunk files")
+    try:
+        small = {k: np.asarray(arrays[k][:]) for k in ("split", "rytov", "rytov_measured", "seed")}
+    except Exception as exc:  # a damaged chunk: zarr/numcodecs raise many kinds
+        raise ValidationError(f"{path}: damaged dataset ({exc.__class__.__name__}: {str(exc)[:100]})") from None
+    size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return DatasetInfo(path, attrs, n, int(attrs["tensor_size"]), small["split"], small["rytov"],
+                       small["rytov_measured"], small["seed"], size)

@@ -1,0 +1,162 @@
+"""The reconstruction network: a U-Net after Ronneberger et al. (3x3 convolutions, 2x2 max-pooling,
+transposed-convolution up-sampling, skip connections), 8-channel PSF tensor in, one phase map out,
+resampled onto the receiver aperture of the turbulence grid and masked there.
+
+The paper keeps Ronneberger's filter counts (base 64, depth 5: 64..1024).  Group normalisation after
+each convolution (the paper does not say; per-sample normalisation keeps data-parallel training equal to
+one process with the same global batch, which batch norm does not), zero-initialised output
+layer: training starts at the flat (uncorrected) phase.  Weights ship as safetensors with a JSON card
+(:func:`save_model`, :func:`load_model`); nothing is ever unpickled."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..validation import ValidationError, check_int
+
+__all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask"]
+
+MODEL_FORMAT = "metadesign.unet/1"
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    in_channels: int = 8
+    base: int = 64  # filters of the first level (Ronneberger: 64)
+    depth: int = 5  # levels including the bottleneck (Ronneberger: 5 -> 64..1024)
+    input_size: int = 256  # S of the 8 x S x S tensor
+    aperture_size: int = 41  # A: output grid (the receiver-aperture crop of the turbulence grid)
+    norm: str = "group"  # "group" (GroupNorm, 8 groups), "batch" or "none"
+
+    def __post_init__(self) -> None:
+        check_int("model.in_channels", self.in_channels, 1, 64)
+        check_int("model.base", self.base, 1, 256)
+        check_int("model.depth", self.depth, 2, 8)
+        check_int("model.input_size", self.input_size, 8, 4096)
+        check_int("model.aperture_size", self.aperture_size, 3, 4096)
+        if self.norm not in ("group", "batch", "none"):
+            raise ValidationError(f"model.norm: expected group, batch or none, got {self.norm!r}")
+        if self.input_size % 2 ** (self.depth - 1):
+            raise ValidationError(f"model.input_size: {self.input_size} must be divisible by 2^(depth-1) = "
+                                  f"{2 ** (self.depth - 1)}")
+
+
+def aperture_mask(a: int) -> np.ndarray:
+    """The receiver aperture on the A x A crop: the inscribed disc (A = 2 floor(R/dx) + 1)."""
+    r = np.arange(a) - (a - 1) / 2
+    return (r[None, :] ** 2 + r[:, None] ** 2) <= ((a - 1) / 2) ** 2 + 1e-9
+
+
+def _torch():
+    import torch
+    import torch.nn as nn
+
+    return torch, nn
+
+
+def build_unet(cfg: UNetConfig):
+    """A ``torch.nn.Module``: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture."""
+    torch, nn = _torch()
+    F = torch.nn.functional
+
+    def norm(c):
+        if cfg.norm == "group":
+            return [nn.GroupNorm(min(8, c), c)]
+        return [nn.BatchNorm2d(c)] if cfg.norm == "batch" else []
+
+    def block(cin, cout):
+        bias = cfg.norm == "none"
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=bias), *norm(cout), nn.ReLU(inplace=True),
+                             nn.Conv2d(cout, cout, 3, padding=1, bias=bias), *norm(cout), nn.ReLU(inplace=True))
+
+    class UNet(nn.Module):
+        def __init__(self):
+            super().__init__()
+            ch = [cfg.base * 2**i for i in range(cfg.depth)]
+            self.downs = nn.ModuleList([block(cfg.in_channels, ch[0])] +
+                                       [block(ch[i - 1], ch[i]) for i in range(1, cfg.depth)])
+            self.ups = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2)
+                                      for i in range(cfg.depth - 1, 0, -1)])
+            self.upblocks = nn.ModuleList([block(2 * ch[i - 1], ch[i - 1]) for i in range(cfg.depth - 1, 0, -1)])
+            self.head = nn.Conv2d(ch[0], 1, 1)
+            nn.init.zeros_(self.head.weight)  # start at the flat phase: the uncorrected beam
+            nn.init.zeros_(self.head.bias)
+            self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
+
+        def forward(self, x):
+            skips = []
+            for i, d in enumerate(self.downs):
+                x = d(x)
+                if i < cfg.depth - 1:
+                    skips.append(x)
+                    x = F.max_pool2d(x, 2)
+            for up, blk in zip(self.ups, self.upblocks):
+                x = up(x)
+                x = blk(torch.cat([skips.pop(), x], dim=1))
+            phi = self.head(x)
+            if phi.shape[-1] != cfg.aperture_size:
+                phi = F.interpolate(phi, size=(cfg.aperture_size, cfg.aperture_size), mode="bilinear",
+                                    align_corners=True)
+            return phi[:, 0].float() * self.mask
+
+    m = UNet()
+    m.config = cfg
+    return m
+
+
+UNet = build_unet  # the architecture's name
+
+
+def save_model(model, path: str | Path, card: dict) -> tuple[Path, Path]:
+    """Weights as ``PATH`` (safetensors) and the card as ``PATH.json`` (both written atomically)."""
+    from safetensors.torch import save_file
+
+    from ..io import atomic_path, atomic_write_text
+
+    path = Path(path)
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    with atomic_path(path) as tmp:
+        save_file(state, str(tmp), metadata={"format": MODEL_FORMAT})
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    card = {"format": MODEL_FORMAT, "architecture": asdict(model.config), "weights_sha256": digest, **card}
+    card_path = path.with_name(path.name + ".json")
+    atomic_write_text(card_path, json.dumps(card, indent=2, sort_keys=True, default=float))
+    return path, card_path
+
+
+def load_model(path: str | Path, device: str = "cpu"):
+    """A model saved by :func:`save_model` (``PATH`` or ``PATH.json``), in eval mode, and its card.
+    The weights file is checked against the card's sha256; nothing is unpickled."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if path.suffix == ".json":
+        path = path.with_suffix("")
+    card_path = path.with_name(path.name + ".json")
+    if not path.is_file() or not card_path.is_file():
+        raise ValidationError(f"{path}: no such model (expected the weights and {card_path.name} beside them)")
+    try:
+        card = json.loads(card_path.read_text())
+        if card.get("format") != MODEL_FORMAT:
+            raise ValueError(f"format {card.get('format')!r}")
+        cfg = UNetConfig(**card["architecture"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValidationError(f"{card_path}: not a metadesign model card ({exc})") from None
+    if hashlib.sha256(path.read_bytes()).hexdigest() != card.get("weights_sha256"):
+        raise ValidationError(f"{path}: weights do not match the card's sha256 (truncated or replaced)")
+    try:
+        state = load_file(str(path), device=device)
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise ValidationError(f"{path}: unreadable safetensors ({exc})") from None
+    model = build_unet(cfg)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValidationError(f"{path}: weights do not fit the card's architecture (missing {missing[:3]}, "
+                              f"unexpected {unexpected[:3]})")
+    return model.to(device).eval(), card

@@ -1,0 +1,376 @@
+"""Training (stage 6b): a plain Python loop with checkpoint/resume, in the manner of torchvision's
+reference scripts.  One process, or DistributedDataParallel under ``torchrun`` (NCCL on GPUs, gloo on
+CPU).  Device: CUDA, then MPS, then CPU; mixed precision (bf16 autocast for the U-Net) on CUDA.
+
+A run folder holds ``checkpoint.pt`` (every epoch, atomically: model, optimiser, scheduler, random
+states, history; read with ``torch.load(weights_only=True)``), ``metrics.csv``/``metrics.json``,
+``curves.png`` and the best model by validation NPiB as ``model.safetensors`` + ``model.safetensors.json``.
+The data order and the noise depend only on (seed, epoch, sample), so a run killed with SIGKILL and
+restarted with ``--resume`` reproduces the loss curve of an uninterrupted run on CPU.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..config import ConfigError, Param, Section, load_toml, parse
+from ..validation import ValidationError
+
+__all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
+
+LOSSES = ("pib", "phase", "mse")
+
+SECTIONS = (
+    Section("data", (
+        Param("dataset", str, None),
+        Param("noise_percent", float, 5.0, lo=0, hi=100),
+        Param("train_limit", int, 0, lo=0),
+        Param("val_limit", int, 0, lo=0),
+        Param("loader_workers", int, 0, lo=0, hi=64),
+    ), optional=True),
+    Section("model", (
+        Param("base", int, 64, lo=1, hi=256),
+        Param("depth", int, 5, lo=2, hi=8),
+        Param("norm", str, "group", choices=["group", "batch", "none"]),
+    ), optional=True),
+    Section("train", (
+        Param("epochs", int, 500, lo=1, hi=100000),
+        Param("batch", int, 64, lo=1, hi=65536),
+        Param("lr", float, 1e-4, lo=0, open_lo=True, hi=1),
+        Param("weight_decay", float, 0.01, lo=0, hi=1),
+        Param("lr_halve_every", int, 200, lo=1, hi=100000),
+        Param("loss", str, "pib", choices=list(LOSSES)),
+        Param("pretrain_loss", str, "phase", choices=list(LOSSES)),
+        Param("pretrain_epochs", int, 0, lo=0, hi=100000),
+        Param("seed", int, 0, lo=0, hi=2**63 - 1),
+        Param("max_minutes", float, 0.0, lo=0, hi=1e6),
+    ), optional=True),
+)
+
+
+@dataclass(frozen=True)
+class TrainRecipe:
+    name: str
+    source: Path | None
+    dataset: Path | None
+    noise_percent: float
+    train_limit: int
+    val_limit: int
+    loader_workers: int
+    base: int
+    depth: int
+    norm: str
+    epochs: int
+    batch: int
+    lr: float
+    weight_decay: float
+    lr_halve_every: int
+    loss: str
+    pretrain_loss: str
+    pretrain_epochs: int
+    seed: int
+    max_minutes: float
+    raw: dict
+
+    def loss_at(self, epoch: int) -> str:
+        return self.pretrain_loss if epoch < self.pretrain_epochs else self.loss
+
+
+def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None = None) -> TrainRecipe:
+    v = parse(data, SECTIONS, str(source) if source else "recipe")
+    d, m, t = v["data"], v["model"], v["train"]
+    ds = d["dataset"]
+    if ds is not None and not Path(ds).is_absolute():
+        ds = (source.parent if source else Path.cwd()) / ds
+    return TrainRecipe(name=name, source=source, dataset=Path(ds) if ds else None,
+                       noise_percent=d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
+                       loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
+                       epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
+                       lr_halve_every=t["lr_halve_every"], loss=t["loss"], pretrain_loss=t["pretrain_loss"],
+                       pretrain_epochs=t["pretrain_epochs"], seed=t["seed"], max_minutes=t["max_minutes"], raw=data)
+
+
+def load_train_recipe(path: str | Path) -> TrainRecipe:
+    path = Path(path)
+    return train_recipe_from_dict(load_toml(path), name=path.stem, source=path)
+
+
+def pick_device(local_rank: int = 0):
+    """CUDA (this process's GPU), then Apple MPS, then CPU."""
+    import torch
+
+    if torch.cuda.is_available():
+        torch.cuda.set_device(local_rank % torch.cuda.device_count())
+        return torch.device("cuda", local_rank % torch.cuda.device_count())
+    if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")
+
+
+def _dist():
+    """(rank, world size, local rank) from torchrun's environment; initialises the process group."""
+    import torch
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1, 0
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return rank, world, local
+
+
+def _save_checkpoint(path: Path, state: dict) -> None:
+    import torch
+
+    from ..io import atomic_path
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
+
+
+def _rng_state() -> dict:
+    import torch
+
+    return {"torch": torch.get_rng_state(), "numpy": json.dumps(np.random.get_state()[1].tolist()),
+            "python": json.dumps(random.getstate()[1])}
+
+
+def _collate(batch):
+    import torch
+
+    return {k: torch.stack([b[k] for b in batch]) for k in batch[0]}
+
+
+def evaluate_split(model, ds, pib, device, batch: int = 16, progress=None) -> dict:
+    """Per-sample NPiB of the U-Net, the flat phase (uncorrected) and the phase conjugate on ``ds``."""
+    import torch
+
+    out = {"unet": [], "none": [], "phase_conjugate": [], "index": []}
+    loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
+    model.eval()
+    with torch.no_grad():
+        for b in loader:
+            scr = b["screens"].to(device)
+            phi = model(b["psf"].to(device))
+            rec = b["received"].to(device)
+            out["unet"].append(pib.npib_phase(phi, scr).cpu())
+            out["none"].append(pib.npib_phase(torch.zeros_like(phi), scr).cpu())
+            out["phase_conjugate"].append(pib.npib_phase(torch.angle(rec) * pib.ap, scr).cpu())
+            out["index"].append(b["index"])
+            if progress:
+                progress(sum(len(x) for x in out["index"]), len(ds))
+    return {k: torch.cat(v).numpy() for k, v in out.items()}
+
+
+def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: bool = False,
+          init: Path | None = None, log: Callable[[str], None] = print, progress: bool = True,
+          max_steps: int | None = None) -> dict:
+    """Train ``recipe`` into the run folder ``run``; returns the final report (rank 0)."""
+    import torch
+    import torch.nn.functional as F  # noqa: F401
+
+    from .data import PSFDataset
+    from .losses import PiB, mse_loss, phase_loss
+    from .model import UNetConfig, build_unet, load_model, save_model
+
+    rank, world, local = _dist()
+    device = pick_device(local)
+    if device.type == "cpu":
+        torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")) or 1)
+    dataset = Path(dataset or recipe.dataset or "")
+    if not str(dataset) or dataset == Path("."):
+        raise ValidationError("train: no dataset (give --dataset DIR or data.dataset in the recipe)")
+    if recipe.batch % world:
+        raise ConfigError("train.batch", f"{recipe.batch} is not divisible by the {world} processes")
+    run = Path(run)
+    ckpt = run / "checkpoint.pt"
+    if run.exists() and (run / "checkpoint.pt").exists() and not resume:
+        raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
+    if resume and not ckpt.exists():
+        raise ValidationError(f"{run}: no checkpoint.pt to resume from")
+    needs_screens = lambda ep: recipe.loss_at(ep) == "pib"  # noqa: E731
+    tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
+                    limit=recipe.train_limit or None, screens=needs_screens(0))
+    va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
+                    limit=recipe.val_limit or None, screens=True)
+    if len(tr) < recipe.batch:
+        raise ValidationError(f"{dataset}: {len(tr)} training samples, fewer than one batch ({recipe.batch})")
+    c0, a = tr.crop()
+    cfg = UNetConfig(8, recipe.base, recipe.depth, tr.info.tensor_size, a, recipe.norm)
+    torch.manual_seed(recipe.seed)
+    model = build_unet(cfg).to(device)
+    if init is not None:
+        src, card = load_model(init)
+        if asdict(src.config) != asdict(cfg):
+            raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
+                                  f"{asdict(cfg)}")
+        model.load_state_dict(src.state_dict())
+    pib = PiB(tr.scenario(), c0, a, device)
+    opt = torch.optim.AdamW(model.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=recipe.lr_halve_every, gamma=0.5)
+    history: list[dict] = []
+    best = -math.inf
+    start = 0
+    if resume:
+        st = torch.load(ckpt, map_location=device, weights_only=True)
+        model.load_state_dict(st["model"])
+        opt.load_state_dict(st["optimizer"])
+        sched.load_state_dict(st["scheduler"])
+        torch.set_rng_state(st["rng"]["torch"])
+        history = json.loads(st["history"])
+        best = float(st["best"])
+        start = int(st["epoch"]) + 1
+        log(f"resumed {run} at epoch {start}")
+    ddp_model = model
+    if world > 1:
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        ddp_model = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
+    sampler = torch.utils.data.distributed.DistributedSampler(tr, num_replicas=world, rank=rank, shuffle=True,
+                                                              seed=recipe.seed, drop_last=True)
+    use_amp = device.type == "cuda"
+    run.mkdir(parents=True, exist_ok=True) if rank == 0 else None
+    t_start = time.perf_counter()
+    steps = 0
+    for epoch in range(start, recipe.epochs):
+        loss_name = recipe.loss_at(epoch)
+        tr.screens = needs_screens(epoch)
+        tr.set_epoch(epoch)
+        sampler.set_epoch(epoch)
+        loader = torch.utils.data.DataLoader(tr, batch_size=recipe.batch // world, sampler=sampler,
+                                             num_workers=recipe.loader_workers, collate_fn=_collate,
+                                             drop_last=True, persistent_workers=False)
+        ddp_model.train()
+        t0 = time.perf_counter()
+        tot, nb, npib_tr = 0.0, 0, []
+        bar = None
+        if progress and rank == 0:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="batch",
+                       disable=None, leave=False)
+        for b in loader:
+            x = b["psf"].to(device, non_blocking=True)
+            rec = b["received"].to(device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
+                phi = ddp_model(x)
+            phi = phi.float()
+            if loss_name == "pib":
+                loss, npib = pib.loss(phi, b["screens"].to(device))
+                npib_tr.append(npib.detach().cpu())
+            elif loss_name == "phase":
+                loss = phase_loss(phi, rec, pib.ap)
+            else:
+                loss = mse_loss(phi, rec, pib.ap)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            tot += float(loss.detach())
+            nb += 1
+            steps += 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{tot / nb:.4f}")
+            if max_steps is not None and steps >= max_steps:
+                break
+        if bar is not None:
+            bar.close()
+        sched.step()
+        t_train = time.perf_counter() - t0
+        rec_row = {"epoch": epoch + 1, "loss_name": loss_name, "train_loss": tot / max(nb, 1),
+                   "lr": opt.param_groups[0]["lr"], "train_seconds": t_train,
+                   "train_npib": float(torch.cat(npib_tr).mean()) if npib_tr else None}
+        stop = max_steps is not None and steps >= max_steps
+        if rank == 0:
+            va.set_epoch(0)  # the same validation noise every epoch: comparable numbers
+            ev = evaluate_split(model, va, pib, device)
+            gain = (ev["unet"] - ev["none"]).mean() / max((ev["phase_conjugate"] - ev["none"]).mean(), 1e-12)
+            rec_row |= {"val_npib": float(ev["unet"].mean()), "val_npib_none": float(ev["none"].mean()),
+                        "val_npib_phase_conjugate": float(ev["phase_conjugate"].mean()),
+                        "val_captured_fraction": float(gain), "val_loss": float(-np.log(np.maximum(ev["unet"], 1e-12)).mean()),
+                        "epoch_seconds": time.perf_counter() - t0}
+            history.append(rec_row)
+            is_best = rec_row["val_npib"] > best
+            if is_best:
+                best = rec_row["val_npib"]
+                save_model(model, run / "model.safetensors", {
+                    "dataset": {"path": str(dataset), "recipe_hash": tr.info.attrs.get("recipe_hash"),
+                                "layout_sha256": tr.info.attrs["provenance"].get("layout_sha256")},
+                    "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row,
+                    "input_normalisation": tr.info.attrs.get("normalisation"),
+                    "noise_percent": recipe.noise_percent, "received_crop": tr.info.attrs.get("received_crop"),
+                    "output": "received phase (vacuum removed) on the A x A receiver-aperture crop, rad; the "
+                              "correction applied is its conjugate plus the focusing phase"})
+            _save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                                    "scheduler": sched.state_dict(), "rng": {"torch": torch.get_rng_state()},
+                                    "history": json.dumps(history), "best": best, "epoch": epoch,
+                                    "recipe": json.dumps(recipe.raw, default=str)})
+            _write_metrics(run, history)
+            log(f"epoch {epoch + 1}/{recipe.epochs} {loss_name}: train {rec_row['train_loss']:.4f}, val NPiB "
+                f"{rec_row['val_npib']:.3f} (none {rec_row['val_npib_none']:.3f}, conjugate "
+                f"{rec_row['val_npib_phase_conjugate']:.3f}, captured {gain:.2f}), {rec_row['epoch_seconds']:.0f} s"
+                + (" *" if is_best else ""))
+        if world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+        if stop or (recipe.max_minutes and time.perf_counter() - t_start > 60 * recipe.max_minutes):
+            break
+    report = {"run": str(run), "epochs_done": len(history), "history": history, "best_val_npib": best,
+              "world_size": world, "device": str(device)}
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    return report
+
+
+def _write_metrics(run: Path, history: list[dict]) -> None:
+    from ..io import atomic_path, atomic_write_text
+
+    atomic_write_text(run / "metrics.json", json.dumps(history, indent=1, default=float))
+    cols = sorted({k for h in history for k in h})
+    with atomic_path(run / "metrics.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=cols)
+            w.writeheader()
+            w.writerows(history)
+    try:
+        _plot_curves(run, history)
+    except Exception:  # a figure must never kill a training run
+        pass
+
+
+def _plot_curves(run: Path, history: list[dict]) -> None:
+    from ..plotting import pyplot, save_figure
+
+    plt = pyplot()
+    ep = [h["epoch"] for h in history]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for name in sorted({h["loss_name"] for h in history}):
+        xs = [h["epoch"] for h in history if h["loss_name"] == name]
+        a1.plot(xs, [h["train_loss"] for h in history if h["loss_name"] == name], "o-", ms=3, label=f"train ({name})")
+    a1.plot(ep, [h["val_loss"] for h in history], "s-", ms=3, label="val (-log NPiB)")
+    a1.set(xlabel="epoch", ylabel="loss", title="losses")
+    a1.legend(fontsize=8)
+    a2.plot(ep, [h["val_npib"] for h in history], "o-", ms=3, label="U-Net")
+    a2.plot(ep, [h["val_npib_phase_conjugate"] for h in history], "--", label="phase conjugate")
+    a2.plot(ep, [h["val_npib_none"] for h in history], ":", label="uncorrected")
+    a2.set(xlabel="epoch", ylabel="mean NPiB (validation)", title="normalised power in bucket")
+    a2.legend(fontsize=8)
+    save_figure(fig, run / "curves.png")

@@ -1,0 +1,178 @@
+"""Stage 6a: datasets are reproducible across workers and schedulers, regenerable
+from their seeds, equal to fresh renders, resumable after SIGKILL, and refuse bad input."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, tiny_dataset_recipe
+from metadesign.cli import main
+from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe, open_dataset
+
+ARRAYS = ("psf", "psf_power", "received", "rytov", "rytov_measured", "seed", "split")
+
+
+def _arrays(path):
+    import zarr
+
+    g = zarr.open_group(str(path), mode="r")
+    return {k: np.asarray(g[k][:]) for k in ARRAYS}
+
+
+def _chunk_bytes(path):
+    return {str(p.relative_to(path)): p.read_bytes() for p in Path(path).rglob("*")
+            if p.is_file() and "/c/" in str(p.relative_to(path)).replace(os.sep, "/") + "/" and "c" in p.parts}
+
+
+def _same(a, b):
+    A, B = _arrays(a), _arrays(b)
+    for k in ARRAYS:
+        np.testing.assert_array_equal(A[k], B[k], err_msg=k)
+    assert _chunk_bytes(a) == _chunk_bytes(b)
+
+
+def test_same_arrays_for_one_worker_two_workers_and_a_dask_cluster(tiny_dataset, demo_products, tmp_path):
+    from dask.distributed import Client, LocalCluster
+
+    rec = load_dataset_recipe(tiny_dataset_recipe(tmp_path, demo_products["layout"]))
+    build_dataset(rec, tmp_path / "j2", workers=2)
+    _same(tiny_dataset, tmp_path / "j2")  # tiny_dataset: the same recipe built with -j 1
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}) as cl:
+        assert main(["dataset", "build", str(tmp_path / "tiny.toml"), "-o", str(tmp_path / "dask"),
+                     "--scheduler", cl.scheduler_address]) == 0
+    _same(tiny_dataset, tmp_path / "dask")
+    info = open_dataset(tmp_path / "dask")
+    assert info.n == 12 and np.bincount(info.split, minlength=3).tolist() == [11, 1, 0]  # round(0.9 n), round(0.05 n)
+    assert np.all((info.rytov >= 0.25) & (info.rytov <= 0.6))
+
+
+def test_screens_regenerate_from_the_stored_seed_and_psf_equals_a_fresh_render(tiny_dataset, demo_products):
+    from dataclasses import replace
+
+    from metadesign.reconstruction.dataset import received_crop
+    from metadesign.sensing.chain import BeaconChain
+    from metadesign.sensing.model import AsFabricated, load_sensing_recipe
+    from metadesign.turbulence.propagate import split_step
+    from metadesign.turbulence.validate import load_scenario
+
+    A = _arrays(tiny_dataset)
+    i = 7
+    seed, rytov = int(A["seed"][i]), float(A["rytov"][i])
+    sr = load_sensing_recipe(demo_products["sensor"])
+    sr = replace(sr, sensor=replace(sr.sensor, tensor_size=16))
+    chain = BeaconChain.for_device(AsFabricated.from_files(demo_products["layout"]), sr,
+                                   load_scenario(REPO / "sensing" / "turbulence.toml"))
+    tb = chain.at(np.float32(rytov).item() if False else rytov)
+    # the stored Rytov is float32: regenerate with the sample's own (float64) Rytov, drawn from the root seed
+    from metadesign.reconstruction.dataset import sample_rytov
+
+    r64 = sample_rytov(5, i, (0.25, 0.6), None)
+    assert np.float32(r64) == A["rytov"][i]
+    tb = chain.at(r64)
+    screens = tb.screens(seed)
+    field = split_step(tb.source, screens, tb.H, tb.absorber, active=tb.active)
+    c0, a = received_crop(tb.sc)
+    np.testing.assert_array_equal(tb.collimated(field)[c0:c0 + a, c0:c0 + a], A["received"][i])
+    fresh = chain.sample(seed, r64).tensor
+    np.testing.assert_allclose(A["psf"][i], fresh * 8 / fresh.sum(), rtol=1e-5, atol=1e-7)
+    assert A["psf"][i].sum() == pytest.approx(8.0, rel=1e-4)
+    assert A["psf_power"][i] == pytest.approx(fresh.sum(), rel=1e-5)
+
+
+def test_sigkilled_build_resumes_to_the_same_bytes(tiny_dataset, demo_products, tmp_path):
+    rec = tiny_dataset_recipe(tmp_path, demo_products["layout"])
+    out = tmp_path / "killed"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.Popen([sys.executable, "-m", "metadesign", "dataset", "build", str(rec), "-o", str(out), "-j", "1"],
+                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    t0 = time.time()
+    while time.time() - t0 < 120 and not (out / ".shards" / "000000").exists():
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    assert (out / ".shards" / "000000").exists() and not (out / ".shards" / "000002").exists()
+    with pytest.raises(Exception, match="incomplete"):
+        open_dataset(out)
+    rep = build_dataset(load_dataset_recipe(rec), out, workers=1)
+    assert rep["resumed_shards"] >= 1
+    _same(tiny_dataset, out)
+
+
+def _err(argv, capsys):
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:
+        rc = exc.code
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    return rc, err
+
+
+@pytest.mark.parametrize("extra,match", [
+    ("rytov_min = 0.7", "dataset.rytov_min"),
+    ("split = [0.9, 0.2, 0.05]", "dataset.split"),
+    ("rytov_values = []", "dataset.rytov_values"),
+    ("bogus = 1", "dataset.bogus"),
+])
+def test_bad_recipes_exit_2_with_one_line(extra, match, demo_products, tmp_path, capsys):
+    rec = tiny_dataset_recipe(tmp_path, demo_products["layout"], extra=extra)
+    rc, err = _err(["dataset", "build", rec, "-o", tmp_path / "o"], capsys)
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_stores_exit_2_with_one_line(tiny_dataset, demo_products, tmp_path, capsys):
+    import shutil
+
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "x.txt").write_text("hi")
+    rc, err = _err(["dataset", "show", foreign], capsys)
+    assert rc == 2 and len(err) == 1 and "not a metadesign dataset" in err[0]
+    trunc = tmp_path / "trunc"
+    shutil.copytree(tiny_dataset, trunc)
+    victim = sorted((trunc / "psf" / "c").rglob("*"))[-1]
+    victim.unlink() if victim.is_file() else shutil.rmtree(victim)
+    rc, err = _err(["dataset", "show", trunc], capsys)
+    assert rc == 2 and len(err) == 1 and "truncated" in err[0], err
+    # a different recipe into an existing dataset: refused, unless --overwrite
+    other = tiny_dataset_recipe(tmp_path, demo_products["layout"], samples=8)
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    rc, err = _err(["dataset", "build", other, "-o", copy], capsys)
+    assert rc == 2 and len(err) == 1 and "different recipe" in err[0]
+    assert main(["dataset", "build", str(other), "-o", str(copy), "--overwrite"]) == 0
+    assert open_dataset(copy).n == 8
+    capsys.readouterr()
+    # and into a folder that holds something else: refused
+    rc, err = _err(["dataset", "build", other, "-o", foreign], capsys)
+    assert rc == 2 and "not a metadesign dataset" in err[0]
+
+
+def test_torch_dataset_with_workers_and_seeded_noise(tiny_dataset):
+    import torch
+
+    from metadesign.reconstruction.data import PSFDataset
+
+    ds = PSFDataset(tiny_dataset, "all", gaussian_percent=5.0, noise_seed=3)
+    loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2, shuffle=False)
+    batches = list(loader)
+    psf = torch.cat([b["psf"] for b in batches])
+    assert psf.shape == (12, 8, 16, 16) and batches[0]["received"].dtype == torch.complex64
+    clean = _arrays(tiny_dataset)["psf"]
+    resid = psf.numpy() - clean
+    peak = clean.max(axis=(2, 3), keepdims=True)
+    # noise: 5 % of each channel's peak, the same for the same (seed, epoch, sample), new per epoch
+    assert np.std(resid / peak) == pytest.approx(0.05, rel=0.1)
+    np.testing.assert_array_equal(ds[3]["psf"].numpy(), psf[3].numpy())
+    ds.set_epoch(1)
+    assert not np.array_equal(ds[3]["psf"].numpy(), psf[3].numpy())
+    assert len(PSFDataset(tiny_dataset, "train")) == int(round(0.9 * 12))
