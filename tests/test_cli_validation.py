@@ -55,6 +55,8 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("dataset", "build"): [str(REPO / "sensing" / "dataset-demo.toml"), "-o", str(out / "ds")],
         ("dataset", "show"): [str(ds)],
         ("dataset", "plot"): [str(ds), "-o", str(out / "ds.png")],
+        ("train",): [str(REPO / "sensing" / "train-demo.toml"), "--dataset", str(ds), "-o", str(out / "run")],
+        ("evaluate",): [str(REPO / "sensing" / "models" / "demo-unet.safetensors"), str(ds), "-o", str(out / "ev")],
     }.get(cmd)
 
 

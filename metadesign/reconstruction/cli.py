@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cliutil import emit, integer, log_to, out_dir, out_file, progress_bar, workers_arg
+from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
 
 __all__ = ["register"]
 
@@ -78,7 +78,7 @@ def _cmd_train(a: argparse.Namespace) -> int:
         raise ValidationError(f"--init {a.init}: no such model")
     rank = int(os.environ.get("RANK", "0"))
     rep = train(rec, run, dataset=a.dataset, resume=a.resume, init=a.init, log=log_to(a.json or rank != 0),
-                progress=not a.json)
+                progress=not a.json, max_steps=a.max_steps)
     if rank == 0:
         h = rep["history"][-1] if rep["history"] else {}
         text = (f"trained {rep['run']}: {rep['epochs_done']} epochs on {rep['world_size']} process(es) ({rep['device']}); "
@@ -89,7 +89,61 @@ def _cmd_train(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(a: argparse.Namespace) -> int:
+    import json as _json
+
+    from ..io import atomic_write_text
+    from .evaluate import evaluate_model, plot_fig3, summarise, write_results
+
+    out = out_dir(a.output or Path(a.dataset) / "evaluation")
+    res = evaluate_model(a.model, a.dataset, a.split, a.noise, a.photons, limit=a.limit,
+                         progress=progress_bar("evaluate", unit="sample"))
+    out.mkdir(exist_ok=True)
+    files = write_results(res, out)
+    figs = plot_fig3(res, out)
+    keys = list(res["rows"])
+    summary = {"n": res["n"], "split": a.split, "noise": keys[0], **summarise(res["rows"][keys[0]])}
+    if len(keys) > 1:
+        summary["by_noise"] = {k: summarise(res["rows"][k]) for k in keys}
+    summary["files"] = [str(f) for f in files + figs]
+    from ..cliutil import json_safe
+
+    atomic_write_text(out / "summary.json", _json.dumps(json_safe(summary), indent=2, sort_keys=True))
+    s = summary
+    lines = [f"evaluated {a.model} on {res['n']} {a.split} samples of {a.dataset} (noise {keys[0]}) -> {out}",
+             "  mean NPiB: uncorrected {none:.3f}, U-Net {unet:.3f}, phase conjugate {phase_conjugate:.3f}, "
+             "complex conjugate {complex_conjugate:.3f}".format(**s["npib"]),
+             f"  captured fraction {s['captured_fraction']:.3f}; gain U-Net / uncorrected: mean {s['gain']['mean']:.1f}x, "
+             f"median {s['gain']['median']:.1f}x, ratio of means {s['gain']['ratio_of_means']:.1f}x; residual RMS "
+             f"{s['residual_rms_rad']:.2f} rad (+ tip/tilt {s['residual_tiptilt_rms_rad']:.2f} rad)"]
+    for k, b in s["by_rytov"].items():
+        lines.append(f"  Rytov {k:>9}: n {b['n']:4d}, NPiB none {b['npib']['none']:.3f}, U-Net {b['npib']['unet']:.3f}, "
+                     f"conjugate {b['npib']['phase_conjugate']:.3f}, captured {b['captured_fraction']:.2f}")
+    for k, b in s.get("by_noise", {}).items():
+        lines.append(f"  noise {k:>14}: U-Net NPiB {b['npib']['unet']:.3f} (median {b['npib_median']['unet']:.3f}), "
+                     f"captured {b['captured_fraction']:.2f}, residual {b['residual_rms_rad']:.2f} rad")
+    emit(summary, a.json, "\n".join(lines))
+    return 0
+
+
 def register(sub) -> None:
+    ev = sub.add_parser(
+        "evaluate", help="stage 6: NPiB of a model on a dataset split (Fig. 3b-d), residual phase, gains",
+        description="Stage 6c. Per sample: NPiB uncorrected, U-Net, phase conjugate and complex conjugate (the "
+        "turbulence stage's bucket and normalisation), residual phase RMS; summaries by Rytov bin and noise "
+        "level; CSV per sample, summary.json, Figs. 3b-d.")
+    ev.add_argument("model", help="model weights (.safetensors with its .json card)")
+    ev.add_argument("dataset", help="dataset folder")
+    ev.add_argument("--split", default="test", choices=["test", "val", "train", "all"])
+    ev.add_argument("--noise", type=num(0, 100, unit="%"), nargs="+", default=[0.0],
+                    help="test noise levels, %% of each channel's peak (default 0)")
+    ev.add_argument("--photons", type=num(0, 1e15, open_lo=True), nargs="+",
+                    help="also: shot noise with these photo-electrons at the peak (+3 e- read noise)")
+    ev.add_argument("--limit", type=integer(1, 10**8), help="at most this many samples of the split")
+    ev.add_argument("-o", "--output", help="output folder (default: DATASET/evaluation)")
+    ev.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ev.set_defaults(func=_cmd_evaluate)
+
     tr = sub.add_parser(
         "train", help="stage 6: train the U-Net (end-to-end PiB or MSE loss), resumable, DDP under torchrun",
         description="Stage 6b. Train the U-Net of a recipe on a dataset: AdamW, step schedule, noise at load; "
@@ -101,6 +155,8 @@ def register(sub) -> None:
     tr.add_argument("-o", "--output", help="run folder (default: RECIPE-run beside the recipe)")
     tr.add_argument("--resume", action="store_true", help="continue the run in -o from its checkpoint")
     tr.add_argument("--init", help="start from these weights (model.safetensors): transfer learning")
+    tr.add_argument("--max-steps", type=integer(1, 10**9), help="stop after this many optimiser steps "
+                    "(smoke tests, benchmarks)")
     tr.add_argument("--json", action="store_true", help="print the report as JSON")
     tr.set_defaults(func=_cmd_train)
 

@@ -37,7 +37,7 @@ def split_step_batched(u, screens, H, absorber, reverse: bool = True):
 class PiB:
     """Normalised power in bucket of corrections on the receiver aperture, batched and differentiable."""
 
-    def __init__(self, scenario, crop_start: int, crop_size: int, device="cpu"):
+    def __init__(self, scenario, crop_start: int, crop_size: int, device="cpu", double: bool = False):
         import torch
 
         from ..turbulence.propagate import Turbulence
@@ -49,10 +49,13 @@ class PiB:
         ap = tb.aperture[sl, sl]
         self.device = torch.device(device)
         vac = np.exp(-1j * np.angle(tb.vacuum[sl, sl])) * ap  # the focusing phase (conjugate of vacuum)
-        self.focus = torch.tensor(vac.astype(np.complex64), device=self.device)
+        self.cdtype = torch.complex128 if double else torch.complex64  # double: for gradient checks
+        cd, rd = (np.complex128, np.float64) if double else (np.complex64, np.float32)
+        self.focus = torch.tensor(vac.astype(cd), device=self.device)
+        self.vacuum_conj = torch.tensor((np.conj(tb.vacuum[sl, sl]) * ap).astype(cd), device=self.device)
         self.ap = torch.tensor(ap, device=self.device)
-        self.H = torch.tensor(tb.H.astype(np.complex64), device=self.device)
-        self.absorber = torch.tensor(tb.absorber.astype(np.float32), device=self.device)
+        self.H = torch.tensor(tb.H.astype(cd), device=self.device)
+        self.absorber = torch.tensor(tb.absorber.astype(rd), device=self.device)
         bucket, ideal = tb._vacuum_bucket()
         self.bucket = torch.tensor(np.nonzero(bucket.ravel())[0], device=self.device)
         self.ideal = float(ideal)
@@ -66,7 +69,7 @@ class PiB:
         B = corr.shape[0]
         corr = corr * self.ap
         corr = corr / torch.sqrt((corr.abs() ** 2).sum(dim=(-2, -1), keepdim=True))
-        u = torch.zeros((B, self.n, self.n), dtype=torch.complex64, device=corr.device)
+        u = torch.zeros((B, self.n, self.n), dtype=self.cdtype, device=corr.device)
         u[:, self.c0:self.c0 + self.a, self.c0:self.c0 + self.a] = corr
         back = split_step_batched(u, screens, self.H, self.absorber, reverse=True)
         p = (back.reshape(B, -1)[:, self.bucket].abs() ** 2).sum(dim=1)
@@ -80,12 +83,14 @@ class PiB:
         return self.npib_field(torch.polar(torch.ones_like(phi), -phi) * self.focus, screens)
 
     def npib_complex(self, received, screens):
-        """NPiB of the complex conjugate of the (collimated) received field: amplitude and phase."""
+        """NPiB of the complex conjugate of the received field (amplitude and phase; ``received`` is the
+        collimated field: the vacuum field is multiplied back, as the turbulence stage does)."""
         import torch
 
-        return self.npib_field(torch.conj(received) * self.focus, screens)
+        return self.npib_field(torch.conj(received) * self.vacuum_conj, screens)
 
     def loss(self, phi, screens):
+        """``-log NPiB`` averaged over the batch, and the per-sample NPiB."""
         npib = self.npib_phase(phi, screens)
         return -torch_log(npib).mean(), npib
 

@@ -83,9 +83,10 @@ def build_unet(cfg: UNetConfig):
             self.ups = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2)
                                       for i in range(cfg.depth - 1, 0, -1)])
             self.upblocks = nn.ModuleList([block(2 * ch[i - 1], ch[i - 1]) for i in range(cfg.depth - 1, 0, -1)])
-            self.head = nn.Conv2d(ch[0], 1, 1)
+            # no bias: a constant phase (piston) changes no loss, so its gradient is rounding noise, which
+            # Adam would amplify into a random walk
+            self.head = nn.Conv2d(ch[0], 1, 1, bias=False)
             nn.init.zeros_(self.head.weight)  # start at the flat phase: the uncorrected beam
-            nn.init.zeros_(self.head.bias)
             self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
 
         def forward(self, x):

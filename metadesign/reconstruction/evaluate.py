@@ -1,0 +1,197 @@
+"""Evaluation (stage 6c): per-sample normalised power in bucket of the uncorrected beam, the U-Net's
+correction, the phase conjugate (true received phase, flat amplitude) and the complex conjugate, with
+the same bucket and normalisation as the turbulence stage; residual phase RMS; summaries by Rytov bin
+and noise level; Fig. 3b-d."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["evaluate_model", "summarise", "residual_rms", "plot_fig3"]
+
+RYTOV_BINS = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 10.0)
+
+
+def residual_rms(phi_pred: np.ndarray, received: np.ndarray, ap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(RMS of the residual phase with piston and tip/tilt removed, RMS of its tip/tilt part), rad, per
+    sample.  The residual ``phi_pred - angle(received)`` is taken on the unit circle (branch points make
+    the received phase unwrappable): the piston is the angle of the mean phasor, the residual is then
+    wrapped to (-pi, pi] and tip/tilt is its least-squares plane."""
+    a = ap.shape[-1]
+    yy, xx = np.mgrid[0:a, 0:a] - (a - 1) / 2
+    X = np.stack([xx[ap], yy[ap]], 1).astype(np.float64)
+    pinv = np.linalg.pinv(X)
+    rms, tt = [], []
+    for p, r in zip(phi_pred, received):
+        d = np.exp(1j * (p[ap] - np.angle(r[ap])))
+        d = np.angle(d * np.conj(d.mean()))
+        coef = pinv @ d
+        plane = X @ coef
+        rms.append(np.sqrt(np.mean((d - plane) ** 2)))
+        tt.append(np.sqrt(np.mean(plane**2)))
+    return np.array(rms), np.array(tt)
+
+
+def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,), photons=None,
+                   limit: int | None = None, batch: int = 16, device: str | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> dict:
+    """Per-sample results for every noise level (``photons``: shot + read noise instead of Gaussian)."""
+    import torch
+
+    from .data import PSFDataset
+    from .losses import PiB
+    from .model import load_model
+    from .train import _collate, pick_device
+
+    dev = torch.device(device) if device else pick_device()
+    model, card = load_model(model_path, device=str(dev))
+    rows: dict = {}
+    levels = [("gaussian", float(x)) for x in noise_levels] + [("photons", float(p)) for p in (photons or [])]
+    total = 0
+    base = PSFDataset(dataset, split, limit=limit, screens=True)
+    if len(base) == 0:
+        from ..validation import ValidationError
+
+        raise ValidationError(f"{dataset}: the {split} split is empty")
+    if model.config.input_size != base.info.tensor_size:
+        from ..validation import ValidationError
+
+        raise ValidationError(f"model input {model.config.input_size}^2 does not match the dataset's tensors "
+                              f"({base.info.tensor_size}^2)")
+    c0, a = base.crop()
+    pib = PiB(base.scenario(), c0, a, dev)
+    ap = pib.ap.cpu().numpy().astype(bool)
+    n_total = len(base) * len(levels)
+    examples: dict = {"phi": [], "received": []}
+    for kind, level in levels:
+        ds = PSFDataset(dataset, split, gaussian_percent=level if kind == "gaussian" else 0.0,
+                        photons_at_peak=level if kind == "photons" else None,
+                        read_noise_e=3.0 if kind == "photons" else 0.0, noise_seed=12345, limit=limit,
+                        screens=True)
+        loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
+        acc = {k: [] for k in ("index", "rytov", "rytov_measured", "none", "unet", "phase_conjugate",
+                               "complex_conjugate", "residual_rms", "residual_tiptilt_rms")}
+        with torch.no_grad():
+            for b in loader:
+                scr = b["screens"].to(dev)
+                rec = b["received"].to(dev)
+                phi = model(b["psf"].to(dev))
+                acc["unet"].append(pib.npib_phase(phi, scr).cpu().numpy())
+                if not rows and len(examples["phi"]) < 4:
+                    examples["phi"] += list(phi.cpu().numpy()[:4 - len(examples["phi"])])
+                    examples["received"] += list(rec.cpu().numpy()[:4 - len(examples["received"])])
+                acc["none"].append(pib.npib_phase(torch.zeros_like(phi), scr).cpu().numpy())
+                acc["phase_conjugate"].append(pib.npib_phase(torch.angle(rec) * pib.ap, scr).cpu().numpy())
+                acc["complex_conjugate"].append(pib.npib_complex(rec, scr).cpu().numpy())
+                r, t = residual_rms(phi.cpu().numpy(), rec.cpu().numpy(), ap)
+                acc["residual_rms"].append(r)
+                acc["residual_tiptilt_rms"].append(t)
+                acc["index"].append(b["index"].numpy())
+                acc["rytov"].append(b["rytov"].numpy())
+                acc["rytov_measured"].append(b["rytov_measured"].numpy())
+                total += len(b["index"])
+                if progress:
+                    progress(total, n_total)
+        rows[f"{kind}:{level:g}"] = {k: np.concatenate(v) for k, v in acc.items()}
+    return {"rows": rows, "card": card, "split": split, "n": len(base), "crop": (c0, a), "examples": examples,
+            "aperture": ap}
+
+
+def summarise(r: dict) -> dict:
+    """Means, medians, gains (per-sample mean, median, ratio of means), captured fraction, by Rytov bin."""
+    none, unet, pc, cc = r["none"], r["unet"], r["phase_conjugate"], r["complex_conjugate"]
+    gain = unet / np.maximum(none, 1e-12)
+
+    def block(m):
+        if not np.any(m):
+            return None
+        return {"n": int(m.sum()),
+                "npib": {k: float(np.mean(r[k][m])) for k in ("none", "unet", "phase_conjugate", "complex_conjugate")},
+                "npib_median": {k: float(np.median(r[k][m])) for k in ("none", "unet", "phase_conjugate",
+                                                                         "complex_conjugate")},
+                "gain": {"mean": float(np.mean(gain[m])), "median": float(np.median(gain[m])),
+                         "ratio_of_means": float(np.mean(unet[m]) / max(np.mean(none[m]), 1e-12))},
+                "captured_fraction": float((np.mean(unet[m]) - np.mean(none[m]))
+                                           / max(np.mean(pc[m]) - np.mean(none[m]), 1e-12)),
+                "residual_rms_rad": float(np.mean(r["residual_rms"][m])),
+                "residual_tiptilt_rms_rad": float(np.mean(r["residual_tiptilt_rms"][m]))}
+
+    out = block(np.ones(len(none), bool))
+    out["by_rytov"] = {}
+    x = r["rytov_measured"]
+    for lo, hi in zip(RYTOV_BINS[:-1], RYTOV_BINS[1:]):
+        b = block((x >= lo) & (x < hi))
+        if b:
+            out["by_rytov"][f"{lo:g}-{hi:g}"] = b
+    return out
+
+
+def write_results(res: dict, out: Path) -> list[Path]:
+    from ..io import atomic_path
+
+    files = []
+    for key, r in res["rows"].items():
+        p = out / f"per-sample-{key.replace(':', '-')}.csv"
+        with atomic_path(p) as tmp:
+            with open(tmp, "w", newline="") as fh:
+                w = csv.writer(fh)
+                cols = list(r)
+                w.writerow(cols)
+                for i in range(len(r["index"])):
+                    w.writerow([f"{r[c][i]:.6g}" if r[c].dtype.kind == "f" else int(r[c][i]) for c in cols])
+        files.append(p)
+    return files
+
+
+def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
+    """Fig. 3b (NPiB vs per-sample Rytov number) at the first noise level, Fig. 3c/d (box plots vs
+    noise level), and predicted vs true phase for a few samples."""
+    from ..plotting import pyplot, save_figure
+
+    plt = pyplot()
+    figs = []
+    keys = list(res["rows"])
+    r = res["rows"][keys[0]]
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    for k, lab, mk in (("complex_conjugate", "complex conjugate", "^"), ("phase_conjugate", "phase conjugate", "s"),
+                       ("unet", "U-Net", "o"), ("none", "uncorrected", "x")):
+        ax.scatter(r["rytov_measured"], r[k], s=10, marker=mk, alpha=0.6, label=f"{lab} (mean {np.mean(r[k]):.3f})")
+    ax.set(xlabel="Rytov number of the sample (measured log-amplitude variance)", ylabel="NPiB",
+           title=f"Fig. 3b: {res['split']} split, {res['n']} samples, noise {keys[0]}", ylim=(0, 1.05))
+    ax.legend(fontsize=8)
+    figs.append(save_figure(fig, out / "fig-3b.png"))
+    if len(keys) > 1:
+        fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+        data = [res["rows"][k]["unet"] for k in keys]
+        ax.boxplot(data, tick_labels=[k.split(":")[1] for k in keys], showfliers=False)
+        ax.axhline(np.mean(res["rows"][keys[0]]["none"]), ls=":", c="k", label="uncorrected (mean)")
+        ax.axhline(np.mean(res["rows"][keys[0]]["phase_conjugate"]), ls="--", c="g", label="phase conjugate (mean)")
+        ax.set(xlabel="test noise level (% of peak, or photons at peak)", ylabel="U-Net NPiB",
+               title=f"Fig. 3c/d: model trained with {res['card'].get('noise_percent', '?')} % noise")
+        ax.legend(fontsize=8)
+        figs.append(save_figure(fig, out / "fig-3cd.png"))
+    ex, ap = res["examples"], res["aperture"]
+    if ex["phi"]:
+        k = len(ex["phi"])
+        fig, axs = plt.subplots(3, k, figsize=(3.2 * k, 8.6), constrained_layout=True, squeeze=False)
+        for j in range(k):
+            true = np.angle(ex["received"][j])
+            pred = ex["phi"][j]
+            d = np.exp(1j * (pred - true))
+            res_ = np.angle(d * np.conj(d[ap].mean()))
+            piston = np.angle(np.mean(np.exp(1j * (pred - true))[ap]))
+            for row, (img, title) in enumerate(((true, "true received phase"),
+                                                (np.angle(np.exp(1j * (pred - piston))), "U-Net (piston matched)"),
+                                                (res_, "residual"))):
+                h = axs[row, j].imshow(np.where(ap, img, np.nan), cmap="twilight", vmin=-np.pi, vmax=np.pi)
+                axs[row, j].set_xticks([])
+                axs[row, j].set_yticks([])
+                axs[row, j].set_title(title, fontsize=8)
+        fig.colorbar(h, ax=axs, shrink=0.6, label="rad (wrapped)")
+        figs.append(save_figure(fig, out / "fig-3a-phases.png"))
+    return figs

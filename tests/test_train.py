@@ -1,0 +1,185 @@
+"""Stage 6b: the losses against the numpy turbulence stage and finite differences, the U-Net's
+export, resume after SIGKILL, and DDP (2 gloo processes) against one process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+torch = pytest.importorskip("torch")
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A small turbulence grid with a real sample: numpy field, screens and the torch PiB."""
+    from dataclasses import replace
+
+    from metadesign.reconstruction.dataset import received_crop
+    from metadesign.reconstruction.losses import PiB
+    from metadesign.turbulence.path import Scenario
+    from metadesign.turbulence.propagate import Turbulence
+
+    sc = replace(Scenario(), n_grid=64, dx=6e-3, receiver_aperture=0.1, length=400.0, rytov=0.3, inner_scale=0.02)
+    tb = Turbulence(sc, check=False)
+    s = tb.sample(4)
+    c0, a = received_crop(sc)
+    return sc, tb, s, c0, a, PiB(sc, c0, a), PiB(sc, c0, a, double=True)
+
+
+def test_pib_loss_equals_the_numpy_turbulence_stage(small):
+    sc, tb, s, c0, a, pib, _ = small
+    sl = slice(c0, c0 + a)
+    rec = tb.collimated(s.field)[sl, sl]
+    scr = torch.tensor(s.screens)[None]
+    phi = torch.tensor(np.angle(rec) * tb.aperture[sl, sl], dtype=torch.float32)[None]
+    ref_phase = tb.power_in_bucket(s.field, "phase", s.screens)
+    ref_none = tb.power_in_bucket(s.field, "none", s.screens)
+    ref_cplx = tb.power_in_bucket(s.field, "complex", s.screens)
+    assert float(pib.npib_phase(phi, scr)) == pytest.approx(ref_phase, rel=1e-4)
+    assert float(pib.npib_phase(torch.zeros_like(phi), scr)) == pytest.approx(ref_none, rel=1e-4)
+    rec_t = torch.tensor(rec.astype(np.complex64))[None]
+    assert float(pib.npib_complex(rec_t, scr)) == pytest.approx(ref_cplx, rel=1e-4)
+    assert ref_cplx > ref_phase > ref_none  # the ordering of Fig. S6
+
+
+def test_pib_gradient_equals_finite_differences(small):
+    sc, tb, s, c0, a, _, pib64 = small
+    scr = torch.tensor(s.screens.astype(np.float64))[None]
+    rng = np.random.default_rng(1)
+    phi = torch.tensor(rng.normal(0, 0.5, (1, a, a)), requires_grad=True)
+
+    def f(p):
+        return pib64.loss(p, scr)[0].reshape(1)
+
+    assert torch.autograd.gradcheck(f, (phi,), eps=1e-6, atol=1e-7, rtol=1e-4)
+
+
+def test_phase_and_mse_losses_known_answers():
+    from metadesign.reconstruction.losses import mse_loss, phase_loss
+    from metadesign.reconstruction.model import aperture_mask
+
+    ap = torch.tensor(aperture_mask(21), dtype=torch.float32)
+    rng = np.random.default_rng(0)
+    true = torch.tensor(rng.uniform(-np.pi, np.pi, (2, 21, 21)), dtype=torch.float32)
+    rec = torch.polar(torch.ones_like(true), true)
+    # a piston and 2 pi wraps cost nothing in the phase loss; the MSE ignores the piston only
+    assert float(phase_loss(true + 0.7, rec, ap)) == pytest.approx(0.0, abs=1e-5)
+    assert float(phase_loss(true + 2 * np.pi, rec, ap)) == pytest.approx(0.0, abs=1e-5)
+    assert float(mse_loss((true + 0.7) * ap, rec, ap)) == pytest.approx(0.0, abs=1e-8)
+    # a small random residual of rms s: phase loss ~ s^2 (Marechal), MSE ~ s^2
+    d = torch.tensor(rng.normal(0, 0.1, (2, 21, 21)), dtype=torch.float32)
+    s2 = float(((d - (d * ap).sum((-2, -1), keepdim=True) / ap.sum()) ** 2 * ap).sum() / ap.sum() / 2)
+    assert float(phase_loss(true + d, rec, ap)) == pytest.approx(s2, rel=0.05)
+    assert float(mse_loss((true + d) * ap, rec, ap)) == pytest.approx(s2, rel=1e-4)
+
+
+def test_unet_shapes_zero_start_and_safetensors_roundtrip(tmp_path):
+    from metadesign.reconstruction.model import UNetConfig, build_unet, load_model, save_model
+    from metadesign.validation import ValidationError
+
+    cfg = UNetConfig(8, 4, 3, 16, 41)
+    m = build_unet(cfg)
+    x = torch.randn(2, 8, 16, 16)
+    y = m(x)
+    assert y.shape == (2, 41, 41) and float(y.detach().abs().max()) == 0.0  # zero-initialised head: flat phase
+    torch.nn.init.normal_(m.head.weight)
+    p, card = save_model(m, tmp_path / "m.safetensors", {"note": "test"})
+    m2, c2 = load_model(p)
+    torch.testing.assert_close(m2(x), m.eval()(x))
+    assert c2["note"] == "test" and c2["architecture"]["base"] == 4
+    raw = bytearray(p.read_bytes())
+    raw[-5] ^= 0xFF
+    p.write_bytes(bytes(raw))
+    with pytest.raises(ValidationError, match="sha256"):
+        load_model(p)
+    with pytest.raises(ValidationError, match="divisible"):
+        UNetConfig(8, 4, 4, 20, 41)
+
+
+def _recipe(folder: Path, ds: Path, epochs=3, batch=4, extra="") -> Path:
+    p = folder / "t.toml"
+    p.write_text(f"""[data]
+dataset = "{ds}"
+noise_percent = 5.0
+[model]
+base = 4
+depth = 3
+[train]
+epochs = {epochs}
+batch = {batch}
+lr = 1e-3
+lr_halve_every = 2
+pretrain_loss = "phase"
+pretrain_epochs = 1
+loss = "pib"
+{extra}""")
+    return p
+
+
+def _cli(*args, env_extra=None, timeout=600):
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    env.update(env_extra or {})
+    return subprocess.run([sys.executable, "-m", "metadesign", *map(str, args)], env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_sigkilled_training_resumes_to_the_same_loss_curve(tiny_dataset, tmp_path):
+    rec = _recipe(tmp_path, tiny_dataset, epochs=4)
+    ref = _cli("train", rec, "-o", tmp_path / "ref", "--json")
+    assert ref.returncode == 0, ref.stderr
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    p = subprocess.Popen([sys.executable, "-m", "metadesign", "train", str(rec), "-o", str(tmp_path / "k"), "--json"],
+                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    t0 = time.time()
+    while time.time() - t0 < 300:
+        m = tmp_path / "k" / "metrics.json"
+        if m.exists() and len(json.loads(m.read_text())) >= 2:
+            break
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    done = len(json.loads((tmp_path / "k" / "metrics.json").read_text()))
+    assert 2 <= done < 4
+    r = _cli("train", rec, "-o", tmp_path / "k", "--resume", "--json")
+    assert r.returncode == 0, r.stderr
+    a = json.loads((tmp_path / "ref" / "metrics.json").read_text())
+    b = json.loads((tmp_path / "k" / "metrics.json").read_text())
+    assert [h["epoch"] for h in b] == [1, 2, 3, 4]
+    for x, y in zip(a, b):
+        assert x["train_loss"] == pytest.approx(y["train_loss"], rel=1e-6)
+        assert x["val_npib"] == pytest.approx(y["val_npib"], rel=1e-6)
+    from metadesign.reconstruction.model import load_model
+
+    load_model(tmp_path / "k" / "model.safetensors")  # the exported best model loads
+    # a run folder is never silently overwritten
+    again = _cli("train", rec, "-o", tmp_path / "k")
+    assert again.returncode == 2 and "--resume" in again.stderr
+
+
+def test_two_gloo_processes_reach_the_weights_of_one(tiny_dataset, tmp_path):
+    rec = _recipe(tmp_path, tiny_dataset, epochs=2, batch=4, extra="")
+    one = _cli("train", rec, "-o", tmp_path / "one", "--max-steps", "3", "--json")
+    assert one.returncode == 0, one.stderr
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    two = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29517", "-m", "metadesign", "train",
+                          str(rec), "-o", str(tmp_path / "two"), "--max-steps", "3", "--json"],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert two.returncode == 0, two.stderr[-2000:]
+    a = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)["model"]
+    moved = 0
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
+        moved += int(not torch.equal(a[k], torch.zeros_like(a[k])))
+    assert moved > 0
