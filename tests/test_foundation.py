@@ -145,3 +145,13 @@ def test_old_spellings_and_real_subcommands(demo_products, tmp_path, capsys):
         main(["layout", d, "--klayout", "--min-gap-nm", "5"])
     assert e.value.code == 2
     assert capsys.readouterr().err.startswith("metadesign: error:")
+
+
+def test_device_from_design_equals_device_from_its_layout(demo_products):
+    from metadesign.design.store import load_design
+    from metadesign.sensing.model import AsFabricated, load_sensing_recipe
+
+    sr = load_sensing_recipe(demo_products["sensor"])
+    a = AsFabricated.from_files(demo_products["layout"]).pupil(sr.sensor.distance, sr.pupil_grid)
+    b = AsFabricated.from_design(load_design(demo_products["design"])).pupil(sr.sensor.distance, sr.pupil_grid)
+    np.testing.assert_array_equal(a.G, b.G)

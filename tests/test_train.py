@@ -183,3 +183,32 @@ def test_two_gloo_processes_reach_the_weights_of_one(tiny_dataset, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
         moved += int(not torch.equal(a[k], torch.zeros_like(a[k])))
     assert moved > 0
+
+
+def test_quadratic_form_equals_the_split_step_loss(small):
+    sc, tb, s, c0, a, pib, _ = small
+    scr = torch.tensor(s.screens)[None].repeat(2, 1, 1, 1)
+    rng = np.random.default_rng(2)
+    phi = torch.tensor(rng.normal(0, 1.0, (2, a, a)), dtype=torch.float32) * pib.ap
+    A = pib.bucket_operator(scr)
+    assert A.shape == (2, len(pib.bucket), int(pib.ap.sum()))
+    torch.testing.assert_close(pib.npib_quadratic(A, phi), pib.npib_phase(phi, scr), rtol=2e-4, atol=1e-6)
+
+
+def test_onnx_export_matches_torch(tmp_path, capsys):
+    from metadesign.cli import main
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    m = build_unet(UNetConfig(8, 4, 3, 16, 41))
+    torch.nn.init.normal_(m.head.weight, std=0.5)
+    save_model(m, tmp_path / "m.safetensors", {})
+    assert main(["export", str(tmp_path / "m.safetensors"), "--onnx", str(tmp_path / "m.onnx"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["max_abs_diff"] <= 1e-4 and rep["batches"] == [1, 3]
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
+    x = np.random.default_rng(5).random((7, 8, 16, 16), dtype=np.float32)
+    with torch.no_grad():
+        ref = m.eval()(torch.from_numpy(x)).numpy()
+    np.testing.assert_allclose(sess.run(None, {"psf": x})[0], ref, atol=1e-4)

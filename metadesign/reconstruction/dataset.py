@@ -46,7 +46,7 @@ from ..validation import ValidationError
 
 __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",
            "DatasetInfo", "DATASET_FORMAT", "sample_seed", "sample_rytov", "make_sample", "ShardContext",
-           "received_crop"]
+           "received_crop", "normalise_psf"]
 
 DATASET_FORMAT = "metadesign.dataset/1"
 _MAX_SEED = 2**63 - 1
@@ -204,12 +204,17 @@ def make_sample(ctx: ShardContext, i: int) -> dict:
     rec = s.received[c0:c0 + a, c0:c0 + a]
     ap = chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]
     chi = np.log(np.maximum(np.abs(rec[ap]), 1e-30))
-    power = float(s.tensor.sum())
-    psf = (s.tensor * (8.0 / power)).astype(np.float32) if power > 0 else s.tensor
+    psf, power = normalise_psf(s.tensor)
     t2 = time.perf_counter()
     return {"psf": psf, "psf_power": power, "received": rec.astype(np.complex64), "rytov": rytov,
             "rytov_measured": float(np.var(chi)), "seed": seed,
             "timings": {**s.timings, "other": (t2 - t1) + (t1 - t0) - sum(s.timings.values())}}
+
+
+def normalise_psf(tensor: np.ndarray) -> tuple[np.ndarray, float]:
+    """The network's input normalisation: the 8 channels sum to 8 (each ~1); returns (psf, raw total)."""
+    power = float(tensor.sum())
+    return ((tensor * (8.0 / power)).astype(np.float32) if power > 0 else tensor.astype(np.float32)), power
 
 
 def _marker(out: Path, shard: int) -> Path:

@@ -111,6 +111,26 @@ class AsFabricated:
             raise InputError(f"{layout_path}: supercell {m}x{m}: the forward model needs 2x2 (one lens per quadrant)")
         return cls(lc, lib, period, lib.wavelength, m, chans, prov.get("clear_aperture"), layout_path)
 
+    @classmethod
+    def from_design(cls, design, lib_path: str | Path | None = None) -> "AsFabricated":
+        """The device straight from a design (no layout file): the pillars the layout writer would place
+        (widths snapped to 1 nm as it does), with the design's library.  For quick studies and the demo;
+        a fab study of a real device reads its layout (:meth:`from_files`)."""
+        from ..design.store import design_library
+        from ..layouts.reader import LayoutContents
+        from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
+
+        lib = design_library(design, lib_path)
+        im = design.index_map.astype(np.int32)
+        if design.empty is not None:
+            im[design.index_map == design.empty] = -1
+        w = np.stack([snap_widths(design.atoms.wx, 1)[0], snap_widths(design.atoms.wy, 1)[0]], 1).astype(np.int64)
+        p_nm, x0 = layout_geometry(design.spec.n_cells, design.spec.period)
+        prov = provenance_of(design, LayoutOptions())
+        lc = LayoutContents(im, w, -(w % 2), prov, int((im >= 0).sum()), 0, 0, p_nm, x0, 0.0)
+        chans, m = channels_from_provenance(prov)
+        return cls(lc, lib, p_nm * 1e-9, lib.wavelength, m, chans, prov.get("clear_aperture"), None)
+
     def aperture_mask_rows(self, r0: int, r1: int) -> np.ndarray | None:
         """Clear-aperture mask of pillar rows ``r0:r1`` (None: everything transmits)."""
         ap = self.aperture or {}

@@ -1,0 +1,45 @@
+"""``metadesign run``: a tiny pipeline end to end, its report, and the skipping of up-to-date stages."""
+
+from __future__ import annotations
+
+import json
+
+from conftest import REPO
+from metadesign.cli import main
+
+
+def test_tiny_pipeline_report_and_up_to_date_stages(tmp_path, capsys):
+    (tmp_path / "train.toml").write_text(
+        "[model]\nbase = 4\ndepth = 3\n[train]\nepochs = 2\nbatch = 4\nlr = 1e-3\npretrain_loss = \"phase\"\n"
+        "pretrain_epochs = 1\nloss = \"pib\"\n")
+    (tmp_path / "p.toml").write_text(f"""[pipeline]
+library = "{REPO / 'library' / 'paper.npz'}"
+design = "{REPO / 'layouts' / 'demo.toml'}"
+sensor = "{REPO / 'sensing' / 'demo.toml'}"
+turbulence = "{REPO / 'sensing' / 'turbulence.toml'}"
+turbulence_samples = 3
+[dataset]
+samples = 16
+tensor_size = 16
+shard_size = 8
+workers = 1
+[train]
+recipe = "train.toml"
+[evaluate]
+noise_percent = [0.0, 5.0]
+split = "all"
+""")
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert set(rep["stages"]) == {"library", "design", "layout", "psf", "turbulence", "dataset", "train", "evaluate"}
+    assert not any(v["skipped"] for v in rep["stages"].values())
+    html = (tmp_path / "out" / "report.html").read_text()
+    for title in ("Fig. S1", "Fig. S2", "Layout preview", "Fig. 2c", "Fab study", "turbulence-fig-s5",
+                  "turbulence-fig-s6", "fig-3b", "fig-3cd", "Design metrics", "Table S1 focal check", "NPiB summary"):
+        assert title in html, title
+    assert html.count("data:image/png;base64,") >= 10 and "src='http" not in html  # self-contained
+    noise = [r["noise"] for r in rep["tables"]["NPiB summary"]]
+    assert noise == ["gaussian:0", "gaussian:5"]
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert all(v["skipped"] for v in again["stages"].values())
