@@ -25,13 +25,10 @@ CONFIGS = {"demo": dict(base=16, depth=5, size=64, batch=32, steps=4),
 
 
 def _med(ts):
-    import numpy as np
-
-    return float(np.median(ts))
+    return float(sorted(ts)[len(ts) // 2])
 
 
 def measure(dataset: str, name: str, device: str = "cpu") -> dict:
-    import numpy as np
     import torch
 
     torch.set_num_threads(1)

@@ -90,7 +90,6 @@ def _h(*parts) -> str:
 def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] = print) -> dict:
     from .design.recipe import load_design_recipe
     from .design.store import load_design, run_design
-    from .io import read_npz  # noqa: F401
     from .layouts import drc_check, read_layout, verify_against_design, write_layout
     from .layouts.preview import preview_layout
     from .library.plot import plot_library

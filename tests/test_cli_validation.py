@@ -5,7 +5,6 @@ traceback, nothing written on exit 2."""
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np

@@ -40,7 +40,7 @@ def _same(a, b):
 
 
 def test_same_arrays_for_one_worker_two_workers_and_a_dask_cluster(tiny_dataset, demo_products, tmp_path):
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import LocalCluster
 
     rec = load_dataset_recipe(tiny_dataset_recipe(tmp_path, demo_products["layout"]))
     build_dataset(rec, tmp_path / "j2", workers=2)

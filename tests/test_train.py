@@ -212,3 +212,17 @@ def test_onnx_export_matches_torch(tmp_path, capsys):
     with torch.no_grad():
         ref = m.eval()(torch.from_numpy(x)).numpy()
     np.testing.assert_allclose(sess.run(None, {"psf": x})[0], ref, atol=1e-4)
+
+
+def test_recipe_noise_is_percent_of_the_peak(tiny_dataset, tmp_path):
+    """noise_percent = 5 in a recipe means 5 % of each channel's peak at load (the paper's training noise)."""
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.train import load_train_recipe
+
+    r = load_train_recipe(_recipe(tmp_path, tiny_dataset))
+    assert r.noise_percent == pytest.approx(5.0)
+    ds = PSFDataset(tiny_dataset, "all", gaussian_percent=r.noise_percent, noise_seed=1)
+    clean = PSFDataset(tiny_dataset, "all")
+    d = np.stack([ds.get(i)["psf"] - clean.get(i)["psf"] for i in range(len(ds))])
+    peak = np.stack([clean.get(i)["psf"] for i in range(len(ds))]).max(axis=(2, 3), keepdims=True)
+    assert np.std(d / peak) == pytest.approx(0.05, rel=0.1)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing as mp
 import os
 import shutil
 import time
@@ -86,17 +85,9 @@ class _Pool:
         self.workers = workers
         self.pool = None
         if workers > 1:
-            saved = {k: os.environ.get(k) for k in THREAD_ENV}
-            for k in THREAD_ENV:  # spawned children read these before importing numpy
-                os.environ[k] = "1"
-            try:
-                self.pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker)
-            finally:
-                for k, v in saved.items():
-                    if v is None:
-                        os.environ.pop(k, None)
-                    else:
-                        os.environ[k] = v
+            from ..parallel import spawn_pool
+
+            self.pool = spawn_pool(workers, _init_worker)
 
     def imap(self, fn, jobs):
         if self.pool is None:

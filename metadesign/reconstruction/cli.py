@@ -136,7 +136,32 @@ def _cmd_export(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_table_s2(a: argparse.Namespace) -> int:
+    from .tables import run_table_s2
+
+    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
+    rep = run_table_s2(a.recipe, out, workers=a.workers, log=log_to(a.json))
+    lines = [f"Table S2 ({rep['samples']} samples at Rytov {rep['rytov']}, {rep['epochs']} epochs) -> {out}",
+             "  model split  PiB ratio (mean of NPiB_unet / NPiB_pc)  ratio of means   NPiB U-Net / none / conjugate"]
+    for r in rep["rows"]:
+        lines.append(f"  {r['model']:<5} {r['split']:<5}  {100 * r['pib_ratio']:6.1f} %                        "
+                     f"{100 * r['pib_ratio_of_means']:6.1f} %          {r['npib_unet']:.3f} / {r['npib_none']:.3f} / "
+                     f"{r['npib_phase_conjugate']:.3f}")
+    lines.append("  paper: E2E 96.3 % / 96.0 %, MSE 94.6 % / 71.5 % (train / test)")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
 def register(sub) -> None:
+    t2 = sub.add_parser("table-s2", help="stage 6: reproduce Table S2 (E2E vs MSE loss: train and test PiB ratio)",
+                        description="Build the recipe's dataset, train the same U-Net with the end-to-end PiB loss "
+                        "and with the MSE phase loss, and evaluate both on their train and test splits.")
+    t2.add_argument("recipe", help="Table S2 recipe (TOML), e.g. sensing/table-s2.toml")
+    t2.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    workers_arg(t2)
+    t2.add_argument("--json", action="store_true", help="print the table as JSON")
+    t2.set_defaults(func=_cmd_table_s2)
+
     ex = sub.add_parser("export", help="stage 6: export a model for deployment (ONNX, dynamic batch)",
                         description="Export the U-Net as ONNX with a dynamic batch axis and check it against "
                         "torch in onnxruntime.")

@@ -30,10 +30,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -281,7 +280,7 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
 
 def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=None):
     """The device's coarse pupil, cached beside the dataset (keyed by layout, library, perturbation, sensor)."""
-    from ..io import json_array, read_npz, write_npz
+    from ..io import read_npz, write_npz
     from ..sensing.forward import CoarsePupil
 
     key = {"layout_sha256": layout_sha, "library_sha256": fab.lib.identity, "perturbation": pert.to_dict(),
@@ -327,21 +326,10 @@ class _LocalPool:
     """Spawned single-threaded worker processes (one BLAS/FFT/torch thread each), or in-process for 1."""
 
     def __init__(self, workers: int, ctx: ShardContext):
-        import multiprocessing as mp
+        from ..parallel import spawn_pool
 
-        self.pool = None
         self.ctx = ctx
-        if workers > 1:
-            saved = {k: os.environ.get(k) for k in _THREAD_ENV}
-            os.environ.update({k: "1" for k in _THREAD_ENV})
-            try:
-                self.pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(ctx,))
-            finally:
-                for k, v in saved.items():
-                    if v is None:
-                        os.environ.pop(k, None)
-                    else:
-                        os.environ[k] = v
+        self.pool = spawn_pool(workers, _init_worker, (ctx,)) if workers > 1 else None
 
     def run(self, shards):
         if self.pool is None:
@@ -354,13 +342,14 @@ class _LocalPool:
             self.pool.join()
 
 
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _WORKER_CTX: ShardContext | None = None
 
 
 def _init_worker(ctx: ShardContext) -> None:
     global _WORKER_CTX
-    os.environ.update({k: "1" for k in _THREAD_ENV})
+    from ..parallel import single_thread_env
+
+    single_thread_env()
     _WORKER_CTX = ctx
 
 
@@ -369,7 +358,9 @@ def _worker_shard(i: int) -> dict:
 
 
 def _dask_shard(ctx: ShardContext, i: int) -> dict:
-    os.environ.update({k: "1" for k in _THREAD_ENV})
+    from ..parallel import single_thread_env
+
+    single_thread_env()
     return make_shard(ctx, i)
 
 

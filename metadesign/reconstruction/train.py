@@ -94,7 +94,8 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
     if ds is not None and not Path(ds).is_absolute():
         ds = (source.parent if source else Path.cwd()) / ds
     return TrainRecipe(name=name, source=source, dataset=Path(ds) if ds else None,
-                       noise_percent=d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
+                       # *_percent keys load as fractions (unit suffix converted at the edge); PSFDataset takes %
+                       noise_percent=100 * d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pretrain_loss=t["pretrain_loss"],
@@ -182,7 +183,6 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
           max_steps: int | None = None) -> dict:
     """Train ``recipe`` into the run folder ``run``; returns the final report (rank 0)."""
     import torch
-    import torch.nn.functional as F  # noqa: F401
 
     from .data import PSFDataset
     from .losses import PiB, mse_loss, phase_loss
