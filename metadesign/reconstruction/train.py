@@ -231,6 +231,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         model.load_state_dict(st["model"])
         opt.load_state_dict(st["optimizer"])
         sched.load_state_dict(st["scheduler"])
+        sched.step_size = recipe.lr_halve_every  # the recipe's schedule wins over the checkpoint's
         torch.set_rng_state(st["rng"]["torch"])
         history = json.loads(st["history"])
         best = float(st["best"])
