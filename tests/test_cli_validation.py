@@ -56,6 +56,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("dataset", "plot"): [str(ds), "-o", str(out / "ds.png")],
         ("train",): [str(REPO / "sensing" / "train-demo.toml"), "--dataset", str(ds), "-o", str(out / "run")],
         ("export",): [str(REPO / "sensing" / "models" / "demo-unet.safetensors"), "--onnx", str(out / "m.onnx")],
+        ("table-s2",): [str(REPO / "sensing" / "table-s2.toml"), "-o", str(out / "t2")],
         ("run",): [str(REPO / "sensing" / "pipeline-demo.toml"), "-o", str(out / "pipe")],
         ("evaluate",): [str(REPO / "sensing" / "models" / "demo-unet.safetensors"), str(ds), "-o", str(out / "ev")],
     }.get(cmd)

@@ -56,9 +56,7 @@ def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Call
         # the last epoch's weights: Table S2 compares train and test of the trained model, not a val-selected one
         import torch
 
-        from .model import save_model
-
-        from .model import UNetConfig, build_unet
+        from .model import UNetConfig, build_unet, save_model
 
         st = torch.load(run / "checkpoint.pt", weights_only=True)
         m = build_unet(UNetConfig(**json.loads((run / "model.safetensors.json").read_text())["architecture"]))

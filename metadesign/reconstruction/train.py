@@ -16,7 +16,6 @@ import io
 import json
 import math
 import os
-import random
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -142,13 +141,6 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     torch.save(state, buf)
     with atomic_path(path) as tmp:
         tmp.write_bytes(buf.getvalue())
-
-
-def _rng_state() -> dict:
-    import torch
-
-    return {"torch": torch.get_rng_state(), "numpy": json.dumps(np.random.get_state()[1].tolist()),
-            "python": json.dumps(random.getstate()[1])}
 
 
 def _collate(batch):
