@@ -3,7 +3,7 @@ transfer to the metasurface, PSF render and storage; against the turbulence samp
 render measured alone in the same run (goal: total <= 1.3x); 2 local workers vs 1 (goal >= 1.8x); a
 Dask LocalCluster of 2 workers vs the local pool (goal: within 15 %); projections for the paper's set.
 
-    python benchmarks/bench_dataset.py [--samples 96] [--json]
+    python benchmarks/bench_dataset.py [--samples 256] [--json]
 """
 
 import argparse
@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--samples", type=int, default=96, help="samples per scale-out run (default 96)")
+    ap.add_argument("--samples", type=int, default=256, help="samples per scale-out run (default 256)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     from metadesign.reconstruction.dataset import (ShardContext, build_dataset, ensure_layout, load_dataset_recipe,

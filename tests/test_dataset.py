@@ -176,3 +176,38 @@ def test_torch_dataset_with_workers_and_seeded_noise(tiny_dataset):
     ds.set_epoch(1)
     assert not np.array_equal(ds[3]["psf"].numpy(), psf[3].numpy())
     assert len(PSFDataset(tiny_dataset, "train")) == int(round(0.9 * 12))
+
+
+_FAULTS = r"""
+import resource, sys
+import numpy as np
+from metadesign.parallel import keep_freed_memory
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+def churn():
+    f0 = faults()
+    for _ in range(100):
+        a = np.ones(1 << 18)  # 2 MB, the size of a sample's FFT buffers
+        del a
+    return faults() - f0
+churn()
+before = churn()
+ok = keep_freed_memory()
+churn()
+after = churn()
+print(before, after, ok)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc")
+def test_dask_workers_keep_freed_memory_despite_the_nannys_trim_threshold():
+    """A Dask nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536: each large array is then a fresh mmap
+    whose pages fault in (2 MB = 512 pages, 100 times); after keep_freed_memory() freed blocks are reused."""
+    import subprocess
+
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    out = subprocess.run([sys.executable, "-c", _FAULTS], env=env, capture_output=True, text=True, check=True)
+    before, after, ok = out.stdout.split()
+    assert ok == "True"
+    assert int(before) > 100 * 400  # the nanny's setting: every allocation faults its pages in again
+    assert int(after) < 2000

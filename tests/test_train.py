@@ -106,7 +106,7 @@ def test_unet_shapes_zero_start_and_safetensors_roundtrip(tmp_path):
         UNetConfig(8, 4, 4, 20, 41)
 
 
-def _recipe(folder: Path, ds: Path, epochs=3, batch=4, extra="") -> Path:
+def _recipe(folder: Path, ds: Path, epochs=3, batch=4, extra="", lr=1e-3) -> Path:
     p = folder / "t.toml"
     p.write_text(f"""[data]
 dataset = "{ds}"
@@ -117,7 +117,7 @@ depth = 3
 [train]
 epochs = {epochs}
 batch = {batch}
-lr = 1e-3
+lr = {lr}
 lr_halve_every = 2
 pretrain_loss = "phase"
 pretrain_epochs = 1
@@ -226,3 +226,23 @@ def test_recipe_noise_is_percent_of_the_peak(tiny_dataset, tmp_path):
     d = np.stack([ds.get(i)["psf"] - clean.get(i)["psf"] for i in range(len(ds))])
     peak = np.stack([clean.get(i)["psf"] for i in range(len(ds))]).max(axis=(2, 3), keepdims=True)
     assert np.std(d / peak) == pytest.approx(0.05, rel=0.1)
+
+
+def test_quadratic_form_training_follows_the_split_step_loss(tiny_dataset, tmp_path):
+    """pib_operator = "quadratic" caches each sample's bucket operator in the first PiB epoch and loads no
+    screens afterwards; the loss curve must follow the split-step training's (same seed, same batches)."""
+    runs = {}
+    for op in ("split_step", "quadratic"):
+        d = tmp_path / op
+        d.mkdir()
+        rec = _recipe(d, tiny_dataset, epochs=4, lr=0.01, extra=f'pib_operator = "{op}"\n')
+        r = _cli("train", rec, "-o", d / "run", "--json")
+        assert r.returncode == 0, r.stderr
+        runs[op] = json.loads((d / "run" / "metrics.json").read_text())
+    a, b = runs["split_step"], runs["quadratic"]
+    assert [h["loss_name"] for h in b] == ["phase", "pib", "pib", "pib"]
+    for x, y in zip(a, b):
+        assert x["train_loss"] == pytest.approx(y["train_loss"], rel=2e-3)
+        assert x["val_npib"] == pytest.approx(y["val_npib"], rel=2e-3)
+    # the predicted phases are not negligible (else any operator would pass): NPiB moved off the flat phase's
+    assert abs(b[-1]["train_npib"] - b[0]["val_npib_none"]) > 0.005

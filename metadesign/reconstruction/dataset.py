@@ -358,9 +358,10 @@ def _worker_shard(i: int) -> dict:
 
 
 def _dask_shard(ctx: ShardContext, i: int) -> dict:
-    from ..parallel import single_thread_env
+    from ..parallel import keep_freed_memory, single_thread_env
 
     single_thread_env()
+    keep_freed_memory()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubles a sample's cost otherwise
     return make_shard(ctx, i)
 
 

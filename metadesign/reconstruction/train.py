@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from ..config import ConfigError, Param, Section, load_toml, parse
-from ..validation import ValidationError
+from ..validation import ValidationError, check_memory
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
 
@@ -50,6 +50,7 @@ SECTIONS = (
         Param("weight_decay", float, 0.01, lo=0, hi=1),
         Param("lr_halve_every", int, 200, lo=1, hi=100000),
         Param("loss", str, "pib", choices=list(LOSSES)),
+        Param("pib_operator", str, "split_step", choices=["split_step", "quadratic"]),
         Param("pretrain_loss", str, "phase", choices=list(LOSSES)),
         Param("pretrain_epochs", int, 0, lo=0, hi=100000),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
@@ -76,6 +77,7 @@ class TrainRecipe:
     weight_decay: float
     lr_halve_every: int
     loss: str
+    pib_operator: str
     pretrain_loss: str
     pretrain_epochs: int
     seed: int
@@ -97,7 +99,8 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
                        noise_percent=100 * d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
-                       lr_halve_every=t["lr_halve_every"], loss=t["loss"], pretrain_loss=t["pretrain_loss"],
+                       lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],
+                       pretrain_loss=t["pretrain_loss"],
                        pretrain_epochs=t["pretrain_epochs"], seed=t["seed"], max_minutes=t["max_minutes"], raw=data)
 
 
@@ -177,7 +180,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     import torch
 
     from .data import PSFDataset
-    from .losses import PiB, mse_loss, phase_loss
+    from .losses import PiB, mse_loss, phase_loss, torch_log
     from .model import UNetConfig, build_unet, load_model, save_model
 
     rank, world, local = _dist()
@@ -195,9 +198,14 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
     if resume and not ckpt.exists():
         raise ValidationError(f"{run}: no checkpoint.pt to resume from")
-    needs_screens = lambda ep: recipe.loss_at(ep) == "pib"  # noqa: E731
+    # pib_operator = "quadratic": each training sample's bucket operator A (bucket(back-propagate(u)) =
+    # A u on the aperture, PiB.bucket_operator) is computed the first time the sample is drawn and kept
+    # in memory; the loss is then ||A u||^2, and screens are no longer loaded once every sample has one.
+    ops: dict[int, object] = {}
+    quadratic = recipe.pib_operator == "quadratic" and any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
+    needs_screens = lambda ep: recipe.loss_at(ep) == "pib" and not (quadratic and len(ops) >= len(tr))  # noqa: E731
     tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
-                    limit=recipe.train_limit or None, screens=needs_screens(0))
+                    limit=recipe.train_limit or None, screens=recipe.loss_at(0) == "pib")
     va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(tr) < recipe.batch:
@@ -213,6 +221,10 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
                                   f"{asdict(cfg)}")
         model.load_state_dict(src.state_dict())
     pib = PiB(tr.scenario(), c0, a, device)
+    if quadratic:
+        n_ap = int(pib.ap.sum())
+        check_memory("train.pib_operator = \"quadratic\"", len(tr) * len(pib.bucket) * n_ap * 8,
+                     "use pib_operator = \"split_step\" or data.train_limit")
     opt = torch.optim.AdamW(model.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=recipe.lr_halve_every, gamma=0.5)
     history: list[dict] = []
@@ -263,7 +275,17 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
                 phi = ddp_model(x)
             phi = phi.float()
-            if loss_name == "pib":
+            if loss_name == "pib" and quadratic:
+                idx = [int(i) for i in b["index"]]
+                miss = [k for k, i in enumerate(idx) if i not in ops]
+                if miss:
+                    with torch.no_grad():
+                        for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
+                            ops[idx[k]] = A.cpu()
+                npib = pib.npib_quadratic(torch.stack([ops[i] for i in idx]).to(device), phi)
+                loss = -torch_log(npib).mean()
+                npib_tr.append(npib.detach().cpu())
+            elif loss_name == "pib":
                 loss, npib = pib.loss(phi, b["screens"].to(device))
                 npib_tr.append(npib.detach().cpu())
             elif loss_name == "phase":
