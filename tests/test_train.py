@@ -70,12 +70,16 @@ def test_phase_and_mse_losses_known_answers():
 
     ap = torch.tensor(aperture_mask(21), dtype=torch.float32)
     rng = np.random.default_rng(0)
-    true = torch.tensor(rng.uniform(-np.pi, np.pi, (2, 21, 21)), dtype=torch.float32)
+    y, x = (np.mgrid[:21, :21] - 10) / 10
+    smooth = np.stack([8 * x + 3 * x * y, 3 * (2 * (x * x + y * y) - 1) - 5 * y])  # PV > 2 pi, wrapped at the receiver
+    true = torch.tensor(smooth, dtype=torch.float32)
     rec = torch.polar(torch.ones_like(true), true)
-    # a piston and 2 pi wraps cost nothing in the phase loss; the MSE ignores the piston only
+    # a piston and 2 pi wraps cost nothing in the phase loss; the MSE (against the unwrapped received
+    # phase) ignores the piston but not a local 2 pi jump
     assert float(phase_loss(true + 0.7, rec, ap)) == pytest.approx(0.0, abs=1e-5)
     assert float(phase_loss(true + 2 * np.pi, rec, ap)) == pytest.approx(0.0, abs=1e-5)
     assert float(mse_loss((true + 0.7) * ap, rec, ap)) == pytest.approx(0.0, abs=1e-8)
+    assert float(mse_loss(torch.angle(rec) * ap, rec, ap)) > 1.0  # the wrapped phase is not the answer
     # a small random residual of rms s: phase loss ~ s^2 (Marechal), MSE ~ s^2
     d = torch.tensor(rng.normal(0, 0.1, (2, 21, 21)), dtype=torch.float32)
     s2 = float(((d - (d * ap).sum((-2, -1), keepdim=True) / ap.sum()) ** 2 * ap).sum() / ap.sum() / 2)
@@ -246,3 +250,19 @@ def test_quadratic_form_training_follows_the_split_step_loss(tiny_dataset, tmp_p
         assert x["val_npib"] == pytest.approx(y["val_npib"], rel=2e-3)
     # the predicted phases are not negligible (else any operator would pass): NPiB moved off the flat phase's
     assert abs(b[-1]["train_npib"] - b[0]["val_npib_none"]) > 0.005
+
+
+def test_least_squares_unwrapping_recovers_a_smooth_phase_whatever_lies_outside_the_aperture():
+    from metadesign.reconstruction.losses import unwrap_ls
+
+    n = 41
+    y, x = (np.mgrid[:n, :n] - 20) / 20
+    m = x * x + y * y <= 1
+    true = 4 * (2 * (x * x + y * y) - 1) + 3 * x * y + 2 * (3 * (x * x + y * y) - 2) * x + 6 * y  # PV 17 rad
+    junk = np.random.default_rng(1).uniform(-np.pi, np.pi, (n, n))
+    wrapped = np.where(m, np.angle(np.exp(1j * true)), junk)
+    ref = (true - true[m].mean()) * m
+    assert np.abs(wrapped * m - ref).max() > 3  # the data are wrapped
+    u = unwrap_ls(np.stack([wrapped, wrapped[::-1]]), m)  # batch axis
+    np.testing.assert_allclose(u[0], ref, atol=1e-9)
+    np.testing.assert_allclose(u[1], ((true[::-1] - true[m].mean()) * m), atol=1e-9)
