@@ -15,6 +15,9 @@ def single_thread_env() -> None:
     os.environ.update({k: "1" for k in THREAD_ENV})
 
 
+_MALLOC_SET = False
+
+
 def keep_freed_memory() -> bool:
     """Let glibc keep freed large blocks in this process (idempotent; a no-op off glibc).
 
@@ -35,9 +38,6 @@ def keep_freed_memory() -> bool:
         ok = False
     _MALLOC_SET = ok
     return ok
-
-
-_MALLOC_SET = False
 
 
 def spawn_pool(workers: int, initializer=None, initargs=()):

@@ -130,9 +130,10 @@ class PiB:
         corr = corr / torch.sqrt((corr.abs() ** 2).sum(dim=1, keepdim=True))
         return ((A @ corr[..., None])[..., 0].abs() ** 2).sum(dim=1) / self.ideal
 
-    def loss(self, phi, screens):
-        """``-log NPiB`` averaged over the batch, and the per-sample NPiB."""
-        npib = self.npib_phase(phi, screens)
+    def loss(self, phi, screens=None, A=None):
+        """``-log NPiB`` averaged over the batch, and the per-sample NPiB: through the split step over
+        ``screens``, or from the samples' bucket operators ``A`` (the quadratic form) when given."""
+        npib = self.npib_quadratic(A, phi) if A is not None else self.npib_phase(phi, screens)
         return -torch_log(npib).mean(), npib
 
 

@@ -180,7 +180,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     import torch
 
     from .data import PSFDataset
-    from .losses import PiB, mse_loss, phase_loss, torch_log
+    from .losses import PiB, mse_loss, phase_loss
     from .model import UNetConfig, build_unet, load_model, save_model
 
     rank, world, local = _dist()
@@ -282,8 +282,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
                     with torch.no_grad():
                         for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
                             ops[idx[k]] = A.cpu()
-                npib = pib.npib_quadratic(torch.stack([ops[i] for i in idx]).to(device), phi)
-                loss = -torch_log(npib).mean()
+                loss, npib = pib.loss(phi, A=torch.stack([ops[i] for i in idx]).to(device))
                 npib_tr.append(npib.detach().cpu())
             elif loss_name == "pib":
                 loss, npib = pib.loss(phi, b["screens"].to(device))
