@@ -61,6 +61,9 @@ def _stage_modules():
         from .reconstruction import cli as reconstruction_cli
 
         mods.append(reconstruction_cli)
+        from .baselines import cli as baselines_cli
+
+        mods.append(baselines_cli)
     except ImportError:  # pragma: no cover - stage 6 not installed
         pass
     return mods
