@@ -246,3 +246,26 @@ def test_compare_and_retrieve_cli(tmp_path, tiny_dataset):
     doc = json.loads(r.stdout)
     assert len(doc["convergence"]["misfit_mean"]) == 30 * 3 + 2
     assert (tmp_path / "r" / "convergence.png").is_file()
+
+
+def test_phasemap_residual_is_the_16_level_quantisation_error(tmp_path, demo_products):
+    """Nominal demo layout: the residual of the as-fabricated phase against Eq. 1 is the 16-level phase
+    binning's error, uniform over one step: RMS = (2 pi / 16) / sqrt(12) = 0.113 rad; a width bias adds
+    an atom-dependent error on top; the npz loads without pickle."""
+    r = run_cli("phasemap", str(demo_products["layout"]), "--window", "10", "20", "32", "-o", str(tmp_path / "pm0"),
+                "--json")
+    assert r.returncode == 0, r.stderr
+    st = json.loads(r.stdout)["stats"]
+    q = 2 * np.pi / 16 / np.sqrt(12)
+    for p in range(2):
+        for v in st["binned_residual_rms_rad"][p]:
+            assert 0.85 * q < v < 1.25 * q
+    z = np.load(tmp_path / "pm0" / "phasemap.npz", allow_pickle=False)
+    assert z["window_phase"].shape == (2, 32, 32) and z["binned_residual"].shape[:2] == (2, 4)
+    d = np.angle(np.exp(1j * (z["window_phase"] - z["window_design_phase"])))
+    np.testing.assert_allclose(d, z["window_residual"], atol=1e-4)
+    r = run_cli("phasemap", str(demo_products["layout"]), "--bias-nm", "15", "-o", str(tmp_path / "pm1"), "--json")
+    st1 = json.loads(r.stdout)["stats"]
+    assert min(st1["binned_residual_rms_rad"][0]) > 1.5 * max(st["binned_residual_rms_rad"][0])
+    r = run_cli("phasemap", str(demo_products["layout"]), "--window", "700", "0", "64", "-o", str(tmp_path / "pm2"))
+    assert r.returncode == 2 and "inside" in r.stderr and not (tmp_path / "pm2").exists()

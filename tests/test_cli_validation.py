@@ -59,6 +59,8 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("table-s2",): [str(REPO / "sensing" / "table-s2.toml"), "-o", str(out / "t2")],
         ("run",): [str(REPO / "sensing" / "pipeline-demo.toml"), "-o", str(out / "pipe")],
         ("evaluate",): [str(REPO / "sensing" / "models" / "demo-unet.safetensors"), str(ds), "-o", str(out / "ev")],
+        ("phasemap",): [lay, "-o", str(out / "pm")],
+        ("tolerance",): [str(REPO / "sensing" / "tolerance-demo.toml"), "-o", str(out / "tol")],
         ("compare",): ["NONE", str(ds), "-o", str(out / "cmp")],
         ("retrieve",): ["NONE", str(ds), "-o", str(out / "ret")],
     }.get(cmd)

@@ -111,6 +111,38 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_phasemap(a: argparse.Namespace) -> int:
+    from .model import AsFabricated
+    from .phasemap import phase_maps, plot_phase_maps, save_phase_maps
+    from .transmission import Perturbation
+
+    if len(a.bias_nm) > 2:
+        raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
+    pert = Perturbation(a.bias_nm[0] * 1e-9, a.bias_nm[-1] * 1e-9, a.jitter_nm * 1e-9, a.corner_nm * 1e-9, a.seed)
+    out = out_dir(a.output if a.output else Path(a.layout).with_name("phasemap"))
+    fab = AsFabricated.from_files(a.layout, a.library)
+    maps = phase_maps(fab, pert, tuple(a.window) if a.window else None, a.bin,
+                      progress=progress_bar("phasemap", unit="row"))
+    out.mkdir(exist_ok=True)
+    f = save_phase_maps(out / "phasemap.npz", maps, {"layout": str(a.layout), "perturbation": pert.to_dict()})
+    fig = plot_phase_maps(maps, out / "phasemap.png", f"{Path(a.layout).name}: as-fabricated phase "
+                          f"(bias {a.bias_nm} nm, jitter {a.jitter_nm} nm, corner {a.corner_nm} nm)")
+    st = maps["stats"]
+    w = maps["window"]
+    lines = [f"wrote {f} and {fig.name}: window ({w['ix0']}, {w['iy0']}) {w['cells']}^2 pillars at full resolution, "
+             f"whole aperture in {maps['binned']['supercells_per_bin']}^2-supercell bins "
+             f"({maps['binned']['residual'].shape[-1]}^2 per channel)",
+             f"  residual vs design (per-polarisation offset {maps['offset_rad'][0]:+.3f} / {maps['offset_rad'][1]:+.3f}"
+             f" rad removed): window RMS x {st['window_residual_rms_rad'][0]:.3f}, y {st['window_residual_rms_rad'][1]:.3f} rad"]
+    for p in range(2):
+        lines.append(f"  {'xy'[p]}-pol binned residual RMS per channel: "
+                     + ", ".join("-" if v is None else f"{v:.3f}" for v in st["binned_residual_rms_rad"][p]) + " rad")
+    emit({"output": str(out), "files": [str(f), str(fig)], "offset_rad": maps["offset_rad"], "stats": st,
+          "window": {k: w[k] for k in ("ix0", "iy0", "cells")},
+          "supercells_per_bin": maps["binned"]["supercells_per_bin"]}, a.json, "\n".join(lines))
+    return 0
+
+
 def _forward_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
     p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
@@ -153,3 +185,23 @@ def register(sub) -> None:
     fs.add_argument("-o", "--output", help="output folder (default: fab-study/ beside the layout)")
     fs.add_argument("--json", action="store_true", help="print the rows as JSON")
     fs.set_defaults(func=_cmd_fab_study)
+
+    pm = sub.add_parser(
+        "phasemap", help="stage 4: as-fabricated phase and amplitude maps of a layout, and their residual vs design",
+        description="Per polarisation: the as-fabricated phase and amplitude of every pillar in a window (full "
+        "resolution), the wrapped design phase and the residual; over the whole aperture, per channel, the "
+        "residual phase and amplitude averaged over bins of supercells. Writes OUT/phasemap.npz (np.load with "
+        "allow_pickle=False) and OUT/phasemap.png.")
+    _forward_args(pm)
+    pm.add_argument("--window", type=integer(0, 10**7), nargs=3, metavar=("IX0", "IY0", "CELLS"),
+                    help="full-resolution window: first column, first row, size in pillars (default: central 64)")
+    pm.add_argument("--bin", type=integer(1, 10**6), help="supercells per bin of the whole-aperture maps "
+                    "(default: at most 512 bins across)")
+    pm.add_argument("--bias-nm", type=BIAS, nargs="+", default=[0.0], help="width bias in [-200, 200] nm: one "
+                    "value or x y")
+    pm.add_argument("--jitter-nm", type=JITTER, default=0.0, help="random width jitter sigma in [0, 100] nm")
+    pm.add_argument("--corner-nm", type=CORNER, default=0.0, help="corner rounding radius in [0, 500] nm")
+    pm.add_argument("--seed", type=SEED, default=0, help="jitter seed")
+    pm.add_argument("-o", "--output", help="output folder (default: phasemap/ beside the layout)")
+    pm.add_argument("--json", action="store_true", help="print the summary as JSON")
+    pm.set_defaults(func=_cmd_phasemap)

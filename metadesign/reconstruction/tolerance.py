@@ -1,0 +1,195 @@
+"""Reconstruction-level fabrication tolerance: how much of the wavefront-sensing performance of a model
+trained on the nominal device survives each fabrication error, and how much a short fine-tune recovers.
+
+One-at-a-time sweeps around the nominal device (width bias, jitter, corner rounding: the knobs of
+:class:`~metadesign.sensing.transmission.Perturbation`).  For every case a dataset is rendered through the
+perturbed layout with the **same root seed** (the same turbulence, Rytov numbers and splits in every case;
+a root seed other than the nominal model's training set, so no test sample was seen in training).  The
+nominal model is evaluated on the case's test split (NPiB of the U-Net, the uncorrected beam and the phase
+conjugate, captured fraction, gain), then fine-tuned from its weights on the case's small training split
+(``train --init``: the recovery a fab engineer can buy with one short retraining) and evaluated again.
+
+Finished cases are kept (``OUT/case-*/result.json``); a re-run resumes the rest (datasets and training
+resume by themselves)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..config import ConfigError, Param, Section, load_toml, parse
+from ..io import atomic_write_text
+
+__all__ = ["run_tolerance", "load_tolerance_recipe", "TOLERANCE_SECTIONS"]
+
+TOLERANCE_SECTIONS = (
+    Section("dataset", ()),  # a dataset recipe's [dataset], checked by that recipe
+    Section("cases", (
+        Param("bias_nm", list, [-10.0, -5.0, 0.0, 5.0, 10.0], lo=-200, hi=200),
+        Param("jitter_nm", list, [], lo=0, hi=100),
+        Param("corner_nm", list, [], lo=0, hi=500),
+        Param("seed", int, 0, lo=0, hi=2**63 - 1),
+    )),
+    Section("evaluate", (
+        Param("model", str, None, help="the nominal model (relative to the recipe)"),
+        Param("noise_percent", float, 5.0, lo=0, hi=100),
+    )),
+    Section("finetune", (
+        Param("train", str, None, help="training recipe whose [model] matches the model and whose [train] is used"),
+        Param("epochs", int, 3, lo=0, hi=100000),
+        Param("lr", float, 3e-4, lo=0, open_lo=True, hi=1),
+        Param("loss", str, "pib", choices=["pib", "phase", "mse"]),
+        Param("bias_nm", list, None, lo=-200, hi=200, help="cases to fine-tune (default: every non-nominal one)"),
+    )),
+)
+
+
+@dataclass(frozen=True)
+class ToleranceRecipe:
+    source: Path
+    dataset: dict  # raw [dataset] section
+    cases: list  # [(label, bias_nm, jitter_nm, corner_nm)]
+    seed: int
+    model: Path
+    noise_percent: float
+    train: Path
+    epochs: int
+    lr: float
+    loss: str
+    finetune_bias: list | None
+
+
+def load_tolerance_recipe(path: str | Path) -> ToleranceRecipe:
+    path = Path(path)
+    raw = load_toml(path)
+    v = parse({k: x for k, x in raw.items() if k != "dataset"} | {"dataset": {}}, TOLERANCE_SECTIONS, str(path))
+    c, e, f = v["cases"], v["evaluate"], v["finetune"]
+    for key, sec in (("evaluate.model", e["model"]), ("finetune.train", f["train"])):
+        if sec is None:
+            raise ConfigError(key, "missing")
+    # lengths load in metres and percentages as fractions (config units); cases are kept in nm for the tables
+    nm = [round(float(b) * 1e9, 6) for b in c["bias_nm"]]
+    cases = [("nominal", 0.0, 0.0, 0.0)]
+    cases += [(f"bias{b:+g}nm", b, 0.0, 0.0) for b in nm if b != 0]
+    cases += [(f"jitter{j * 1e9:g}nm", 0.0, round(j * 1e9, 6), 0.0) for j in c["jitter_nm"] if j != 0]
+    cases += [(f"corner{r * 1e9:g}nm", 0.0, 0.0, round(r * 1e9, 6)) for r in c["corner_nm"] if r != 0]
+    base = path.parent
+    ft = None if f["bias_nm"] is None else [round(float(b) * 1e9, 6) for b in f["bias_nm"]]
+    return ToleranceRecipe(path, {"dataset": raw.get("dataset", {})}, cases, c["seed"], base / e["model"],
+                           100 * e["noise_percent"], base / f["train"], f["epochs"], f["lr"], f["loss"], ft)
+
+
+def _metrics(res: dict, key: str) -> dict:
+    r = res["rows"][key]
+    none, unet, pc = r["none"], r["unet"], r["phase_conjugate"]
+    return {"n": int(len(unet)), "npib_none": float(np.mean(none)), "npib_unet": float(np.mean(unet)),
+            "npib_phase_conjugate": float(np.mean(pc)),
+            "captured_fraction": float((np.mean(unet) - np.mean(none)) / max(np.mean(pc) - np.mean(none), 1e-12)),
+            "gain_median": float(np.median(unet / np.maximum(none, 1e-12)))}
+
+
+def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Callable[[str], None] = print) -> dict:
+    from .dataset import build_dataset, dataset_recipe_from_dict
+    from .evaluate import evaluate_model
+    from .train import load_train_recipe, train, train_recipe_from_dict
+
+    out = Path(out)
+    out.mkdir(exist_ok=True)
+    base_train = load_train_recipe(recipe.train)
+    rows = []
+    for label, b, j, c in recipe.cases:
+        case = out / f"case-{label}"
+        done = case / "result.json"
+        if done.exists():
+            rows.append(json.loads(done.read_text()))
+            log(f"{label}: done before")
+            continue
+        case.mkdir(exist_ok=True)
+        raw = json.loads(json.dumps(recipe.dataset))
+        raw["fabrication"] = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
+        ds_rec = dataset_recipe_from_dict(raw, f"tolerance-{label}", recipe.source)
+        log(f"{label}: dataset ...")
+        build_dataset(ds_rec, case / "dataset", workers=workers, log=log)
+        res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
+        key = next(iter(res["rows"]))
+        row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key)}
+        log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} (captured {row['before']['captured_fraction']:.2f})")
+        fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias)
+        if fine:
+            tr_raw = {"data": {"noise_percent": recipe.noise_percent, "val_limit": 0},
+                      "model": {"base": base_train.base, "depth": base_train.depth, "norm": base_train.norm},
+                      "train": {"epochs": recipe.epochs, "batch": base_train.batch, "lr": recipe.lr,
+                                "weight_decay": base_train.weight_decay, "lr_halve_every": max(1, recipe.epochs),
+                                "loss": recipe.loss, "pretrain_epochs": 0, "seed": 0}}
+            run = case / "finetune"
+            resume = (run / "checkpoint.pt").exists()
+            rep = train(train_recipe_from_dict(tr_raw, f"finetune-{label}"), run, dataset=case / "dataset",
+                        resume=resume, init=None if resume else recipe.model, log=log, progress=False)
+            res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
+            row["after"] = _metrics(res2, next(iter(res2["rows"])))
+            from .dataset import open_dataset
+
+            row["finetune"] = {"epochs": rep["epochs_done"], "loss": recipe.loss, "lr": recipe.lr,
+                               "train_samples": int(len(open_dataset(case / "dataset").indices("train")))}
+            log(f"{label}: fine-tuned NPiB {row['after']['npib_unet']:.3f}")
+        atomic_write_text(done, json.dumps(row, indent=2))
+        rows.append(row)
+    rep = {"rows": rows, "noise_percent": recipe.noise_percent, "model": str(recipe.model)}
+    atomic_write_text(out / "tolerance.json", json.dumps(rep, indent=2))
+    _write_csv(rows, out / "tolerance.csv")
+    rep["figure"] = str(plot_tolerance(rows, out / "tolerance.png", recipe.noise_percent))
+    return rep
+
+
+def _write_csv(rows, path: Path) -> None:
+    import csv
+
+    from ..io import atomic_path
+
+    cols = ["npib_none", "npib_unet", "npib_phase_conjugate", "captured_fraction", "gain_median"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["case", "bias_nm", "jitter_nm", "corner_nm", "n"] + cols + [f"finetuned_{k}" for k in cols])
+            for r in rows:
+                a = r.get("after", {})
+                w.writerow([r["case"], r["bias_nm"], r["jitter_nm"], r["corner_nm"], r["before"]["n"]]
+                           + [f"{r['before'][k]:.5f}" for k in cols] + [f"{a[k]:.5f}" if k in a else "" for k in cols])
+
+
+def plot_tolerance(rows, out: Path, noise: float) -> Path:
+    from ..plotting import pyplot, save_figure
+
+    plt = pyplot()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
+                                 gridspec_kw={"width_ratios": [3, 2]})
+    bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0], key=lambda r: r["bias_nm"])
+    x = [r["bias_nm"] for r in bias]
+    a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
+    fx = [r["bias_nm"] for r in bias if "after" in r or r["case"] == "nominal"]
+    fy = [(r["after"] if "after" in r else r["before"])["npib_unet"] for r in bias if "after" in r or r["case"] == "nominal"]
+    a1.plot(fx, fy, "s--", label="after fine-tuning on the perturbed device")
+    a1.plot(x, [r["before"]["npib_phase_conjugate"] for r in bias], "g:", label="phase conjugate")
+    a1.plot(x, [r["before"]["npib_none"] for r in bias], "k:", label="uncorrected")
+    a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
+           title=f"reconstruction-level fab tolerance (noise {noise:g} %)")
+    a1.legend(fontsize=8)
+    other = [r for r in rows if r["jitter_nm"] or r["corner_nm"]]
+    if other:
+        lab = [r["case"] for r in other]
+        xx = np.arange(len(other))
+        a2.bar(xx - 0.2, [r["before"]["npib_unet"] for r in other], 0.4, label="nominal model")
+        a2.bar(xx + 0.2, [r.get("after", r["before"])["npib_unet"] for r in other], 0.4, label="fine-tuned")
+        nom = next((r for r in rows if r["case"] == "nominal"), None)
+        if nom:
+            a2.axhline(nom["before"]["npib_unet"], color="k", ls="--", lw=1, label="nominal device")
+        a2.set_xticks(xx, lab, rotation=20)
+        a2.set(ylabel="mean NPiB", title="jitter and corner rounding")
+        a2.legend(fontsize=8)
+    else:
+        a2.axis("off")
+    return save_figure(fig, out)
