@@ -170,6 +170,45 @@ def _cmd_tolerance(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_import(a: argparse.Namespace) -> int:
+    from .captures import ImportOptions, import_captures
+
+    out = out_dir(a.output)
+    if a.split is not None and (len(a.split) != 3 or abs(sum(a.split) - 1) > 1e-6):
+        from ..validation import ValidationError
+
+        raise ValidationError(f"--split: expected three fractions [train val test] summing to 1, got {a.split}")
+    opt = ImportOptions(fit=a.fit, hot_sigma=a.hot_sigma, saturation=a.saturation, saturated=a.saturated,
+                        phase_per_count=a.phase_per_count, split=tuple(a.split or (0.9, 0.05, 0.05)), seed=a.seed)
+    rep = import_captures(a.folder, out, a.calibration, a.reference, a.dark, opt, overwrite=a.overwrite,
+                          progress=progress_bar("import", unit="sample"), log=log_to(a.json))
+    al = rep["calibration"]["alignment"]
+    text = (f"wrote {out}: {rep['samples']} of {rep['listed']} samples (8 x {rep['tensor'][1]}^2), split "
+            + "/".join(str(v) for v in rep["split_counts"].values())
+            + f"; relay shift ({al['shift_x_px']:+.2f}, {al['shift_y_px']:+.2f}) px, rotation "
+            f"{al['rotation_deg']:+.3f} deg, x{al['scale']:.4f} (spot residual max "
+            f"{max(rep['calibration']['residuals_px']):.2f} px); hot pixels {rep['calibration']['hot_pixels']}; "
+            f"saturated {rep['saturated']} ({rep['saturated_policy']})"
+            + (": " + ", ".join(rep["saturated_samples"]) if rep["saturated"] else "")
+            + f"; {rep['seconds']:.1f} s")
+    emit(rep, a.json, text)
+    return 0
+
+
+def _cmd_synth(a: argparse.Namespace) -> int:
+    from ..sensing.captures import Alignment, CameraSpec, synth_captures
+
+    out = out_dir(a.output)
+    al = Alignment(a.shift[0], a.shift[1], a.rotation_deg, a.scale)
+    cam = CameraSpec(peak_counts=a.peak_counts, photons_at_peak=a.photons, read_noise_e=a.read_noise_e,
+                     dark_counts=a.dark_counts, hot_pixels=a.hot_pixels, seed=a.seed)
+    rep = synth_captures(a.phases, a.device, out, al, cam, samples=a.samples, split=a.split, fmt=a.format,
+                         saturate=a.saturate, seed=a.seed, progress=progress_bar("captures", unit="frame"))
+    emit(rep, a.json, f"wrote {out}: {rep['samples']} samples ({rep['format']}), {rep['flats']} flat and "
+         f"{rep['darks']} dark captures, {rep['saturated']} over-exposed; manifest {out / 'manifest.csv'}")
+    return 0
+
+
 def register(sub) -> None:
     tol = sub.add_parser(
         "tolerance", help="stage 6: reconstruction-level fab tolerance (NPiB vs bias/jitter/corner, fine-tune recovery)",
@@ -237,7 +276,7 @@ def register(sub) -> None:
     tr.set_defaults(func=_cmd_train)
 
     ds = sub.add_parser(
-        "dataset", help="stage 6: training data: dataset build RECIPE | show DATASET | plot DATASET",
+        "dataset", help="stage 6: training data: dataset build RECIPE | show | plot | import CAPTURES | synth-captures",
         description="Stage 6a. `dataset build RECIPE` renders seeded scintillated beacons through the "
         "as-fabricated metasurface onto the sensor (zarr v3, sharded, resumable; a local process pool or a "
         "Dask cluster). `dataset show` summarises a dataset, `dataset plot` draws a few samples and the "
@@ -263,3 +302,55 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", help="PNG path (default: DATASET/fig-dataset.png)")
     p.add_argument("--samples", type=integer(1, 8), default=3, help="samples to draw (1..8, default 3)")
     p.set_defaults(func=_cmd_plot)
+    im = dsub.add_parser(
+        "import", help="camera captures (frames + SLM phases + manifest) -> a dataset (propagation = slm)",
+        description="Import captured frames: fit the relay misalignment from flat captures against the reference "
+        "device's spots, subtract darks, mask hot pixels, flag saturation, crop the 8 quadrants around the fitted "
+        "centres, normalise as synthetic data. Written aside and renamed: a failed import leaves nothing.")
+    im.add_argument("folder", help="folder with manifest.csv (sample, frame_x, frame_y, slm_phase[, rytov, split])")
+    im.add_argument("-o", "--output", required=True, help="dataset folder to write")
+    im.add_argument("--calibration", required=True, metavar="FLAT_CSV",
+                    help="CSV of flat-wavefront captures (frame_x, frame_y)")
+    im.add_argument("--reference", required=True, metavar="DATASET",
+                    help="synthetic dataset of the design (sensor, tensor size, path, reference spots)")
+    im.add_argument("--dark", nargs="+", metavar="FILE", help="dark frame(s), averaged")
+    im.add_argument("--fit", choices=("similarity", "shift"), default="similarity",
+                    help="relay model fitted to the spot centres (default similarity: shift, rotation, scale)")
+    im.add_argument("--hot-sigma", type=num(1, 1000), default=8.0, help="hot pixel threshold, robust sigmas (8)")
+    im.add_argument("--saturation", type=num(0, 1e12, open_lo=True),
+                    help="saturation level, counts (default: full scale of the frame's integer type)")
+    im.add_argument("--saturated", choices=("flag", "drop", "error"), default="flag",
+                    help="saturated samples: flag and keep (default), drop, or refuse the import")
+    im.add_argument("--phase-per-count", type=num(0, 1, open_lo=True), default=2 * 3.141592653589793 / 65536,
+                    help="rad per count of SLM phases given as integer images (default 2 pi / 65536)")
+    im.add_argument("--split", nargs=3, type=num(0, 1), metavar=("TRAIN", "VAL", "TEST"),
+                    help="split fractions when the manifest has no split column (default 0.9 0.05 0.05)")
+    im.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the split permutation")
+    im.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    im.add_argument("--json", action="store_true", help="print the report as JSON")
+    im.set_defaults(func=_cmd_import)
+    sy = dsub.add_parser(
+        "synth-captures", help="synthetic camera captures from a dataset's phases through a (perturbed) device",
+        description="The SLM shows the received phases of PHASES' samples; frames are rendered through DEVICE's "
+        "coarse pupil onto a misaligned camera with shot and read noise, dark offset and hot pixels (16-bit PNG, "
+        "TIFF or .npy), with flat and dark captures and a manifest: input for `dataset import`.")
+    sy.add_argument("phases", help="dataset whose received phases the SLM shows (also the sensor geometry)")
+    sy.add_argument("--device", required=True, help="dataset (or its device-pupil.npz) of the device to render")
+    sy.add_argument("-o", "--output", required=True, help="capture folder to write")
+    sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
+    sy.add_argument("--samples", type=integer(1, 10_000_000), help="at most this many samples")
+    sy.add_argument("--shift", nargs=2, type=num(-200, 200), default=(0.0, 0.0), metavar=("DX", "DY"),
+                    help="relay shift, camera pixels")
+    sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)
+    sy.add_argument("--scale", type=num(0.8, 1.25), default=1.0, help="relay magnification / nominal")
+    sy.add_argument("--format", choices=("png", "tiff", "npy"), default="png")
+    sy.add_argument("--peak-counts", type=num(1, 65535), default=40000.0)
+    sy.add_argument("--photons", type=num(0, 1e9), default=20000.0, help="photo-electrons at the peak (0: none)")
+    sy.add_argument("--read-noise-e", type=num(0, 1e4), default=5.0)
+    sy.add_argument("--dark-counts", type=num(0, 65535), default=100.0)
+    sy.add_argument("--hot-pixels", type=integer(0, 100000), default=20)
+    sy.add_argument("--saturate", type=integer(0, 10_000_000), default=0,
+                    help="over-expose the last N samples (2x: clipped at full scale)")
+    sy.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
+    sy.add_argument("--json", action="store_true", help="print the report as JSON")
+    sy.set_defaults(func=_cmd_synth)

@@ -80,7 +80,15 @@ class PSFDataset:
         return sample_rytov(int(self.info.attrs["root_seed"]), i, tuple(r["range"]), r["values"])
 
     def screens_of(self, i: int) -> np.ndarray:
-        """The 13 screens of sample ``i``, regenerated bit for bit from its seed."""
+        """The 13 screens of sample ``i``, regenerated bit for bit from its seed.  Captured data
+        (``propagation = "slm"``): vacuum screens with the SLM phase as the receiver-plane (last) screen."""
+        if self.info.attrs.get("propagation") == "slm":
+            sc = self.scenario()
+            c0, a = self.crop()
+            out = np.zeros((sc.n_screens, sc.n_grid, sc.n_grid), np.float32)
+            rec = np.asarray(self._arrays()["received"][i])
+            out[-1, c0:c0 + a, c0:c0 + a] = np.where(np.abs(rec) > 0, np.angle(rec), 0)
+            return out
         if self._tb is None:
             from ..turbulence.propagate import Turbulence
 

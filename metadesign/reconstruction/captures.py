@@ -1,0 +1,502 @@
+"""Import of camera captures into a metadesign dataset (``metadesign dataset import``).
+
+Inputs (paths in the CSVs are relative to the CSV):
+
+* ``FOLDER/manifest.csv``: columns ``sample, frame_x, frame_y, slm_phase`` and optionally ``rytov`` and
+  ``split`` (train / val / test).  One frame per polarisation per sample (the paper rotates a
+  polariser between captures): 16-bit PNG or TIFF, or ``.npy`` (any real dtype), ``width x height`` of the
+  reference sensor (640 x 512 for the paper's).  ``slm_phase``: the phase the SLM applied, sampled on the
+  receiver crop of the turbulence grid (A x A, spanning ``A dx``; another square size is resampled onto
+  it), as ``.npy`` in radians or as a 16-bit image with ``--phase-per-count`` rad per count (default
+  ``2 pi / 65536``: the full range is one wave).
+* ``--calibration FLAT.csv``: flat-wavefront captures (columns ``frame_x, frame_y``; averaged).
+* ``--dark FILE ...``: dark frames (averaged): subtracted from every frame; pixels brighter than the dark
+  median by ``--hot-sigma`` robust sigmas are hot and replaced by the median of their non-hot neighbours.
+* ``--reference DATASET``: the synthetic dataset of the design the model was trained on: its sensor, tensor
+  size, turbulence path and receiver crop are the import's, and its device renders the reference flat
+  frames whose spot centroids the calibration is fitted against.
+
+Calibration: the thresholded centre of gravity of each of the 8 spots (per polarisation frame, per
+quadrant window) in the mean flat capture and in the reference render; the relay misalignment is the
+similarity transform (shift, rotation, magnification; ``--fit shift`` for shift only) that maps the
+reference centres onto the measured ones in least squares, iterated on the capture warped back into
+nominal coordinates (:func:`calibrate`) (convention: :class:`metadesign.sensing.captures.
+Alignment`).  Every frame is then resampled (bilinear) at the transformed nominal quadrant windows, area-
+resampled to the tensor size and normalised as synthetic data (8 channels sum to 8).
+
+Saturation: a frame with pixels at or above ``--saturation`` counts (default: the full scale of its
+integer type; hot pixels excepted) is flagged (``flags`` array, bit 0) and reported; ``--saturated drop``
+leaves such samples out, ``error`` refuses the import.  Values are never clipped by the import.
+
+Output: the same zarr format as ``dataset build`` with ``propagation = "slm"``: ``received`` is the SLM
+field ``exp(i phi) x aperture``, and the end-to-end loss and the evaluation back-propagate through the SLM
+phase as the receiver-plane screen of the reference path, the other screens being vacuum
+(:meth:`PSFDataset.screens_of`).  The store is written to ``OUT.partial`` and renamed when complete: a
+failed import leaves nothing behind."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..validation import ValidationError
+
+__all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
+           "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
+
+
+def read_frame(path: Path, what: str = "frame") -> tuple[np.ndarray, float | None]:
+    """A 2D frame as float64 and the full scale of its integer type (None for float data)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValidationError(f"{path}: no such {what}")
+    suf = path.suffix.lower()
+    if suf not in IMAGE_SUFFIXES:
+        raise ValidationError(f"{path}: {what}: expected .png, .tif/.tiff or .npy, got {suf or 'no suffix'}")
+    try:
+        if suf == ".npy":
+            a = np.load(path, allow_pickle=False)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                a = np.asarray(im)
+    except Exception as exc:  # Pillow and numpy raise many kinds on damaged files
+        raise ValidationError(f"{path}: unreadable {what} ({exc.__class__.__name__}: {str(exc)[:80]})") from None
+    if a.ndim != 2 or not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        raise ValidationError(f"{path}: {what}: expected a 2D real image, got {a.dtype} {a.shape}")
+    full = float(np.iinfo(a.dtype).max) if np.issubdtype(a.dtype, np.integer) else None
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValidationError(f"{path}: {what}: holds NaN or infinite values")
+    return a, full
+
+
+def read_manifest(path: Path, need: tuple[str, ...], what: str = "manifest") -> list[dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise ValidationError(f"{path}: no such {what}")
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise ValidationError(f"{path}: unreadable {what} ({exc})") from None
+    if not rows:
+        raise ValidationError(f"{path}: {what} lists no rows")
+    missing = [c for c in need if c not in rows[0]]
+    if missing:
+        raise ValidationError(f"{path}: {what} lacks the column(s) {', '.join(missing)} (needs {', '.join(need)})")
+    base = path.parent
+    for n, r in enumerate(rows, 2):
+        for c in need:
+            if c in ("frame_x", "frame_y", "slm_phase"):
+                v = (r.get(c) or "").strip()
+                if not v:
+                    raise ValidationError(f"{path}: line {n}: empty {c}")
+                p = Path(v)
+                p = p if p.is_absolute() else base / p
+                if not p.is_file():
+                    raise ValidationError(f"{path}: line {n}: {c} {v}: no such file")
+                r[c] = p
+    return rows
+
+
+def hot_pixel_map(dark: np.ndarray, sigma: float = 8.0) -> np.ndarray:
+    """Pixels of a (mean) dark frame above its median by ``sigma`` robust sigmas (1.4826 MAD; at least
+    one count)."""
+    med = np.median(dark)
+    mad = 1.4826 * np.median(np.abs(dark - med))
+    return dark > med + sigma * max(mad, 1.0)
+
+
+def fix_hot_pixels(frame: np.ndarray, hot: np.ndarray) -> np.ndarray:
+    """Hot pixels replaced by the median of their non-hot 3 x 3 neighbours."""
+    if not hot.any():
+        return frame
+    out = frame.copy()
+    H, W = frame.shape
+    for r, c in zip(*np.nonzero(hot)):
+        r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, H), max(c - 1, 0), min(c + 2, W)
+        nb = frame[r0:r1, c0:c1][~hot[r0:r1, c0:c1]]
+        out[r, c] = np.median(nb) if nb.size else 0.0
+    return out
+
+
+def spot_centroids(frames: np.ndarray, sensor, threshold: float = 0.1) -> np.ndarray:
+    """(8, 2) spot centres (col, row) in frame pixels: thresholded centre of gravity in each nominal
+    quadrant window of each polarisation frame (channel order of the tensor)."""
+    from ..sensing.sensor import quadrant_slices
+
+    out = np.empty((8, 2))
+    for p in range(2):
+        for k in range(1, 5):
+            r, c = quadrant_slices(sensor, k)
+            q = np.asarray(frames[p][r, c], np.float64)
+            q = np.clip(q - threshold * q.max(), 0, None)
+            s = q.sum()
+            if not s > 0:
+                raise ValidationError(f"calibration: no spot in polarisation {'xy'[p]} quadrant {k} of the flat "
+                                      "capture (dark frame, or a wrong sensor)")
+            yy, xx = np.indices(q.shape)
+            out[4 * p + k - 1] = ((q * xx).sum() / s + c.start, (q * yy).sum() / s + r.start)
+    return out
+
+
+def fit_alignment(reference: np.ndarray, measured: np.ndarray, shape: tuple[int, int], mode: str = "similarity"):
+    """Least-squares :class:`Alignment` mapping ``reference`` centres (N, 2) onto ``measured`` ones, and
+    the residuals (N,) in pixels."""
+    from ..sensing.captures import Alignment
+
+    c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    P, Q = reference - c, measured - c
+    if mode == "shift":
+        t = (Q - P).mean(axis=0)
+        al = Alignment(float(t[0]), float(t[1]))
+    elif mode == "similarity":
+        # x' = a x - b y + tx ; y' = b x + a y + ty
+        n = len(P)
+        A = np.zeros((2 * n, 4))
+        A[0::2] = np.c_[P[:, 0], -P[:, 1], np.ones(n), np.zeros(n)]
+        A[1::2] = np.c_[P[:, 1], P[:, 0], np.zeros(n), np.ones(n)]
+        a, b, tx, ty = np.linalg.lstsq(A, Q.reshape(-1), rcond=None)[0]
+        s = float(np.hypot(a, b))
+        try:
+            al = Alignment(float(tx), float(ty), float(np.rad2deg(np.arctan2(b, a))), s)
+        except ValueError as exc:
+            raise ValidationError(f"calibration: the fitted relay misalignment is out of range ({exc}); "
+                                  "check the flat captures and the reference") from None
+    else:
+        raise ValidationError(f"--fit: expected shift or similarity, got {mode!r}")
+    res = np.linalg.norm(al.forward(reference, shape) - measured, axis=1)
+    return al, res
+
+
+def _warp(frames: np.ndarray, alignment) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (2, H, W) sampled (bilinear) at ``T(p)`` for every nominal pixel ``p``, and the mask of the
+    nominal pixels whose ``T(p)`` lies on the camera."""
+    from scipy.ndimage import map_coordinates
+
+    H, W = frames.shape[-2:]
+    rr, cc = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    q = alignment.forward(np.stack([cc, rr], -1).reshape(-1, 2), (H, W))
+    seen = ((q[:, 0] >= -0.5) & (q[:, 0] <= W - 0.5) & (q[:, 1] >= -0.5) & (q[:, 1] <= H - 0.5)).reshape(H, W)
+    out = np.stack([map_coordinates(f, [q[:, 1], q[:, 0]], order=1, mode="constant").reshape(H, W) for f in frames])
+    return out, seen
+
+
+def calibrate(flat: np.ndarray, reference: np.ndarray, sensor, mode: str = "similarity", threshold: float = 0.1,
+              iterations: int = 6):
+    """The relay :class:`Alignment` from a flat capture (2, H, W) and the reference model's flat frames.
+
+    A centre of gravity in a fixed window is pulled toward the window's centre when the spot moves, by an
+    amount that depends on the spot (broad, defocused spots with crosstalk halos suffer most), so the fit
+    is iterated: the capture is warped into nominal coordinates by the current estimate, its centroids are
+    compared with the reference's (masked alike where the warp left the frame), and the small similarity
+    between them is composed into the estimate.  Returns (alignment, residuals of the last fit (px),
+    first-pass measured centres)."""
+    from ..sensing.captures import Alignment
+
+    shape = flat.shape[-2:]
+    c_ref = spot_centroids(reference, sensor, threshold)
+    c_first = spot_centroids(flat, sensor, threshold)
+    al, res = fit_alignment(c_ref, c_first, shape, mode)
+    for _ in range(iterations):
+        warped, seen = _warp(flat, al)
+        c_meas = spot_centroids(warped, sensor, threshold)
+        c_r = spot_centroids(reference * seen, sensor, threshold)
+        step, res = fit_alignment(c_r, c_meas, shape, mode)
+        m_n, m_s = al._m(), step._m()
+        m = m_n @ m_s
+        t = np.array([al.shift_x_px, al.shift_y_px]) + m_n @ np.array([step.shift_x_px, step.shift_y_px])
+        try:
+            al = Alignment(float(t[0]), float(t[1]), float(np.rad2deg(np.arctan2(m[1, 0], m[0, 0]))),
+                           float(np.hypot(m[0, 0], m[1, 0])))
+        except ValueError as exc:
+            raise ValidationError(f"calibration: the fitted relay misalignment is out of range ({exc}); "
+                                  "check the flat captures and the reference") from None
+        if np.abs(step.forward(c_r, shape) - c_r).max() < 1e-3:
+            break
+    return al, res, c_first
+
+
+def aligned_tensor(frames: np.ndarray, sensor, alignment, tensor_size: int) -> tuple[np.ndarray, float]:
+    """(8, S, S) tensor of captured ``frames`` (2, H, W): each nominal quadrant window sampled (bilinear) at
+    its transformed position on the camera, area-resampled to S x S; and the fraction of window pixels that
+    fell outside the frame."""
+    from scipy.ndimage import map_coordinates
+
+    from ..sensing.sensor import _resample, quadrant_slices
+
+    H, W = frames.shape[-2:]
+    out = np.empty((8, tensor_size, tensor_size), np.float32)
+    outside = 0.0
+    for k in range(1, 5):
+        r, c = quadrant_slices(sensor, k)
+        rr, cc = np.meshgrid(np.arange(r.start, r.stop), np.arange(c.start, c.stop), indexing="ij")
+        q = alignment.forward(np.stack([cc, rr], -1).reshape(-1, 2), (H, W))
+        outside += float(np.mean((q[:, 0] < -0.5) | (q[:, 0] > W - 0.5) | (q[:, 1] < -0.5) | (q[:, 1] > H - 0.5)))
+        for p in range(2):
+            win = map_coordinates(frames[p], [q[:, 1], q[:, 0]], order=1, mode="constant", cval=0.0)
+            out[4 * p + k - 1] = _resample(win.reshape(rr.shape), tensor_size)
+    return out, outside / 4
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    fit: str = "similarity"
+    hot_sigma: float = 8.0
+    saturation: float | None = None  # counts; default: the integer type's full scale
+    saturated: str = "flag"  # flag | drop | error
+    phase_per_count: float = 2 * np.pi / 65536
+    split: tuple[float, float, float] = (0.9, 0.05, 0.05)
+    seed: int = 0
+    threshold: float = 0.1
+    shard_size: int = 64
+
+
+def _phase(path: Path, a: int, per_count: float) -> np.ndarray:
+    arr, full = read_frame(path, "SLM phase")
+    if full is not None:
+        arr = arr * per_count
+    if arr.shape[0] != arr.shape[1]:
+        raise ValidationError(f"{path}: SLM phase: expected a square map, got {arr.shape[1]} x {arr.shape[0]}")
+    if arr.shape[0] != a:
+        from scipy.ndimage import map_coordinates
+
+        u = (np.arange(a) + 0.5) / a * arr.shape[0] - 0.5
+        yy, xx = np.meshgrid(u, u, indexing="ij")
+        arr = map_coordinates(arr, [yy, xx], order=1, mode="nearest")
+    return arr
+
+
+def _mean_frames(paths, shape, what, dark=None, hot=None):
+    acc = np.zeros(shape)
+    for p in paths:
+        f, _ = read_frame(p, what)
+        if f.shape != shape:
+            raise ValidationError(f"{p}: {what}: {f.shape[1]} x {f.shape[0]} pixels, the sensor has "
+                                  f"{shape[1]} x {shape[0]}")
+        acc += f
+    acc /= len(paths)
+    if dark is not None:
+        acc = acc - dark
+    if hot is not None:
+        acc = fix_hot_pixels(acc, hot)
+    return acc
+
+
+def import_captures(folder: str | Path, out: str | Path, calibration: str | Path, reference: str | Path,
+                    darks: list | None = None, options: ImportOptions = ImportOptions(), overwrite: bool = False,
+                    progress=None, log=lambda s: None) -> dict:
+    """Import a capture folder into a dataset at ``out`` (see the module docstring); returns a report."""
+    import zarr
+
+    from .. import __version__
+    from ..baselines.compare import device_of
+    from ..sensing.forward import sensor_frames
+    from .dataset import DATASET_FORMAT, _create_store, normalise_psf, open_dataset, split_labels
+
+    t0 = time.perf_counter()
+    folder, out = Path(folder), Path(out)
+    if options.saturated not in ("flag", "drop", "error"):
+        raise ValidationError(f"--saturated: expected flag, drop or error, got {options.saturated!r}")
+    if out.exists() and not overwrite:
+        raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
+    manifest = folder / "manifest.csv" if folder.is_dir() else folder
+    rows = read_manifest(manifest, ("sample", "frame_x", "frame_y", "slm_phase"))
+    names = [r["sample"] for r in rows]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValidationError(f"{manifest}: sample {dup!r} is listed twice")
+    flats = read_manifest(Path(calibration), ("frame_x", "frame_y"), "calibration list")
+    ref = device_of(reference)
+    ref_info = open_dataset(reference)
+    sensor, sc = ref["sensor"], ref["scenario"]
+    c0, a = ref["crop"]
+    shape = (sensor.height_px, sensor.width_px)
+    S = ref_info.tensor_size
+
+    # darks and hot pixels
+    dark = hot = None
+    if darks:
+        dark = _mean_frames([Path(p) for p in darks], shape, "dark frame")
+        hot = hot_pixel_map(dark, options.hot_sigma)
+    # calibration
+    flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot) for p in "xy"])
+    ref_frames = sensor_frames(ref["pupil"], sensor, None)
+    c_ref = spot_centroids(ref_frames, sensor, options.threshold)
+    al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
+    notes = [f"calibration: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
+        f"magnification x{al.scale:.4f}; spot residuals max {res.max():.2f} px"]
+    if res.max() > 2.0:
+        notes.append(f"warning: a spot is {res.max():.1f} px from the fitted transform (per-polarisation misalignment? "
+            "a wrong reference?)")
+
+    # splits
+    labels = {"train": 0, "val": 1, "test": 2}
+    if "split" in rows[0] and all((r.get("split") or "").strip() for r in rows):
+        bad = next((r for r in rows if r["split"].strip() not in labels), None)
+        if bad is not None:
+            raise ValidationError(f"{manifest}: sample {bad['sample']}: split {bad['split']!r} is not train, val or test")
+        split_all = np.array([labels[r["split"].strip()] for r in rows], np.uint8)
+    else:
+        split_all = split_labels(options.seed, len(rows), options.split)
+    rytov_all = []
+    for r in rows:
+        try:
+            v = float(r.get("rytov") or "nan")
+        except ValueError:
+            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov {r.get('rytov')!r} is not a number") from None
+        rytov_all.append(v)
+
+    # pass 1: every frame read, checked, converted (a failure writes nothing)
+    ap = _aperture(sc, c0, a)
+    kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
+    for j, r in enumerate(rows):
+        fr, sat = [], False
+        for p in "xy":
+            f, full = read_frame(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}")
+            if f.shape != shape:
+                raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
+                                      f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
+            level = options.saturation if options.saturation is not None else full
+            if level is not None:
+                s = f >= level
+                if hot is not None:
+                    s &= ~hot
+                sat |= bool(s.any())
+            if dark is not None:
+                f = f - dark
+            if hot is not None:
+                f = fix_hot_pixels(f, hot)
+            fr.append(f)
+        if sat:
+            if options.saturated == "error":
+                raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "
+                                      f"(--saturated error)")
+            flagged.append(r["sample"])
+            if options.saturated == "drop":
+                continue
+        phi = _phase(r["slm_phase"], a, options.phase_per_count)
+        t, outside = aligned_tensor(np.stack(fr), sensor, al, S)
+        outside_max = max(outside_max, outside)
+        x, pw = normalise_psf(t)
+        if not pw > 0:
+            raise ValidationError(f"{r['frame_x']}: sample {r['sample']}: no light after dark subtraction")
+        psf.append(x)
+        power.append(pw)
+        rec.append(np.where(ap, np.cos(phi) + 1j * np.sin(phi), 0).astype(np.complex64))
+        kept.append(j)
+        if progress:
+            progress(j + 1, len(rows))
+    if not kept:
+        raise ValidationError(f"{manifest}: every sample is saturated (--saturated drop left none)")
+    for line in notes:  # only once every input is known good (an error is one line)
+        log(line)
+
+    # pass 2: the store, written aside and renamed
+    n = len(kept)
+    split = split_all[kept]
+    rytov = np.array([rytov_all[j] for j in kept], np.float32)
+    msha = hashlib.sha256(manifest.read_bytes()).hexdigest()
+    calib = {"alignment": al.to_dict(), "fit": options.fit, "residuals_px": [float(v) for v in res],
+             "reference_centres_px": c_ref.tolist(), "measured_centres_px": c_meas.tolist(),
+             "flat_captures": len(flats), "dark_frames": len(darks or []),
+             "hot_pixels": int(hot.sum()) if hot is not None else None, "window_outside_frame_max": outside_max}
+    prov_ref = ref_info.attrs["provenance"]
+    parts = {"format": DATASET_FORMAT, "source": "captures", "manifest_sha256": msha, "calibration": calib,
+             "options": {k: getattr(options, k) for k in options.__dataclass_fields__}}
+    rhash = hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+    attrs = {
+        "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
+        "name": out.name, "samples": n, "shard_size": options.shard_size,
+        "n_shards": (n + options.shard_size - 1) // options.shard_size, "tensor_size": S, "root_seed": options.seed,
+        "split_fractions": [float(np.mean(split == v)) for v in range(3)],
+        "rytov": {"range": [float(np.nanmin(rytov)), float(np.nanmax(rytov))] if np.isfinite(rytov).any() else [0, 0],
+                  "values": None},
+        "propagation": "slm",
+        "provenance": {**parts, "captures": str(folder), "reference": str(reference),
+                       "scenario": prov_ref["scenario"], "sensor": prov_ref["sensor"],
+                       "pupil_grid": prov_ref.get("pupil_grid"), "layout_sha256": prov_ref.get("layout_sha256"),
+                       "library_sha256": prov_ref.get("library_sha256"), "perturbation": None,
+                       "saturated": flagged, "saturated_policy": options.saturated},
+        "received_crop": ref_info.attrs["received_crop"],
+        "normalisation": "psf: each sample's 8 channels sum to 8 (psf_power holds the raw total, dark-subtracted "
+                         "counts)",
+        "seeds": "captured data: no screens; the SLM phase is the receiver-plane screen (propagation = slm)",
+        "split_labels": {"0": "train", "1": "val", "2": "test"},
+    }
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _create_store(tmp, n, S, options.shard_size, a, attrs, split)
+        g = zarr.open_group(str(tmp), mode="r+")
+        g["psf"][:] = np.stack(psf)
+        g["received"][:] = np.stack(rec)
+        g["psf_power"][:] = np.array(power, np.float32)
+        g["rytov"][:] = np.nan_to_num(rytov, nan=0.0)
+        g["rytov_measured"][:] = np.nan_to_num(rytov, nan=0.0)
+        g["seed"][:] = np.arange(n, dtype=np.int64)
+        fl = g.create_array("flags", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=0,
+                            dimension_names=("sample",))
+        fl[:] = np.array([1 if rows[j]["sample"] in set(flagged) else 0 for j in kept], np.uint8)
+        nm = g.create_array("manifest_row", shape=(n,), chunks=(max(n, 1),), dtype="int64", fill_value=-1,
+                            dimension_names=("sample",))
+        nm[:] = np.array(kept, np.int64)  # row of the manifest
+        g.attrs.update({"complete": True})
+        from ..io import atomic_write_text
+
+        atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
+        _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    info = open_dataset(out)
+    return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(flagged),
+            "saturated_samples": flagged[:20], "saturated_policy": options.saturated, "calibration": calib,
+            "seconds": time.perf_counter() - t0, **info.summary()}
+
+
+def _aperture(sc, c0: int, a: int) -> np.ndarray:
+    from ..conventions import fft_centered
+
+    x = fft_centered(sc.n_grid, sc.dx)[c0:c0 + a]
+    return (x[None, :] ** 2 + x[:, None] ** 2) <= (sc.receiver_aperture / 2) ** 2
+
+
+def _plot_calibration(path: Path, flat, c_ref, c_meas, al, res) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_path
+
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4.6))
+    for p, ax in enumerate(axs):
+        ax.imshow(np.sqrt(np.clip(flat[p], 0, None)), cmap="gray")
+        sl = slice(4 * p, 4 * p + 4)
+        ax.plot(*c_ref[sl].T, "c+", ms=12, label="reference (model)")
+        ax.plot(*c_meas[sl].T, "rx", ms=10, label="measured")
+        fit = al.forward(c_ref[sl], flat.shape[-2:])
+        ax.plot(*fit.T, "yo", mfc="none", ms=12, label="fitted transform")
+        ax.set_title(f"flat capture, {'xy'[p]} polarisation (sqrt)")
+        ax.legend(loc="lower right", fontsize=7)
+    fig.suptitle(f"relay: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
+                 f"x{al.scale:.4f}; residual max {res.max():.2f} px")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)

@@ -1,0 +1,219 @@
+"""Captured frames: synthetic captures through a perturbed device on a misaligned camera (shot and read
+noise, dark offset, hot pixels, 16-bit PNG/TIFF) are imported; the calibration recovers the relay
+misalignment, the imported tensors match the nominal-geometry renders, the SLM propagation gives the
+numpy turbulence stage's NPiB, and bad inputs are one line, exit 2, nothing written."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+TRUE = dict(shift_x_px=3.4, shift_y_px=-2.2, rotation_deg=0.4, scale=1.008)
+
+
+def _perturbed_device(base, layout):
+    """The same layout as made by a process with +10 / -10 nm width bias (x / y) and 3 nm jitter: a tiny
+    dataset whose device pupil the synthetic captures render through (the reference model is nominal)."""
+    from conftest import tiny_dataset_recipe
+
+    from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe
+
+    rec = load_dataset_recipe(tiny_dataset_recipe(base, layout, samples=2, shard=2, extra=(
+        "\n[fabrication]\nbias_x_nm = 10\nbias_y_nm = -10\njitter_nm = 3\nseed = 1\n")))
+    build_dataset(rec, base / "device", workers=1)
+    return base / "device"
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory, tiny_dataset, demo_products):
+    from metadesign.sensing.captures import Alignment, CameraSpec, synth_captures
+
+    base = tmp_path_factory.mktemp("captures")
+    dev = _perturbed_device(base, demo_products["layout"])
+    cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
+    synth_captures(tiny_dataset, dev, base / "cap", Alignment(**TRUE), cam, samples=5, saturate=1, fmt="png", seed=2)
+    return {"cap": base / "cap", "device": dev, "ref": tiny_dataset, "base": base}
+
+
+def _render(dev_dataset, phases):
+    from metadesign.baselines.compare import device_of
+    from metadesign.reconstruction.dataset import normalise_psf
+    from metadesign.sensing.captures import slm_pupil_field
+    from metadesign.sensing.forward import sensor_frames
+    from metadesign.sensing.sensor import psf_tensor
+
+    dev = device_of(dev_dataset)
+    out = []
+    for phi in phases:
+        e = slm_pupil_field(phi, dev["geometry"], dev["pupil"].G.shape[-1])
+        out.append(normalise_psf(psf_tensor(sensor_frames(dev["pupil"], dev["sensor"], e), dev["sensor"]))[0])
+    return np.stack(out)
+
+
+def test_import_recovers_the_misalignment_and_the_tensors(captures, tmp_path):
+    from metadesign.reconstruction.captures import import_captures
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.sensing.captures import Alignment
+
+    cap = captures["cap"]
+    rep = import_captures(cap, tmp_path / "imp", cap / "flat.csv", captures["ref"], sorted((cap / "dark").glob("*")))
+    cal = rep["calibration"]
+    fitted = Alignment(**cal["alignment"])
+    true = Alignment(**TRUE)
+    shape = (512, 640)
+    pts = np.array([[0, 0], [639, 0], [0, 511], [639, 511], [160, 128], [480, 384]], float)
+    err = np.linalg.norm(fitted.forward(pts, shape) - true.forward(pts, shape), axis=1)
+    # within a pixel everywhere on the frame (the bias moves the spots a little: the reference is nominal;
+    # through the nominal device itself the fit is exact to 0.1 px, test_synthetic_captures_...)
+    assert err.max() < 1.0, (err, cal["alignment"])
+    assert cal["hot_pixels"] == 15
+    assert rep["saturated"] == 1 and rep["samples"] == 5  # flagged and kept
+    ds = PSFDataset(tmp_path / "imp", "all")
+    assert ds.info.attrs["propagation"] == "slm"
+    phases = [np.load(cap / "slm" / f"{j:06d}.npy") for j in range(4)]
+    got = np.stack([ds.get(j)["psf"] for j in range(4)])
+    want = _render(captures["device"], phases)
+    # compare where the camera saw the light: tensor pixels whose window lies wholly on the frame (the
+    # relay shifts ~3 px of each window off the frame; this small device spreads light to the edges)
+    from metadesign.baselines.compare import device_of
+    from metadesign.reconstruction.captures import aligned_tensor, read_frame
+    from metadesign.reconstruction.dataset import normalise_psf
+
+    sensor = device_of(captures["ref"])["sensor"]
+    ones = np.ones((2, 512, 640))
+    seen = aligned_tensor(ones, sensor, fitted, sensor.tensor_size)[0] > 0.999 * aligned_tensor(
+        ones, sensor, Alignment(), sensor.tensor_size)[0]
+    assert 0.9 < seen.mean() < 1.0
+
+    def rel_err(a, b):
+        a, b = a * seen, b * seen
+        a = a / a.sum(axis=(-3, -2, -1), keepdims=True)
+        b = b / b.sum(axis=(-3, -2, -1), keepdims=True)
+        return np.sqrt(((a - b) ** 2).sum(axis=(-3, -2, -1)) / (b**2).sum(axis=(-3, -2, -1)))
+
+    rel = rel_err(got, want)
+    assert rel.max() < 0.02, rel
+    # the same captures cropped at the nominal windows (no calibration) are measurably worse
+    dark = np.mean([read_frame(p)[0] for p in sorted((cap / "dark").glob("*"))], axis=0)
+    fr = np.stack([read_frame(cap / "frames" / f"000000-{p}.png")[0] - dark for p in "xy"])
+    raw = normalise_psf(aligned_tensor(fr, sensor, Alignment(), sensor.tensor_size)[0])[0]
+    assert rel_err(raw, want[0]) > 3 * rel[0]
+
+
+def test_slm_propagation_matches_the_numpy_turbulence_stage(captures, tmp_path):
+    """Through the SLM screen: the torch PiB of flat, half and full phase corrections equals the numpy
+    Turbulence.power_in_bucket of the receiver field vacuum x exp(i phi) (the point beacon through vacuum,
+    then the SLM); the full correction gives NPiB 1."""
+    from metadesign.reconstruction.captures import import_captures
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.losses import PiB
+    from metadesign.turbulence.propagate import Turbulence
+
+    cap = captures["cap"]
+    import_captures(cap, tmp_path / "imp", cap / "flat.csv", captures["ref"])
+    ds = PSFDataset(tmp_path / "imp", "all", screens=True, limit=2)
+    c0, a = ds.crop()
+    sc = ds.scenario()
+    pib = PiB(sc, c0, a, double=True)
+    tb = Turbulence(sc, check=False)
+    tb.active = np.ones(sc.n_screens, bool)
+    for j in range(2):
+        s = ds.get(j)
+        phi = np.where(np.abs(s["received"]) > 0, np.angle(s["received"]), 0.0)
+        full = np.zeros((sc.n_grid, sc.n_grid))
+        full[c0:c0 + a, c0:c0 + a] = phi
+        field = tb.vacuum * np.exp(1j * full)
+        scr = torch.from_numpy(s["screens"].astype(np.float64))[None]
+        for frac, mode in ((0.0, "none"), (0.5, "phase"), (1.0, "phase")):
+            got = float(pib.npib_phase(torch.from_numpy(frac * phi)[None], scr)[0])
+            f = tb.vacuum * np.exp(1j * frac * full) if frac < 1 else field
+            want = tb.power_in_bucket(f, mode, s["screens"])
+            assert got == pytest.approx(want, rel=1e-4), (j, frac, got, want)
+        assert got == pytest.approx(1.0, abs=1e-4)
+
+
+def _edit_manifest(src, dst, fn):
+    shutil.copytree(src, dst)
+    with open(dst / "manifest.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    rows = fn(rows)
+    with open(dst / "manifest.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return dst
+
+
+def _run(argv, capsys):
+    from metadesign.cli import main
+
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:
+        rc = exc.code
+    cap = capsys.readouterr()
+    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+
+
+def test_bad_captures_are_one_line_and_write_nothing(captures, tmp_path, capsys):
+    cap, ref = captures["cap"], captures["ref"]
+
+    def imp(folder, *extra):
+        out = tmp_path / "out"
+        rc, _, err = _run(["dataset", "import", folder, "-o", out, "--calibration", cap / "flat.csv",
+                           "--reference", ref, *extra], capsys)
+        assert rc == 2 and len(err) == 1 and err[0].startswith("metadesign: error:"), (rc, err)
+        assert not out.exists() and not list(tmp_path.glob("*.partial")), "files written on exit 2"
+        return err[0]
+
+    def drop_frame(rows):
+        rows[2]["frame_y"] = "frames/missing.png"
+        return rows
+
+    assert "no such file" in imp(_edit_manifest(cap, tmp_path / "a", drop_frame))
+    assert "listed twice" in imp(_edit_manifest(cap, tmp_path / "b", lambda r: r + [r[0]]))
+    c = _edit_manifest(cap, tmp_path / "c", lambda r: r)
+    from PIL import Image
+
+    Image.fromarray(np.zeros((100, 120), np.uint16)).save(c / "frames" / "000001-x.png")
+    assert "120 x 100 pixels, the sensor has 640 x 512" in imp(c)
+    assert "saturated" in imp(cap, "--saturated", "error")
+    (tmp_path / "empty").mkdir()
+    assert "manifest" in imp(tmp_path / "empty")
+    assert "split" in imp(_edit_manifest(cap, tmp_path / "d", lambda r: [{**x, "split": "holdout"} for x in r]))
+    # saturated samples dropped on request, and reported
+    rc, out, err = _run(["dataset", "import", cap, "-o", tmp_path / "ok", "--calibration", cap / "flat.csv",
+                         "--reference", ref, "--saturated", "drop", "--json"], capsys)
+    rep = json.loads(out)
+    assert rc == 0 and rep["samples"] == 4 and rep["saturated"] == 1 and rep["saturated_samples"] == ["000004"]
+
+
+def test_synthetic_captures_are_seeded_and_16_bit(captures, tmp_path):
+    """Same seed, same bytes; frames are uint16 with the dark offset, the over-exposed sample clips; through
+    the nominal device the calibration recovers the relay to 0.1 px."""
+    from metadesign.reconstruction.captures import import_captures, read_frame
+    from metadesign.sensing.captures import Alignment, CameraSpec, synth_captures
+
+    cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
+    for name in ("c1", "c2"):
+        synth_captures(captures["ref"], captures["ref"], tmp_path / name, Alignment(**TRUE), cam, samples=3,
+                       saturate=1, fmt="tiff", seed=2, flats=2, darks=1)
+    a, full = read_frame(tmp_path / "c1" / "frames" / "000000-x.tif")
+    b, _ = read_frame(tmp_path / "c2" / "frames" / "000000-x.tif")
+    assert full == 65535 and np.array_equal(a, b)
+    sat, _ = read_frame(tmp_path / "c1" / "frames" / "000002-x.tif")
+    assert sat.max() == 65535 and a.max() < 65535
+    d, _ = read_frame(tmp_path / "c1" / "dark" / "dark00.tif")
+    assert abs(np.median(d) - cam.dark_counts) <= 2
+    rep = import_captures(tmp_path / "c1", tmp_path / "imp", tmp_path / "c1" / "flat.csv", captures["ref"],
+                          [tmp_path / "c1" / "dark" / "dark00.tif"])
+    fitted, true = Alignment(**rep["calibration"]["alignment"]), Alignment(**TRUE)
+    pts = np.array([[0, 0], [639, 0], [0, 511], [639, 511]], float)
+    assert np.abs(fitted.forward(pts, (512, 640)) - true.forward(pts, (512, 640))).max() < 0.1
+
