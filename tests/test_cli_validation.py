@@ -64,6 +64,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("evaluate",): [str(REPO / "sensing" / "models" / "demo-unet.safetensors"), str(ds), "-o", str(out / "ev")],
         ("phasemap",): [lay, "-o", str(out / "pm")],
         ("tolerance",): [str(REPO / "sensing" / "tolerance-demo.toml"), "-o", str(out / "tol")],
+        ("transfer",): [str(REPO / "sensing" / "transfer-demo.toml"), "-o", str(out / "tr")],
         ("compare",): ["NONE", str(ds), "-o", str(out / "cmp")],
         ("retrieve",): ["NONE", str(ds), "-o", str(out / "ret")],
     }.get(cmd)
