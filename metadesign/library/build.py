@@ -73,6 +73,46 @@ def _solve_chunk(args) -> tuple[int, dict]:
     }
 
 
+def _solve_chunk_axes(args) -> tuple[int, dict]:
+    """Cells ``(wx, wy, height, sidewall_deg)``: a vertical pillar at 90 degrees (the library's own solver),
+    else a tapered one as ``slices`` slices."""
+    from dataclasses import replace
+
+    from .supercell import solve_tapered
+
+    key, cells, stack, settings, slices = args
+    res = []
+    for wx, wy, h, a in cells:
+        st = replace(stack, height=h)
+        res.append(solve_cell(wx, wy, st, settings) if a == 90.0 else solve_tapered(wx, wy, a, slices, st, settings))
+    return key, {
+        "jones": np.array([r.jones for r in res]),
+        "T0": np.array([r.T0 for r in res]),
+        "T_total": np.array([r.T_total for r in res]),
+        "R_total": np.array([r.R_total for r in res]),
+        "n_harmonics": np.array([r.n_harmonics for r in res]),
+    }
+
+
+def certify_slices(recipe: LibraryRecipe, pool=None) -> dict:
+    """Slice-count convergence of tapered pillars: the check cells at the smallest sidewall angle and the
+    tallest height, ``slices`` vs ``reference_slices``."""
+    fa = recipe.fab_axes
+    a, h = min(fa.sidewalls), max(fa.heights)
+    if a == 90.0:
+        return {"slices": fa.slices, "reference_slices": fa.reference_slices, "max_phase_change_rad": 0.0,
+                "angle_deg": a, "height_m": h, "passed": True, "note": "no tapered pillar in the sweep"}
+    cells = [(wx, wy, h, a) for wx, wy in recipe.check_cells]
+    jobs = [(0, cells, recipe.stack, recipe.settings, fa.slices), (1, cells, recipe.stack, recipe.settings,
+                                                                   fa.reference_slices)]
+    out = dict((pool.imap if pool is not None else map)(_solve_chunk_axes, jobs))
+    ja, jb = out[0]["jones"], out[1]["jones"]
+    d = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
+    return {"slices": fa.slices, "reference_slices": fa.reference_slices, "max_phase_change_rad": float(d.max()),
+            "max_T0_change": float(np.abs(out[0]["T0"] - out[1]["T0"]).max()), "angle_deg": a, "height_m": h,
+            "tolerance_rad": recipe.tolerance, "passed": bool(d.max() <= recipe.tolerance)}
+
+
 def _init_worker() -> None:  # spawned workers: one thread each (set before numpy loads in the child)
     for k in THREAD_ENV:
         os.environ[k] = "1"
@@ -166,6 +206,7 @@ def build_library(
     progress: Callable[[int, int], None] | None = None,
     log: Callable[[str], None] = lambda s: None,
     _stop_after_chunks: int | None = None,
+    scheduler: str | None = None,
 ) -> tuple[UnitCellLibrary, dict]:
     """Build (or resume) the library for ``recipe`` into ``output``.
 
@@ -179,13 +220,37 @@ def build_library(
     pool = _Pool(workers)  # one set of workers for the check and the sweep
     try:
         return _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log,
-                      _stop_after_chunks, t_start)
+                      _stop_after_chunks, t_start, scheduler)
     finally:
         pool.close()
 
 
+def _dask_map(fn, jobs, scheduler: str):
+    """Chunks on a Dask distributed scheduler (results as they finish, like the pool's imap_unordered)."""
+    from dask.distributed import Client, as_completed
+
+    try:
+        client = Client(scheduler, timeout="20s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
+                         f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+    try:
+        futures = [client.submit(_dask_chunk, fn, job, pure=False) for job in jobs]
+        for fut in as_completed(futures):
+            yield fut.result()
+    finally:
+        client.close()
+
+
+def _dask_chunk(fn, job):
+    from ..parallel import single_thread_env
+
+    single_thread_env()
+    return fn(job)
+
+
 def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log, _stop_after_chunks,
-           t_start):
+           t_start, scheduler=None):
     conv = certify_convergence(recipe, workers, pool)
     log(f"  max phase change {conv.max_phase_change_rad:.4f} rad "
         f"(tolerance {conv.tolerance_rad:g}), max T0 change {conv.max_T0_change:.2e}")
@@ -196,9 +261,23 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
             "raise solver.n_harmonics or pass --allow-unconverged"
         )
 
+    slice_conv = None
+    if recipe.fab_axes is not None:
+        slice_conv = certify_slices(recipe, pool)
+        log(f"  tapered pillars: {recipe.fab_axes.slices} vs {recipe.fab_axes.reference_slices} slices change the "
+            f"phase by {slice_conv['max_phase_change_rad']:.4f} rad")
+        if not slice_conv["passed"] and not allow_unconverged:
+            raise InputError(
+                f"slice convergence check failed: phase changes by {slice_conv['max_phase_change_rad']:.4f} rad "
+                f"between {recipe.fab_axes.slices} and {recipe.fab_axes.reference_slices} slices (tolerance "
+                f"{recipe.tolerance:g} rad); raise fab_axes.slices or pass --allow-unconverged")
     widths = recipe.widths
     n = len(widths)
     pairs = _unique_cells(widths)
+    axes = [(None, None)] if recipe.fab_axes is None else [
+        (ih, ia) for ih in range(len(recipe.fab_axes.heights)) for ia in range(len(recipe.fab_axes.sidewalls))]
+    if recipe.fab_axes is not None:
+        pairs = [(i, j, ih, ia) for ih, ia in axes for i, j in pairs]
     chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
     part_dir = output.parent / (output.name + ".partial")
     key = _build_key(recipe)
@@ -232,8 +311,16 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
     if progress:
         progress(n_done, n_cells_total)
     t_sweep = time.perf_counter()
-    jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings) for k in todo]
-    for count, (k, res) in enumerate(pool.imap(_solve_chunk, jobs), 1):
+    if recipe.fab_axes is None:
+        jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings) for k in todo]
+        fn = _solve_chunk
+    else:
+        fa = recipe.fab_axes
+        jobs = [(k, [(widths[i], widths[j], fa.heights[ih], fa.sidewalls[ia]) for i, j, ih, ia in chunks[k]],
+                 recipe.stack, recipe.settings, fa.slices) for k in todo]
+        fn = _solve_chunk_axes
+    results = pool.imap(fn, jobs) if scheduler is None else _dask_map(fn, jobs, scheduler)
+    for count, (k, res) in enumerate(results, 1):
         write_npz(part_dir / f"chunk-{k:05d}.npz", res)
         done[k] = res
         n_done += len(chunks[k])
@@ -243,21 +330,35 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
             raise KeyboardInterrupt("simulated kill")
     sweep_s = time.perf_counter() - t_sweep
 
-    jones = np.zeros((n, n, 2, 2), complex)
-    T0 = np.zeros((n, n, 2))
-    Tt = np.zeros((n, n, 2))
-    Rt = np.zeros((n, n, 2))
+    extra = () if recipe.fab_axes is None else (len(recipe.fab_axes.heights), len(recipe.fab_axes.sidewalls))
+    jones = np.zeros((n, n, *extra, 2, 2), complex)
+    T0 = np.zeros((n, n, *extra, 2))
+    Tt = np.zeros((n, n, *extra, 2))
+    Rt = np.zeros((n, n, *extra, 2))
     nG_actual = set()
     swap = [1, 0]
     for k, cells in enumerate(chunks):
         r = done[k]
         nG_actual.update(int(v) for v in r["n_harmonics"])
-        for c, (i, j) in enumerate(cells):
-            jones[i, j] = r["jones"][c]
-            T0[i, j], Tt[i, j], Rt[i, j] = r["T0"][c], r["T_total"][c], r["R_total"][c]
-            # mirror across the diagonal: t_x(wx, wy) = t_y(wy, wx), t_xy <-> t_yx
-            jones[j, i] = r["jones"][c][np.ix_(swap, swap)]
-            T0[j, i], Tt[j, i], Rt[j, i] = (r["T0"][c][swap], r["T_total"][c][swap], r["R_total"][c][swap])
+        for c, cell in enumerate(cells):
+            i, j = cell[:2]
+            ax = tuple(cell[2:])
+            jones[(i, j, *ax)] = r["jones"][c]
+            T0[(i, j, *ax)], Tt[(i, j, *ax)], Rt[(i, j, *ax)] = r["T0"][c], r["T_total"][c], r["R_total"][c]
+            # mirror across the diagonal: t_x(wx, wy) = t_y(wy, wx), t_xy <-> t_yx (a taper is the same on
+            # both axes, so this holds at every height and angle)
+            jones[(j, i, *ax)] = r["jones"][c][np.ix_(swap, swap)]
+            T0[(j, i, *ax)], Tt[(j, i, *ax)], Rt[(j, i, *ax)] = (r["T0"][c][swap], r["T_total"][c][swap],
+                                                               r["R_total"][c][swap])
+    fab = None
+    if recipe.fab_axes is not None:
+        fa = recipe.fab_axes
+        fab = {"heights": np.array(fa.heights), "sidewalls": np.array(fa.sidewalls), "jones": jones, "T0": T0,
+               "T_total": Tt, "R_total": Rt}
+        ih = int(np.argmin(np.abs(np.array(fa.heights) - recipe.stack.height)))
+        ia = fa.sidewalls.index(90.0)
+        # the main arrays hold the nominal slice (stack height, vertical walls): every 2-D consumer is unchanged
+        jones, T0, Tt, Rt = (a[:, :, ih, ia] for a in (jones, T0, Tt, Rt))
     st = recipe.stack
     meta = {
         "version": __version__,
@@ -286,7 +387,12 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
         },
         "symmetry_used": "t_x(wx, wy) = t_y(wy, wx)",
     }
-    lib = UnitCellLibrary(widths.copy(), widths.copy(), jones, T0, Tt, Rt, meta)
+    if fab is not None:
+        meta["fab_axes"] = {**recipe.fab_axes.to_dict(), "slice_convergence": slice_conv,
+                            "taper": "width at mid-height = the nominal width; w(z) = w + 2 (h/2 - z) cot(angle); "
+                                     "slices of equal thickness at their own mid-height width",
+                            "nominal_slice": "the main arrays = height_um == stack height, sidewall 90 deg"}
+    lib = UnitCellLibrary(widths.copy(), widths.copy(), jones, T0, Tt, Rt, meta, fab=fab)
     save_library(output, lib)
     shutil.rmtree(part_dir, ignore_errors=True)
     report = {
@@ -298,4 +404,6 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
         "workers": workers,
         "convergence": conv.to_dict(),
     }
+    if slice_conv is not None:
+        report["slice_convergence"] = slice_conv
     return lib, report

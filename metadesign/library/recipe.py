@@ -10,7 +10,7 @@ import numpy as np
 from ..config import ConfigError, Param, Section, load_toml, parse
 from .rcwa import Factorization, SolverSettings, Stack, Truncation
 
-__all__ = ["LibraryRecipe", "load_recipe", "SECTIONS"]
+__all__ = ["LibraryRecipe", "FabAxes", "load_recipe", "SECTIONS"]
 
 SECTIONS = (
     Section(
@@ -59,7 +59,32 @@ SECTIONS = (
         ),
         optional=True,
     ),
+    Section(
+        "fab_axes",
+        (
+            Param("heights_um", list, None, lo=0, open_lo=True, hi=100,
+                  help="pillar heights of the sweep (must include the stack's height)"),
+            Param("sidewall_deg", list, [90.0], lo=60, hi=90, help="sidewall angles (must include 90)"),
+            Param("slices", int, 8, lo=1, hi=200, help="slices of a tapered pillar"),
+            Param("reference_slices", int, 24, lo=2, hi=1000, help="slice count of the convergence reference"),
+        ),
+        optional=True,
+    ),
 )
+
+
+@dataclass(frozen=True)
+class FabAxes:
+    """Optional height and sidewall-angle axes of a library (SI: m, degrees)."""
+
+    heights: tuple[float, ...]
+    sidewalls: tuple[float, ...]
+    slices: int
+    reference_slices: int
+
+    def to_dict(self) -> dict:
+        return {"heights_um": [h * 1e6 for h in self.heights], "sidewall_deg": list(self.sidewalls),
+                "slices": self.slices, "reference_slices": self.reference_slices}
 
 
 @dataclass(frozen=True)
@@ -71,10 +96,11 @@ class LibraryRecipe:
     tolerance: float  # rad
     reference_n_harmonics: int
     check_cells: tuple[tuple[float, float], ...]  # (wx, wy) in m
+    fab_axes: FabAxes | None = None  # optional height / sidewall axes (None: the 2-D library)
 
     def to_dict(self) -> dict:
         s = self.stack
-        return {
+        d = {
             "name": self.name,
             "stack": {
                 "wavelength_nm": s.wavelength * 1e9,
@@ -103,11 +129,15 @@ class LibraryRecipe:
                 "check_cells_um": [[wx * 1e6, wy * 1e6] for wx, wy in self.check_cells],
             },
         }
+        if self.fab_axes is not None:  # absent for 2-D libraries: their recipe record (and bytes) are unchanged
+            d["fab_axes"] = self.fab_axes.to_dict()
+        return d
 
 
 def recipe_from_dict(data: dict, name: str = "recipe", source: str = "recipe") -> LibraryRecipe:
     v = parse(data, SECTIONS, source)
     st, sw, so, cv = v["stack"], v["sweep"], v["solver"], v["convergence"]
+    fa = v.get("fab_axes") if "fab_axes" in data else None
     stack = Stack(
         wavelength=st["wavelength_nm"],
         period=st["period_um"],
@@ -143,6 +173,26 @@ def recipe_from_dict(data: dict, name: str = "recipe", source: str = "recipe") -
         factorization=Factorization(so["factorization"]),
         use_symmetry=so["use_symmetry"],
     )
+    axes = None
+    if fa is not None:
+        if not fa["heights_um"]:
+            raise ConfigError("fab_axes.heights_um", "missing; expected a list of pillar heights (um)")
+        hs = sorted(float(h) for h in fa["heights_um"])
+        if not any(abs(h - stack.height) < 1e-12 for h in hs):
+            raise ConfigError("fab_axes.heights_um", f"must include the stack's height ({stack.height * 1e6:g} um)")
+        angs = sorted(float(a) for a in fa["sidewall_deg"])
+        if 90.0 not in angs:
+            raise ConfigError("fab_axes.sidewall_deg", "must include 90 (the vertical pillar)")
+        if len(set(hs)) != len(hs) or len(set(angs)) != len(angs):
+            raise ConfigError("fab_axes", "heights and sidewall angles must be distinct")
+        if fa["reference_slices"] <= fa["slices"]:
+            raise ConfigError("fab_axes.reference_slices", f"must exceed fab_axes.slices ({fa['slices']})")
+        # the widest pillar, tapered to the smallest angle at the tallest height, must stay inside the period
+        grow = max(hs) / np.tan(np.deg2rad(min(angs)))
+        if widths[-1] + grow >= stack.period or widths[0] - grow <= 0:
+            raise ConfigError("fab_axes.sidewall_deg", f"a {min(angs):g} deg wall over {max(hs) * 1e6:g} um changes "
+                              f"the width by +-{grow * 1e9:.0f} nm: the sweep's pillars leave (0, period)")
+        axes = FabAxes(tuple(hs), tuple(angs), fa["slices"], fa["reference_slices"])
     return LibraryRecipe(
         name=name,
         stack=stack,
@@ -151,6 +201,7 @@ def recipe_from_dict(data: dict, name: str = "recipe", source: str = "recipe") -
         tolerance=cv["tolerance_rad"],
         reference_n_harmonics=cv["reference_n_harmonics"],
         check_cells=tuple(cv["check_cells_um"]),
+        fab_axes=axes,
     )
 
 

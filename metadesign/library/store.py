@@ -34,6 +34,9 @@ class UnitCellLibrary:
     R_total: np.ndarray
     meta: dict = field(default_factory=dict)
     identity: str = ""  # sha256 of the file it was loaded from
+    #: optional height / sidewall axes: {"heights" (nh,) m, "sidewalls" (na,) deg, "jones" (nx, ny, nh, na, 2, 2),
+    #: "T0", "T_total", "R_total" (nx, ny, nh, na, 2)}; the main arrays are its nominal slice
+    fab: dict | None = None
 
     @property
     def t_x(self) -> np.ndarray:
@@ -100,18 +103,25 @@ def coverage_fraction(lib: UnitCellLibrary, threshold: float = 0.7, bins: int = 
 def save_library(path: str | Path, lib: UnitCellLibrary) -> None:
     meta = dict(lib.meta)
     meta["format"] = FORMAT
-    write_npz(
-        path,
-        {
-            "wx_m": lib.wx.astype(np.float64),
-            "wy_m": lib.wy.astype(np.float64),
-            "jones": lib.jones.astype(np.complex128),
-            "T0": lib.T0.astype(np.float64),
-            "T_total": lib.T_total.astype(np.float64),
-            "R_total": lib.R_total.astype(np.float64),
-            "meta": json_array(meta),
-        },
-    )
+    arrays = {
+        "wx_m": lib.wx.astype(np.float64),
+        "wy_m": lib.wy.astype(np.float64),
+        "jones": lib.jones.astype(np.complex128),
+        "T0": lib.T0.astype(np.float64),
+        "T_total": lib.T_total.astype(np.float64),
+        "R_total": lib.R_total.astype(np.float64),
+        "meta": json_array(meta),
+    }
+    if lib.fab is not None:  # 2-D libraries: no extra arrays, the same bytes as before the axes existed
+        arrays.update({
+            "fab_height_m": np.asarray(lib.fab["heights"], np.float64),
+            "fab_sidewall_deg": np.asarray(lib.fab["sidewalls"], np.float64),
+            "fab_jones": np.asarray(lib.fab["jones"], np.complex128),
+            "fab_T0": np.asarray(lib.fab["T0"], np.float64),
+            "fab_T_total": np.asarray(lib.fab["T_total"], np.float64),
+            "fab_R_total": np.asarray(lib.fab["R_total"], np.float64),
+        })
+    write_npz(path, arrays)
 
 
 def load_library(path: str | Path) -> UnitCellLibrary:
@@ -135,8 +145,21 @@ def load_library(path: str | Path) -> UnitCellLibrary:
             raise InputError(f"{path}: efficiency {k} outside [0, 1] (max {a.max():.6g}, min {a.min():.6g})")
     if np.any(z["T0"] > z["T_total"] + EFFICIENCY_TOL):
         raise InputError(f"{path}: 0th-order efficiency exceeds total efficiency")
+    fab = None
+    if "fab_jones" in z:
+        nh, na = len(z.get("fab_height_m", ())), len(z.get("fab_sidewall_deg", ()))
+        want = {"fab_jones": (nx, ny, nh, na, 2, 2), "fab_T0": (nx, ny, nh, na, 2), "fab_T_total": (nx, ny, nh, na, 2),
+                "fab_R_total": (nx, ny, nh, na, 2)}
+        for k, shp in want.items():
+            if k not in z or z[k].shape != shp or not np.all(np.isfinite(z[k])):
+                raise InputError(f"{path}: fab-axes array {k} missing, non-finite or not of shape {shp}")
+        h, a = z["fab_height_m"], z["fab_sidewall_deg"]
+        if nh < 1 or na < 1 or np.any(np.diff(h) <= 0) or np.any(np.diff(a) <= 0):
+            raise InputError(f"{path}: fab axes must be strictly increasing")
+        fab = {"heights": h, "sidewalls": a, "jones": z["fab_jones"], "T0": z["fab_T0"], "T_total": z["fab_T_total"],
+               "R_total": z["fab_R_total"]}
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    return UnitCellLibrary(wx, wy, z["jones"], z["T0"], z["T_total"], z["R_total"], meta, digest)
+    return UnitCellLibrary(wx, wy, z["jones"], z["T0"], z["T_total"], z["R_total"], meta, digest, fab)
 
 
 def export_csv(lib: UnitCellLibrary, out: str | Path) -> int:

@@ -9,7 +9,11 @@ each pillar's widths before the look-up:
 * ``jitter`` (nm, Gaussian sigma, independent per pillar and axis, seeded);
 * ``corner_radius`` (nm): rounded corners replaced by the rectangle of equal
   area and equal aspect ratio (an approximation: the rounded pillar's modes
-  are not exactly those of that rectangle).
+  are not exactly those of that rectangle);
+* ``height`` (etch depth error, nm) and ``sidewall_deg`` (wall angle), global, each with an optional
+  linear across-wafer gradient along x (``*_gradient``: the change at the aperture's +x edge, the
+  opposite at the -x edge).  These need a library built with height / sidewall axes
+  (``[fab_axes]``): the look-up is then multilinear in (wx, wy, height, angle).
 
 Pillars pushed outside the library's width range are clamped to it and
 *counted* (reported by the callers), never silently.
@@ -24,7 +28,7 @@ import numpy as np
 from ..library.store import UnitCellLibrary
 from ..validation import check_int, check_number
 
-__all__ = ["Perturbation", "interpolate_t", "perturb_widths", "pillar_transmission"]
+__all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +38,10 @@ class Perturbation:
     jitter: float = 0.0  # m (sigma)
     corner_radius: float = 0.0  # m
     seed: int = 0
+    height: float = 0.0  # m: etch depth error (pillar height - nominal)
+    sidewall_deg: float = 90.0  # wall angle (90: vertical)
+    height_gradient: float = 0.0  # m: extra height error at the aperture's +x edge (linear in x)
+    sidewall_gradient_deg: float = 0.0  # extra wall angle at the +x edge
 
     def __post_init__(self) -> None:
         for name in ("bias_x", "bias_y"):
@@ -41,14 +49,27 @@ class Perturbation:
         check_number("perturbation.jitter", self.jitter, 0, 100e-9, unit="m")
         check_number("perturbation.corner_radius", self.corner_radius, 0, 500e-9, unit="m")
         check_int("perturbation.seed", self.seed, 0, 2**63 - 1)
+        check_number("perturbation.height", self.height, -500e-9, 500e-9, unit="m")
+        check_number("perturbation.sidewall_deg", self.sidewall_deg, 60, 90)
+        check_number("perturbation.height_gradient", self.height_gradient, -500e-9, 500e-9, unit="m")
+        check_number("perturbation.sidewall_gradient_deg", self.sidewall_gradient_deg, -30, 30)
+
+    @property
+    def has_fab_axes(self) -> bool:
+        return bool(self.height or self.sidewall_deg != 90.0 or self.height_gradient or self.sidewall_gradient_deg)
 
     def to_dict(self) -> dict:
-        return {"bias_x_nm": self.bias_x * 1e9, "bias_y_nm": self.bias_y * 1e9, "jitter_nm": self.jitter * 1e9,
-                "corner_radius_nm": self.corner_radius * 1e9, "seed": self.seed}
+        d = {"bias_x_nm": self.bias_x * 1e9, "bias_y_nm": self.bias_y * 1e9, "jitter_nm": self.jitter * 1e9,
+             "corner_radius_nm": self.corner_radius * 1e9, "seed": self.seed}
+        if self.has_fab_axes:  # absent when unused: records (and the hashes made of them) are unchanged
+            d.update({"height_nm": self.height * 1e9, "sidewall_deg": self.sidewall_deg,
+                      "height_gradient_nm": self.height_gradient * 1e9,
+                      "sidewall_gradient_deg": self.sidewall_gradient_deg})
+        return d
 
     @property
     def is_null(self) -> bool:
-        return not (self.bias_x or self.bias_y or self.jitter or self.corner_radius)
+        return not (self.bias_x or self.bias_y or self.jitter or self.corner_radius or self.has_fab_axes)
 
 
 def perturb_widths(wx: np.ndarray, wy: np.ndarray, pert: Perturbation,
@@ -88,6 +109,59 @@ def interpolate_t(lib: UnitCellLibrary, wx: np.ndarray, wy: np.ndarray):
     return t.astype(np.complex64), T0.astype(np.float32), int(out.sum())
 
 
+def interpolate_t_fab(lib: UnitCellLibrary, wx, wy, height, angle):
+    """Multilinear complex interpolation of ``(t_x, t_y)`` in (wx, wy, height, sidewall angle) of a library
+    with fab axes; arguments broadcast.  Returns ``(t (..., 2) complex64, n_clamped)`` (pillars outside any
+    axis are clamped to it and counted)."""
+    fab = lib.fab
+    if fab is None:
+        from ..validation import ValidationError
+
+        raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
+                              "[fab_axes] section: heights_um, sidewall_deg)")
+    wx, wy, height, angle = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (wx, wy, height, angle)))
+    grids = (lib.wx, lib.wy, np.asarray(fab["heights"]), np.asarray(fab["sidewalls"]))
+    out = np.zeros(wx.shape, bool)
+    idx, frac = [], []
+    for v, g in zip((wx, wy, height, angle), grids):
+        tol = 1e-12 if g is lib.wx or g is lib.wy else 1e-9
+        out |= (v < g[0] - tol * max(1.0, abs(g[0]))) | (v > g[-1] + tol * max(1.0, abs(g[-1])))
+        if len(g) == 1:
+            idx.append(np.zeros(v.shape, np.int64))
+            frac.append(np.zeros(v.shape))
+            continue
+        f = np.interp(v, g, np.arange(len(g)))
+        i0 = np.minimum(np.floor(f).astype(np.int64), len(g) - 2)
+        idx.append(i0)
+        frac.append(f - i0)
+    tab = np.stack([fab["jones"][..., 0, 0], fab["jones"][..., 1, 1]], axis=-1)  # (nx, ny, nh, na, 2)
+    t = np.zeros((*wx.shape, 2), complex)
+    for corner in range(16):
+        bits = [(corner >> k) & 1 for k in range(4)]
+        w = np.ones(wx.shape)
+        ii = []
+        for b, i0, f, g in zip(bits, idx, frac, grids):
+            if len(g) == 1 and b:
+                w = w * 0.0
+                ii.append(i0)
+                continue
+            w = w * (f if b else 1 - f)
+            ii.append(i0 + b if len(g) > 1 else i0)
+        if not w.any():
+            continue
+        t += w[..., None] * tab[ii[0], ii[1], ii[2], ii[3]]
+    return t.astype(np.complex64), int(out.sum())
+
+
+def _fab_axes_of(pert: Perturbation, lib: UnitCellLibrary, shape: tuple[int, int], cols: int):
+    """Per-pillar height (m) and wall angle (deg) of rows of ``shape`` (gradients linear in the column)."""
+    h0 = float(lib.meta["stack"]["height_m"]) + pert.height
+    u = (np.arange(shape[1]) - (cols - 1) / 2) / (cols / 2)  # -1 .. +1 across the aperture
+    h = h0 + pert.height_gradient * u
+    a = pert.sidewall_deg + pert.sidewall_gradient_deg * u
+    return np.broadcast_to(h[None, :], shape), np.broadcast_to(np.minimum(a, 90.0)[None, :], shape)
+
+
 def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: UnitCellLibrary,
                         pert: Perturbation = Perturbation(), rows: slice | None = None,
                         rng: np.random.Generator | None = None):
@@ -95,6 +169,8 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     (``-1`` = no pillar: the bare stack's ``t``), perturbed.  Without jitter the
     look-up is done once per atom.  Returns ``(t, n_clamped)``."""
     im = index_map if rows is None else index_map[rows]
+    if pert.has_fab_axes:
+        return _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng)
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]
     bare = np.complex64(2 * n_sub / (n_sub + n_sup))
@@ -116,4 +192,19 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng)
     t, _, clamped = interpolate_t(lib, np.where(has, wx, lib.wx[0]), np.where(has, wy, lib.wy[0]))
     t[~has] = bare
+    return t, clamped
+
+
+def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng):
+    """The look-up with height / sidewall perturbations (per pillar: gradients make every pillar its own)."""
+    n_sub = lib.meta["stack"]["n_substrate"]
+    n_sup = lib.meta["stack"]["n_superstrate"]
+    bare = np.complex64(2 * n_sub / (n_sub + n_sup))
+    w = np.asarray(atom_widths_nm, np.float64) * 1e-9
+    has = im >= 0
+    k = np.where(has, im, 0)
+    wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
+    h, a = _fab_axes_of(pert, lib, im.shape, cols)
+    t = np.full((*im.shape, 2), bare, np.complex64)
+    t[has], clamped = interpolate_t_fab(lib, wx[has], wy[has], h[has], a[has])
     return t, clamped

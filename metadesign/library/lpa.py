@@ -1,0 +1,241 @@
+"""The local-periodic approximation's error on a real design, measured with supercell RCWA.
+
+The as-fabricated model looks every pillar up in a library of infinite arrays of identical pillars (the
+LPA) and the sensor sees the supercell-averaged field: for a 2 x 2 supercell (period ``2 p < lambda``,
+only the 0th order propagates in air) the LPA predicts the 0th-order transmission ``mean(t_1..t_4)``.
+:func:`lpa_check` samples supercells of a layout at random (seeded) inside its clear aperture, solves each
+full supercell (four different pillars, both polarisations; :func:`metadesign.library.supercell.
+solve_supercell`) and compares.  The LPA reference is computed twice: with unit cells solved at the
+supercell's own truncation (the even harmonics of the supercell's set: the pure LPA error) and from the
+library (what the as-fabricated model uses: the LPA error plus the library's truncation and interpolation).
+
+The complex relative error ``eps = t_supercell / t_LPA - 1`` (per polarisation) is reported as magnitude
+and phase distributions, and against the supercell's width contrast (the RMS deviation of its four
+widths along the polarisation).  Downstream (:func:`perturbed_pupil`): each coarse-pupil block of the
+device gets a factor ``1 + eps``, drawn from the measured errors under two bounding models,
+``independent`` (every supercell its own draw: a block averages hundreds, so only the mean error
+survives) and ``correlated`` (one draw per block: neighbouring supercells err alike), and the channel
+metrics (focusing efficiency, Strehl, crosstalk) and the NPiB of a model are compared with the nominal."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .rcwa import SolverSettings, Stack, Truncation, solve_cell
+from .supercell import solve_supercell
+
+__all__ = ["lpa_check", "matched_unit_harmonics", "sample_supercells", "perturbed_pupil", "lpa_downstream"]
+
+
+def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
+    """Requested harmonic counts ``(supercell, unit cell)`` whose sets match: the unit cell's harmonics are
+    the supercell's even ones, halved (circular truncation of the same radius in reciprocal space).  grcwa
+    keeps the whole shells below the first incomplete one, so a count that ends exactly on a shell loses
+    it: the requests returned are one more than the set sizes."""
+    import grcwa
+
+    def gset(n, L):
+        o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
+        o.Add_LayerUniform(0.0, 1.0)
+        o.Init_Setup(Gmethod=0)
+        return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
+
+    s, ns = gset(n_super, 2 * stack.period)
+    even = {(a // 2, b // 2) for a, b in s if a % 2 == 0 and b % 2 == 0}
+    u, nu = gset(len(even) + 1, stack.period)  # grcwa keeps whole shells below the first incomplete one
+    if u != even:
+        raise RuntimeError(f"no unit-cell truncation matches the supercell's even harmonics (nG {ns})")
+    return ns + 1, nu + 1
+
+
+def sample_supercells(index_map: np.ndarray, n: int, seed: int, mask: np.ndarray | None = None) -> np.ndarray:
+    """(n, 2) supercell indices (row I, column J: pillars rows 2I..2I+1, cols 2J..2J+1) drawn at random
+    among supercells whose four pillars exist (and lie in ``mask``, (rows/2, cols/2) bool)."""
+    H, W = index_map.shape[0] // 2, index_map.shape[1] // 2
+    rng = np.random.default_rng(seed)
+    out: list = []
+    tries = 0
+    while len(out) < n:
+        tries += 1
+        if tries > 1000 * n:
+            raise ValueError("could not find enough supercells with four pillars")
+        I, J = int(rng.integers(H)), int(rng.integers(W))
+        if mask is not None and not mask[I, J]:
+            continue
+        if (index_map[2 * I:2 * I + 2, 2 * J:2 * J + 2] >= 0).all() and (I, J) not in out:
+            out.append((I, J))
+    return np.array(out, np.int64)
+
+
+def _solve_one(args):
+    widths, stack, n_super, n_unit = args
+    sc = solve_supercell(widths, stack, n_super)
+    units = [solve_cell(wx, wy, stack, SolverSettings(n_unit)) for wx, wy in np.asarray(widths).reshape(4, 2)]
+    return sc, units
+
+
+def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 32, n_super: int = 800,
+              seed: int = 0, workers: int = 1, check: int = 2, mask: np.ndarray | None = None,
+              progress: Callable[[int, int], None] | None = None) -> dict:
+    """Measured LPA error on ``n`` random supercells; ``check`` of them are re-solved at 1.5x the harmonics
+    (the certification of the supercell truncation)."""
+    from ..parallel import spawn_pool
+    from ..sensing.transmission import interpolate_t
+    from .build import _init_worker
+
+    st = lib.meta["stack"]
+    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
+                  st["n_superstrate"])
+    ns, nu = matched_unit_harmonics(n_super, stack)
+    cells = sample_supercells(index_map, n, seed, mask)
+    widths = np.array([[[atom_widths_nm[index_map[2 * I + r, 2 * J + c]] * 1e-9 for c in range(2)] for r in range(2)]
+                       for I, J in cells])  # (n, 2, 2, 2): [r][c] = (wx, wy)
+    jobs = [(w, stack, ns, nu) for w in widths]
+    t0 = time.perf_counter()
+    pool = spawn_pool(workers, _init_worker) if workers > 1 else None
+    try:
+        it = pool.imap(_solve_one, jobs) if pool else map(_solve_one, jobs)
+        res = []
+        for k, r in enumerate(it):
+            res.append(r)
+            if progress:
+                progress(k + 1, n + check)
+        ns2, _ = matched_unit_harmonics(int(1.5 * n_super), stack)
+        conv_jobs = [(w, stack, ns2, nu) for w in widths[:check]]
+        conv = []
+        it2 = pool.imap(_solve_one, conv_jobs) if pool else map(_solve_one, conv_jobs)
+        for k, r in enumerate(it2):
+            conv.append(r[0])
+            if progress:
+                progress(n + k + 1, n + check)
+    finally:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+    seconds = time.perf_counter() - t0
+    t_sc = np.array([r[0].jones[[0, 1], [0, 1]] for r in res])  # (n, 2)
+    t_units = np.array([[u.jones[[0, 1], [0, 1]] for u in r[1]] for r in res])  # (n, 4, 2)
+    t_lib, _, _ = interpolate_t(lib, widths[..., 0].reshape(n, 4), widths[..., 1].reshape(n, 4))
+    lpa = t_units.mean(axis=1)
+    lpa_lib = t_lib.astype(complex).mean(axis=1)
+    eps = t_sc / lpa - 1
+    eps_lib = t_sc / lpa_lib - 1
+    contrast = np.stack([widths[..., 0].reshape(n, 4).std(axis=1), widths[..., 1].reshape(n, 4).std(axis=1)], 1)
+    # the four pillars' spread in the complex plane (the LPA's own measure of 'how different')
+    spread = np.abs(t_units - lpa[:, None, :]).mean(axis=1) / np.abs(lpa)
+    t_conv = np.array([c.jones[[0, 1], [0, 1]] for c in conv])
+    conv_err = np.abs(t_conv / t_sc[:check] - 1) if check else np.zeros((0, 2))
+
+    unit_rms = np.sqrt((np.abs(t_units) ** 2).mean(axis=1))  # (n, 2): the pillars' own transmission scale
+
+    def stats(e):
+        mag, ph = np.abs(e), np.angle(1 + e)
+        dev = np.abs(e) * np.abs(t_sc / (1 + e)) / unit_rms  # |t_sc - t_LPA| / rms |t_i|
+        return {"abs_error_over_unit_rms_mean": dev.mean(0).tolist(),
+                "abs_error_over_unit_rms_median": np.median(dev, 0).tolist(),"rel_magnitude_mean": mag.mean(0).tolist(), "rel_magnitude_median": np.median(mag, 0).tolist(),
+                "rel_magnitude_p90": np.percentile(mag, 90, 0).tolist(), "rel_magnitude_max": mag.max(0).tolist(),
+                "phase_rms_rad": np.sqrt((ph**2).mean(0)).tolist(), "phase_mean_rad": ph.mean(0).tolist(),
+                "amplitude_ratio_mean": np.abs(1 + e).mean(0).tolist(),
+                "mean_complex": [[float(v.real), float(v.imag)] for v in e.mean(0)]}
+
+    def corr(a, b):
+        return [float(np.corrcoef(a[:, p], b[:, p])[0, 1]) if np.std(a[:, p]) > 0 and np.std(b[:, p]) > 0 else None
+                for p in range(2)]
+
+    return {
+        "supercells": n, "seed": seed, "n_harmonics_supercell": int(res[0][0].n_harmonics),
+        "n_harmonics_unit": int(res[0][1][0].n_harmonics), "n_harmonics_check": int(conv[0].n_harmonics) if check else None, "library_n_harmonics": lib.meta.get("solver", {}).get("n_harmonics"),
+        "convergence_rel_change_max": conv_err.max(0).tolist() if check else None,
+        "seconds": seconds, "workers": workers,
+        "lpa": stats(eps), "lpa_library": stats(eps_lib),
+        "corr_error_vs_width_contrast": corr(np.abs(eps), contrast),
+        "corr_error_vs_t_spread": corr(np.abs(eps), spread),
+        "rows": [{"I": int(I), "J": int(J), "widths_nm": (widths[k] * 1e9).round(3).tolist(),
+                  "t_supercell": [[float(v.real), float(v.imag)] for v in t_sc[k]],
+                  "t_lpa": [[float(v.real), float(v.imag)] for v in lpa[k]],
+                  "t_lpa_library": [[float(v.real), float(v.imag)] for v in lpa_lib[k]],
+                  "eps": [[float(v.real), float(v.imag)] for v in eps[k]],
+                  "width_contrast_nm": (contrast[k] * 1e9).tolist(), "t_spread": spread[k].tolist()}
+                 for k, (I, J) in enumerate(cells)],
+        "_eps": eps, "_contrast": contrast, "_spread": spread,
+    }
+
+
+def perturbed_pupil(cp, eps: np.ndarray, model: str, seed: int = 0, supercells_per_block: int | None = None):
+    """A copy of the coarse pupil with a factor ``1 + e`` per block and polarisation (all four channels of a
+    block share it), ``e`` drawn from the measured ``eps`` (n, 2): ``correlated``: one measured error per
+    block; ``independent``: the mean of ``supercells_per_block`` draws per block."""
+    from .. sensing.forward import CoarsePupil
+
+    rng = np.random.default_rng(seed)
+    N = cp.G.shape[-1]
+    if model == "correlated":
+        idx = rng.integers(len(eps), size=(N, N))
+        f = 1 + eps[idx]  # (N, N, 2)
+    elif model == "independent":
+        m = int(supercells_per_block or 1)
+        # the mean of m draws: the measured mean plus a random part shrunk by sqrt(m) (CLT)
+        mu = eps.mean(0)
+        idx = rng.integers(len(eps), size=(N, N))
+        f = 1 + mu + (eps[idx] - mu) / np.sqrt(m)
+    else:
+        raise ValueError(model)
+    G = cp.G * np.moveaxis(f, -1, 0)[:, None].astype(np.complex64)
+    return CoarsePupil(G.astype(np.complex64), cp.X, cp.block, cp.period, cp.wavelength, cp.z, cp.n_clamped)
+
+
+def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
+                   seed: int = 0, log=lambda s: None) -> dict:
+    """Channel metrics and the model's NPiB with the device pupil of ``dataset`` (nominal LPA) and with the
+    measured LPA error applied (both bounding models); the test samples are re-rendered from their received
+    fields through each pupil (same path, same noise draws) and corrected through their own screens."""
+    import torch
+
+    from ..baselines.compare import device_of
+    from ..reconstruction.data import PSFDataset, apply_noise
+    from ..reconstruction.dataset import normalise_psf
+    from ..reconstruction.losses import PiB
+    from ..reconstruction.model import load_model
+    from ..sensing.forward import sensor_frames
+    from ..sensing.model import channel_metrics
+    from ..sensing.sensor import psf_tensor
+    from ..sensing.twin import crop_to_pupil
+
+    dev = device_of(dataset)
+    cp, sensor, geom = dev["pupil"], dev["sensor"], dev["geometry"]
+    c0, a, ng, dx, d2 = geom
+    per_block = max(1, (cp.block // 2) ** 2)
+    pupils = {"nominal": cp,
+              "independent": perturbed_pupil(cp, eps, "independent", seed, per_block),
+              "correlated": perturbed_pupil(cp, eps, "correlated", seed)}
+    model, _ = load_model(model_path)
+    model.eval()
+    ds = PSFDataset(dataset, "test", limit=samples, screens=True)
+    pib = PiB(ds.scenario(), c0, a)
+    items = [ds.get(j) for j in range(len(ds))]
+    e_in = [crop_to_pupil(s["received"], ng, dx, d2, c0, cp.G.shape[-1]) for s in items]
+    scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
+    out = {"samples": len(items), "noise_percent": noise_percent, "supercells_per_block": per_block}
+    for name, p in pupils.items():
+        log(f"  downstream: {name} pupil ...")
+        m = channel_metrics(p, sensor, fab)
+        x = []
+        for s, e in zip(items, e_in):
+            t, _ = normalise_psf(psf_tensor(sensor_frames(p, sensor, e), sensor))
+            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],)))
+            x.append(apply_noise(t, rng, noise_percent))
+        with torch.no_grad():
+            phi = model(torch.from_numpy(np.stack(x)))
+            npib = pib.npib_phase(phi, scr).numpy()
+        out[name] = {"npib_unet": float(npib.mean()),
+                     "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk")}
+                                  for r in m]}
+    with torch.no_grad():
+        out["npib_none"] = float(pib.npib_phase(torch.zeros(len(items), a, a), scr).mean())
+        rec = torch.from_numpy(np.stack([s["received"] for s in items]))
+        out["npib_phase_conjugate"] = float(pib.npib_phase(torch.angle(rec) * pib.ap, scr).mean())
+    return out

@@ -1,0 +1,216 @@
+"""RCWA beyond the single vertical pillar: stacks of rectangle layers (tapered pillars as slices) and
+2 x 2 supercells of four different pillars (the local-periodic approximation's check).
+
+The conventions are :mod:`metadesign.library.rcwa`'s (``exp(-i omega t)``, incidence from the substrate,
+``t`` = 0th-order transmitted E at the top of the pillar layer over the incident E at its bottom, times
+``exp(-i k0 n_sup h)``); a cell here has lattice period ``L`` (``p`` for a unit cell, ``2 p`` for a
+supercell) and holds non-overlapping axis-aligned rectangles of the pillar index in the superstrate.
+
+Permittivity Fourier rule for several rectangles (Li's rule for staircase structures): along y the
+layer is cut into bands between consecutive rectangle edges; in each band the permittivity is piecewise
+constant along x, so ``eps_xx`` takes the inverse rule along x band by band (``inv(Toeplitz(1/eps))``)
+and Laurent's rule across the bands along y; ``eps_yy`` the converse; ``eps_zz`` Laurent's rule.  For one
+centred rectangle this is exactly :func:`metadesign.library.rcwa.permittivity_matrices` (test).
+Fourier coefficients: ``eps_G = (1/L^2) int eps(r) exp(-i G.r) d^2r``, element ``(G, G')`` = ``eps_{G - G'}``
+(grcwa's convention)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rcwa import CellResult, SolverSettings, Stack, Truncation, _flux, _uniform_e_fields, symmetry_bases
+
+__all__ = ["Rect", "staircase_permittivity", "solve_layers", "solve_supercell", "solve_tapered",
+           "supercell_rects", "tapered_layers"]
+
+
+@dataclass(frozen=True)
+class Rect:
+    xc: float
+    yc: float
+    wx: float
+    wy: float
+
+
+def _coeff(d: np.ndarray, c: float, w: float, L: float) -> np.ndarray:
+    """Fourier coefficients (orders ``d``) of the indicator of ``[c - w/2, c + w/2]`` on period ``L``."""
+    return (w / L) * np.sinc(d * w / L) * np.exp(-2j * np.pi * d * c / L)
+
+
+def _inverse_axis(orders: np.ndarray, segs, L: float, eps_p: float, eps_bg: float) -> np.ndarray:
+    """``inv(Toeplitz(1/eps)) - eps_bg I`` along one axis for pillar segments ``[(c, w), ...]``."""
+    d = orders[:, None] - orders[None, :]
+    toe = (1.0 / eps_bg) * (d == 0).astype(complex)
+    for c, w in segs:
+        toe = toe + (1.0 / eps_p - 1.0 / eps_bg) * _coeff(d, c, w, L)
+    return np.linalg.inv(toe) - eps_bg * np.eye(len(orders))
+
+
+def _bands(rects, L: float, axis: int):
+    """Bands along ``axis`` (1: y) between consecutive rectangle edges, with the rectangles' segments
+    along the other axis present in each: ``[(centre, width, [(c, w), ...]), ...]``."""
+    lo = [(r.yc - r.wy / 2) if axis == 1 else (r.xc - r.wx / 2) for r in rects]
+    hi = [(r.yc + r.wy / 2) if axis == 1 else (r.xc + r.wx / 2) for r in rects]
+    edges = sorted(set(np.round(lo + hi, 15)))
+    out = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        mid = (a + b) / 2
+        segs = [((r.xc, r.wx) if axis == 1 else (r.yc, r.wy)) for r, l, h in zip(rects, lo, hi) if l < mid < h]
+        if segs:
+            out.append(((a + b) / 2, b - a, segs))
+    return out
+
+
+def staircase_permittivity(G: np.ndarray, L: float, rects, eps_p: float, eps_bg: float):
+    """Convolution matrices ``(eps_xx, eps_yy, eps_zz)`` over the harmonic set ``G`` (nG x 2 ints) of
+    rectangles ``rects`` of permittivity ``eps_p`` in ``eps_bg``, cell ``[-L/2, L/2)^2``."""
+    m, n = G[:, 0], G[:, 1]
+    dm = m[:, None] - m[None, :]
+    dn = n[:, None] - n[None, :]
+    delta = (dm == 0) & (dn == 0)
+    ezz = eps_bg * delta.astype(complex)
+    for r in rects:
+        ezz = ezz + (eps_p - eps_bg) * _coeff(dm, r.xc, r.wx, L) * _coeff(dn, r.yc, r.wy, L)
+    mx, my = int(np.abs(m).max()), int(np.abs(n).max())
+    exx = eps_bg * delta.astype(complex)
+    for c, w, segs in _bands(rects, L, axis=1):  # bands in y, inverse rule along x
+        A = _inverse_axis(np.arange(-mx, mx + 1), segs, L, eps_p, eps_bg)
+        exx = exx + A[m[:, None] + mx, m[None, :] + mx] * _coeff(dn, c, w, L)
+    eyy = eps_bg * delta.astype(complex)
+    for c, w, segs in _bands(rects, L, axis=0):  # bands in x, inverse rule along y
+        A = _inverse_axis(np.arange(-my, my + 1), segs, L, eps_p, eps_bg)
+        eyy = eyy + A[n[:, None] + my, n[None, :] + my] * _coeff(dm, c, w, L)
+    return exx, eyy, ezz
+
+
+def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 200,
+                 truncation: Truncation = Truncation.CIRCULAR, symmetric: bool = False,
+                 laurent: bool = False) -> CellResult:
+    """0th-order Jones matrix and efficiencies of a stack of patterned layers ``[(thickness, [Rect, ...]),
+    ...]`` (bottom first; their total thickness is the 'pillar height' of the phase reference) on lattice
+    period ``L``.  ``symmetric``: every layer is mirror-symmetric in x and y about the cell centre (solve
+    the two symmetry sectors separately, as the library does).  ``laurent``: Laurent's rule for every
+    component (a check against grcwa's grid-FFT rule only: it converges far too slowly here)."""
+    import grcwa
+    from grcwa import rcwa as _g
+
+    eps_sub, eps_sup, eps_p = stack.n_substrate**2, stack.n_superstrate**2, stack.n_pillar**2
+    obj = grcwa.obj(int(n_harmonics), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
+    obj.Add_LayerUniform(0.0, eps_sub)
+    for t, _ in layers:
+        obj.Add_LayerGrid(t / L, 1, 1)  # placeholders: eigensystems set below
+    obj.Add_LayerUniform(0.0, eps_sup)
+    obj.Init_Setup(Gmethod=0 if truncation is Truncation.CIRCULAR else 1)
+    G = np.asarray(obj.G)
+    if tuple(G[0]) != (0, 0):
+        raise RuntimeError("grcwa harmonic ordering changed: G[0] is not the 0th order")
+    nG = int(obj.nG)
+    kx, ky, omega = obj.kx, obj.ky, obj.omega
+    kkT = np.block([[np.diag(kx * kx), np.diag(kx * ky)], [np.diag(ky * kx), np.diag(ky * ky)]])
+    ops = []
+    for _, rects in layers:
+        exx, eyy, ezz = staircase_permittivity(G, L, rects, eps_p, eps_sup)
+        if laurent:
+            exx = eyy = ezz
+        zero = np.zeros_like(exx)
+        kp = _g.MakeKPMatrix(omega, 1, np.linalg.inv(ezz), kx, ky)
+        ops.append((np.block([[eyy, zero], [zero, exx]]) @ kp - kkT, kp))
+    kp_uni = [obj.kp_list[0], obj.kp_list[-1]]
+    q_uni = [obj.q_list[0], obj.q_list[-1]]
+    a0 = np.zeros((2 * nG, 2), dtype=complex)
+    a0[nG, 0] = 1.0  # x-pol: Hy > 0
+    a0[0, 1] = -1.0  # y-pol: Hx < 0
+    thick = obj.thickness_list
+
+    def propagate(U, a):
+        Ut = U.T
+        W = (U * U).T
+        qs, phis, kps = [W @ q_uni[0]], [np.eye(U.shape[1])], [Ut @ kp_uni[0] @ U]
+        for M, kp in ops:
+            lam, phi = np.linalg.eig(Ut @ M @ U)
+            q = np.sqrt(lam)
+            qs.append(np.where(np.imag(q) < 0.0, -q, q))
+            phis.append(phi)
+            kps.append(Ut @ kp @ U)
+        qs.append(W @ q_uni[1])
+        phis.append(np.eye(U.shape[1]))
+        kps.append(Ut @ kp_uni[1] @ U)
+        S11, _, S21, _ = _g.GetSMatrix(0, len(qs) - 1, qs, phis, kps, thick)
+        ar = Ut @ a
+        return U @ (S11 @ ar), U @ (S21 @ ar)
+
+    if symmetric:
+        aN, b0 = np.zeros_like(a0), np.zeros_like(a0)
+        for j, U in enumerate(symmetry_bases(G)):
+            aN[:, j:j + 1], b0[:, j:j + 1] = propagate(U, a0[:, j:j + 1])
+    else:
+        aN, b0 = propagate(np.eye(2 * nG), a0)
+    height = sum(t for t, _ in layers)
+    q_sub, q_sup = obj.q_list[0][:nG], obj.q_list[-1][:nG]
+    jones = np.zeros((2, 2), complex)
+    T0, T_tot, R_tot = np.zeros(2), np.zeros(2), np.zeros(2)
+    ref = np.exp(-1j * 2 * np.pi * stack.n_superstrate * height / stack.wavelength)
+    for j in range(2):
+        hx_i, hy_i = a0[:nG, j], a0[nG:, j]
+        hx_t, hy_t = aN[:nG, j], aN[nG:, j]
+        hx_r, hy_r = b0[:nG, j], b0[nG:, j]
+        ex_i, ey_i = _uniform_e_fields(hx_i, hy_i, kx, ky, q_sub, omega, eps_sub)
+        ex_t, ey_t = _uniform_e_fields(hx_t, hy_t, kx, ky, q_sup, omega, eps_sup)
+        e_in = ex_i[0] if j == 0 else ey_i[0]
+        jones[0, j] = ex_t[0] / e_in * ref
+        jones[1, j] = ey_t[0] / e_in * ref
+        f_in = _flux(hx_i, hy_i, kx, ky, q_sub, omega, eps_sub)[0]
+        f_t = _flux(hx_t, hy_t, kx, ky, q_sup, omega, eps_sup) / f_in
+        f_r = -_flux(hx_r, hy_r, kx, ky, -q_sub, omega, eps_sub) / f_in
+        T0[j], T_tot[j], R_tot[j] = f_t[0], f_t.sum(), f_r.sum()
+    return CellResult(jones=jones, T0=T0, T_total=T_tot, R_total=R_tot, n_harmonics=nG)
+
+
+def supercell_rects(widths, period: float):
+    """The four pillars of a 2 x 2 supercell: ``widths[r][c] = (wx, wy)`` at ``x = c p``, ``y = r p`` (cell
+    ``[-p, p)^2``, period ``2 p``; the pillars at ``p`` straddle the cell edge).
+
+    Every line through a column (row) of pillar centres is a mirror line of the periodic array (the other
+    column maps onto itself across the period), so centred on pillar (0, 0) the supercell is mirror-
+    symmetric in x and y: no cross-polarisation, and the two symmetry sectors solve separately."""
+    w = np.asarray(widths, float).reshape(2, 2, 2)
+    return [Rect(c * period, r * period, float(w[r, c, 0]), float(w[r, c, 1])) for r in range(2) for c in range(2)]
+
+
+def solve_supercell(widths, stack: Stack = Stack(), n_harmonics: int = 800,
+                    truncation: Truncation = Truncation.CIRCULAR, symmetric: bool = True) -> CellResult:
+    """A 2 x 2 supercell (period ``2 p``) of four vertical pillars ``widths[r][c] = (wx, wy)`` (m).
+    ``symmetric=False`` solves the full coupled problem (a check of the sector solve: ~4x slower)."""
+    for wx, wy in np.asarray(widths, float).reshape(4, 2):
+        if not (0 < wx < stack.period and 0 < wy < stack.period):
+            raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
+    return solve_layers([(stack.height, supercell_rects(widths, stack.period))], 2 * stack.period, stack,
+                        n_harmonics, truncation, symmetric=symmetric)
+
+
+def tapered_layers(wx: float, wy: float, height: float, sidewall_deg: float, slices: int):
+    """A pillar with sloped walls as ``slices`` layers of equal thickness: the width at height ``z`` is
+    ``w + 2 (h/2 - z) / tan(angle)`` (``w`` is the width at mid-height: a 90 degree wall is the vertical
+    pillar, and a taper keeps the pillar's volume); each slice takes the width at its own mid-height."""
+    cot = 1.0 / np.tan(np.deg2rad(sidewall_deg))
+    t = height / slices
+    out = []
+    for k in range(slices):
+        z = (k + 0.5) * t
+        d = 2 * (height / 2 - z) * cot
+        out.append((t, [Rect(0.0, 0.0, wx + d, wy + d)]))
+    return out
+
+
+def solve_tapered(wx: float, wy: float, sidewall_deg: float, slices: int, stack: Stack = Stack(),
+                  settings: SolverSettings = SolverSettings()) -> CellResult:
+    """A unit cell with a tapered pillar (mirror-symmetric: the library's two-sector solve)."""
+    layers = tapered_layers(wx, wy, stack.height, sidewall_deg, slices)
+    for _, (r,) in layers:
+        if not (0 < r.wx < stack.period and 0 < r.wy < stack.period):
+            raise ValueError(f"the tapered pillar's width {min(r.wx, r.wy) * 1e6:.4g}-{max(r.wx, r.wy) * 1e6:.4g} "
+                             f"um leaves (0, {stack.period * 1e6:.4g}) um")
+    return solve_layers(layers, stack.period, stack, settings.n_harmonics, settings.truncation,
+                        symmetric=settings.use_symmetry)

@@ -1,0 +1,99 @@
+"""Libraries with height and sidewall-angle axes: the nominal slice reproduces the committed 2-D library
+exactly, the 2-D library's file and records are unchanged, and the as-fabricated look-up interpolates in
+the new axes (equal to the 2-D path at the nominal, to the grid values on the grid)."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+
+@pytest.fixture(scope="module")
+def axes_library(tmp_path_factory):
+    from metadesign.library.build import build_library
+    from metadesign.library.recipe import recipe_from_dict
+
+    d = tomllib.loads((REPO / "library" / "paper.toml").read_text())
+    d["sweep"] = {"w_min_um": 0.30, "w_max_um": 0.31, "step_nm": 5.0}
+    d["convergence"]["check_cells_um"] = [[0.30, 0.31]]
+    d["fab_axes"] = {"heights_um": [1.17, 1.2], "sidewall_deg": [88.0, 90.0], "slices": 4, "reference_slices": 8}
+    d["convergence"]["tolerance_rad"] = 0.05
+    out = tmp_path_factory.mktemp("axes") / "lib.npz"
+    lib, rep = build_library(recipe_from_dict(d, "axes"), out, workers=1)
+    return out, rep
+
+
+def test_nominal_slice_reproduces_the_committed_library(axes_library):
+    from metadesign.library.store import load_library
+
+    out, rep = axes_library
+    lib = load_library(out)
+    ref = load_library(REPO / "library" / "paper.npz")
+    i = [int(np.argmin(np.abs(ref.wx - w))) for w in lib.wx]
+    assert np.allclose(ref.wx[i], lib.wx, atol=1e-15)
+    np.testing.assert_allclose(lib.jones, ref.jones[np.ix_(i, i)], atol=1e-12)
+    assert lib.fab["jones"].shape == (3, 3, 2, 2, 2, 2)
+    np.testing.assert_allclose(lib.fab["jones"][:, :, 1, 1], lib.jones, atol=0)  # (1.2 um, 90 deg)
+    # the other heights and angles are different pillars, and the mirror symmetry holds at each
+    assert np.abs(lib.fab["jones"][:, :, 0, 1] - lib.jones).max() > 1e-3
+    assert np.abs(lib.fab["jones"][:, :, 1, 0] - lib.jones).max() > 1e-3
+    np.testing.assert_allclose(lib.fab["jones"][0, 2, 0, 0, 0, 0], lib.fab["jones"][2, 0, 0, 0, 1, 1], atol=1e-12)
+    sc = rep["slice_convergence"]
+    assert sc["slices"] == 4 and sc["reference_slices"] == 8 and sc["max_phase_change_rad"] < 0.05
+    assert lib.meta["fab_axes"]["slices"] == 4
+
+
+def test_two_d_library_file_and_records_are_unchanged(tmp_path):
+    from metadesign.library.recipe import load_recipe
+    from metadesign.library.store import load_library, save_library
+    from metadesign.sensing.transmission import Perturbation
+
+    ref = load_library(REPO / "library" / "paper.npz")
+    assert ref.fab is None and "fab_axes" not in ref.meta
+    assert "fab_axes" not in load_recipe(REPO / "library" / "paper.toml").to_dict()
+    save_library(tmp_path / "again.npz", ref)
+    a, b = np.load(tmp_path / "again.npz", allow_pickle=False), np.load(REPO / "library" / "paper.npz", allow_pickle=False)
+    assert sorted(a.files) == sorted(b.files)
+    assert set(Perturbation(5e-9, 5e-9).to_dict()) == {"bias_x_nm", "bias_y_nm", "jitter_nm", "corner_radius_nm", "seed"}
+
+
+def test_fab_lookup_interpolates_in_height_and_angle(axes_library):
+    from metadesign.library.store import load_library
+    from metadesign.sensing.transmission import Perturbation, interpolate_t, interpolate_t_fab, pillar_transmission
+    from metadesign.validation import ValidationError
+
+    lib = load_library(axes_library[0])
+    rng = np.random.default_rng(0)
+    wx, wy = rng.uniform(0.30e-6, 0.31e-6, 20), rng.uniform(0.30e-6, 0.31e-6, 20)
+    t2, _, _ = interpolate_t(lib, wx, wy)
+    t4, n_out = interpolate_t_fab(lib, wx, wy, 1.2e-6, 90.0)
+    np.testing.assert_allclose(t4, t2, atol=1e-6)
+    assert n_out == 0
+    # on the grid: the grid values; half-way in height: the mean of the two heights (multilinear)
+    g = lib.fab["jones"]
+    t, _ = interpolate_t_fab(lib, lib.wx[1], lib.wy[2], 1.17e-6, 88.0)
+    np.testing.assert_allclose(t, [g[1, 2, 0, 0, 0, 0], g[1, 2, 0, 0, 1, 1]], atol=1e-6)
+    t, _ = interpolate_t_fab(lib, lib.wx[1], lib.wy[2], 1.185e-6, 90.0)
+    np.testing.assert_allclose(t[0], (g[1, 2, 0, 1, 0, 0] + g[1, 2, 1, 1, 0, 0]) / 2, atol=1e-6)
+    _, n_out = interpolate_t_fab(lib, lib.wx[1], lib.wy[2], 1.25e-6, 90.0)
+    assert n_out == 1  # outside the height axis: clamped and counted
+    # the as-fabricated look-up: a 30 nm under-etch everywhere is the 1.17 um slice; a gradient varies by column
+    im = np.array([[0, 1, 2, 0]])
+    atoms = np.array([[300, 305], [305, 310], [310, 300]], float)
+    t, _ = pillar_transmission(im, atoms, lib, Perturbation(height=-30e-9))
+    np.testing.assert_allclose(t[0, 1, 0], g[1, 2, 0, 1, 0, 0], atol=1e-6)
+    t0, _ = pillar_transmission(im, atoms, lib, Perturbation())
+    # -20 nm at the +x edge: column 3 (u = +0.75) is 15 nm under-etched, columns 0, 1 (u = -0.75, -0.25) over:
+    # beyond the height axis, so clamped to it and counted
+    tg, n_out = pillar_transmission(im, atoms, lib, Perturbation(height_gradient=-20e-9))
+    h = 1.2e-6 - 15e-9
+    np.testing.assert_allclose(tg[0, 3], interpolate_t_fab(lib, 300e-9, 305e-9, h, 90.0)[0], atol=1e-6)
+    np.testing.assert_allclose(tg[0, 0], t0[0, 0], atol=1e-6)
+    assert n_out == 2
+    ref = load_library(REPO / "library" / "paper.npz")
+    with pytest.raises(ValidationError, match="fab axes"):
+        pillar_transmission(im, atoms, ref, Perturbation(sidewall_deg=88.0))

@@ -1,0 +1,78 @@
+"""Layered and supercell RCWA (the LPA check and tapered pillars) against exact references: the single-pillar
+solver, the analytic Fabry-Perot slab, translation symmetry (four identical pillars = the unit cell at the
+matched truncation), mirror symmetry (the two-sector solve = the full coupled solve, no cross-polarisation),
+and energy conservation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from metadesign.library.rcwa import SolverSettings, Stack, fabry_perot_t, permittivity_matrices, solve_cell, Factorization
+from metadesign.library.supercell import (Rect, solve_layers, solve_supercell, solve_tapered, staircase_permittivity,
+                                          supercell_rects, tapered_layers)
+
+ST = Stack()
+MIXED = np.array([[(205e-9, 285e-9), (320e-9, 305e-9)], [(320e-9, 200e-9), (345e-9, 270e-9)]])
+
+
+def test_one_centred_rectangle_is_the_library_factorization():
+    import grcwa
+
+    obj = grcwa.obj(60, [1.0, 0.0], [0.0, 1.0], 0.5, 0.0, 0.0, verbose=0)
+    obj.Add_LayerUniform(0.0, 1.0)
+    obj.Init_Setup(Gmethod=0)
+    G = np.asarray(obj.G)
+    a = staircase_permittivity(G, 1.0, [Rect(0, 0, 0.43, 0.29)], 12.1, 1.0)
+    b = permittivity_matrices(G, 0.43, 0.29, 12.1, 1.0, Factorization.LI)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, atol=1e-12)
+
+
+def test_sliced_and_90_degree_tapered_pillars_equal_the_vertical_one():
+    ref = solve_cell(0.3e-6, 0.2e-6, ST, SolverSettings(60))
+    sliced = solve_layers([(ST.height / 3, [Rect(0, 0, 0.3e-6, 0.2e-6)])] * 3, ST.period, ST, 60, symmetric=True)
+    np.testing.assert_allclose(sliced.jones, ref.jones, atol=1e-9)
+    np.testing.assert_allclose(solve_tapered(0.3e-6, 0.2e-6, 90.0, 4, ST, SolverSettings(60)).jones, ref.jones, atol=1e-9)
+    # an 85 degree wall is a different pillar: the widths change by 2 (h/2) cot(85 deg) = 105 nm top to bottom
+    lay = tapered_layers(0.3e-6, 0.2e-6, ST.height, 85.0, 4)
+    assert lay[0][1][0].wx - lay[-1][1][0].wx == pytest.approx(2 * ST.height * 0.75 / np.tan(np.deg2rad(85)), rel=1e-9)
+    assert abs(solve_tapered(0.3e-6, 0.2e-6, 85.0, 4, ST, SolverSettings(60)).t_x - ref.t_x) > 1e-3
+
+
+def test_supercell_of_identical_pillars_is_the_unit_cell():
+    """Translation symmetry: at the matched truncation (the unit cell's harmonics = the supercell's even
+    ones) the odd harmonics decouple and the supercell is the unit cell exactly."""
+    from metadesign.library.lpa import matched_unit_harmonics
+
+    ns, nu = matched_unit_harmonics(240, ST)
+    cell = solve_cell(0.32e-6, 0.21e-6, ST, SolverSettings(nu))
+    sc = solve_supercell([[(0.32e-6, 0.21e-6)] * 2] * 2, ST, ns)
+    assert sc.n_harmonics == ns - 1 and cell.n_harmonics == nu - 1 and sc.n_harmonics > 3.5 * cell.n_harmonics
+    np.testing.assert_allclose(sc.jones, cell.jones, atol=1e-8)
+
+
+def test_mirror_symmetric_supercell_sector_solve_equals_the_full_solve():
+    a = solve_supercell(MIXED, ST, 120, symmetric=True)
+    b = solve_supercell(MIXED, ST, 120, symmetric=False)
+    np.testing.assert_allclose(a.jones, b.jones, atol=1e-9)
+    assert np.abs(b.jones[[0, 1], [1, 0]]).max() < 1e-10  # mirror lines through the pillar centres
+    assert np.allclose(b.T_total + b.R_total, 1, atol=1e-6)  # lossless
+    # and the four different pillars are not their mean (the LPA): the check measures something
+    units = [solve_cell(wx, wy, ST, SolverSettings(30)) for wx, wy in MIXED.reshape(4, 2)]
+    lpa = np.mean([u.t_x for u in units])
+    assert abs(a.t_x / lpa - 1) > 0.05
+
+
+def test_four_rectangles_tiling_the_cell_are_the_fabry_perot_slab():
+    p = ST.period
+    rects = [Rect(c * p, r * p, p, p) for r in range(2) for c in range(2)]
+    res = solve_layers([(ST.height, rects)], 2 * p, ST, 40, symmetric=True)
+    assert res.t_x == pytest.approx(fabry_perot_t(ST, ST.n_pillar), abs=1e-9)
+    assert res.t_y == pytest.approx(fabry_perot_t(ST, ST.n_pillar), abs=1e-9)
+
+
+def test_supercell_rects_layout():
+    r = supercell_rects(MIXED, 0.7e-6)
+    assert (r[1].xc, r[1].yc, r[1].wx) == (0.7e-6, 0.0, 320e-9)  # row 0, column 1
+    assert (r[2].xc, r[2].yc, r[2].wy) == (0.0, 0.7e-6, 200e-9)  # row 1, column 0
