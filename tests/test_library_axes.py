@@ -97,3 +97,21 @@ def test_fab_lookup_interpolates_in_height_and_angle(axes_library):
     ref = load_library(REPO / "library" / "paper.npz")
     with pytest.raises(ValidationError, match="fab axes"):
         pillar_transmission(im, atoms, ref, Perturbation(sidewall_deg=88.0))
+
+
+def test_fab_library_correction_on_a_two_d_library_is_exact_on_the_same_grid(axes_library):
+    """A 2-D library plus a fab library on the same grid: t_lib + t_F(h, a) - t_F(h0, 90) = t_F(h, a)."""
+    from dataclasses import replace
+
+    from metadesign.library.store import load_library
+    from metadesign.sensing.transmission import Perturbation, pillar_transmission
+
+    F = load_library(axes_library[0])
+    flat = replace(F, fab=None)
+    im = np.array([[0, 1, 2, 1]])
+    atoms = np.array([[300, 305], [303, 309], [310, 300]], float)
+    pert = Perturbation(height=-12e-9, sidewall_deg=89.0, sidewall_gradient_deg=-0.5)
+    direct, _ = pillar_transmission(im, atoms, F, pert)
+    corrected, _ = pillar_transmission(im, atoms, flat, pert, fab_lib=F)
+    np.testing.assert_allclose(corrected, direct, atol=2e-6)
+    assert np.abs(direct - pillar_transmission(im, atoms, flat, Perturbation())[0]).max() > 1e-3

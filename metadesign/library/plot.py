@@ -74,7 +74,8 @@ def plot_lpa(rep: dict, out):
         for i, m in enumerate(names):
             axs[3].bar(x + (i - 1) * 0.27, vals[i] / vals[0], 0.27, label=m)
         axs[3].set_xticks(x, ["focusing eff.", "Strehl", "U-Net NPiB"])
-        axs[3].set(ylabel="relative to the nominal LPA device", ylim=(min(0.8, vals.min() / vals[0].max() * 0.98), 1.02),
+        rel = vals / vals[0]
+        axs[3].set(ylabel="relative to the nominal LPA device", ylim=(0, max(1.1, rel.max() * 1.08)),
                    title="downstream (measured error on the pupil)")
         axs[3].legend(fontsize=8)
     return save_figure(fig, out)

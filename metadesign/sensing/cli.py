@@ -95,15 +95,26 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
         raise InputError("--seed: the last jitter seed (--seed + --seeds - 1) exceeds 2^63 - 1")
     out = out_dir(a.output if a.output else Path(a.layout).with_name("fab-study"))
     fab = AsFabricated.from_files(a.layout, a.library)
+    needs_axes = any(h for h in a.height_nm) or any(x != 90 for x in a.sidewall_deg) or a.height_gradient_nm \
+        or a.sidewall_gradient_deg
+    if a.fab_library:
+        from ..library.store import load_library
+
+        fab.fab_lib = load_library(a.fab_library)
+    if needs_axes and fab.fab_lib is None and fab.lib.fab is None:
+        raise InputError("--height-nm / --sidewall-deg need a library with height and sidewall axes: build one "
+                         "with a [fab_axes] recipe section and pass it as --fab-library")
     rows = fab_study(fab, sr, a.bias_nm, a.jitter_nm, a.corner_nm, a.seeds, a.seed,
-                     progress_bar("fab-study", unit="case"))
+                     progress_bar("fab-study", unit="case"), a.height_nm, a.sidewall_deg, a.height_gradient_nm,
+                     a.sidewall_gradient_deg)
     files = write_fab_study(rows, out)
-    n_cases = len(a.bias_nm) * len(a.jitter_nm) * len(a.corner_nm) * a.seeds
+    n_cases = len(a.bias_nm) * len(a.jitter_nm) * len(a.corner_nm) * len(a.height_nm) * len(a.sidewall_deg) * a.seeds
     lines = [f"wrote {out}/fab-study.csv, fab-study.png ({n_cases} cases x 8 channels)",
-             "  bias  jitter corner | mean eff  mean Strehl  mean |focal shift| mm  mean crosstalk  clamped"]
-    for b, j, c in itertools.product(a.bias_nm, a.jitter_nm, a.corner_nm):
-        rr = [r for r in rows if (r["bias_nm"], r["jitter_nm"], r["corner_nm"]) == (b, j, c)]
-        lines.append(f"  {b:+5g} {j:6g} {c:6g} | {np.mean([r['focusing_efficiency'] for r in rr]):.4f}    "
+             "  bias  jitter corner height wall | mean eff  mean Strehl  mean |focal shift| mm  mean crosstalk  clamped"]
+    for b, j, c, h, w in itertools.product(a.bias_nm, a.jitter_nm, a.corner_nm, a.height_nm, a.sidewall_deg):
+        rr = [r for r in rows if (r["bias_nm"], r["jitter_nm"], r["corner_nm"], r["height_nm"], r["sidewall_deg"])
+              == (b, j, c, h, w)]
+        lines.append(f"  {b:+5g} {j:6g} {c:6g} {h:+6g} {w:4g} | {np.mean([r['focusing_efficiency'] for r in rr]):.4f}    "
                      f"{np.mean([r['strehl'] for r in rr]):.4f}       "
                      f"{np.mean([abs(r['focal_shift_mm']) for r in rr]):.4f}                "
                      f"{np.mean([r['crosstalk'] for r in rr]):.4f}         {max(r['clamped_pillars'] for r in rr)}")
@@ -180,6 +191,16 @@ def register(sub) -> None:
     fs.add_argument("--bias-nm", type=BIAS, nargs="+", default=[-10.0, 0.0, 10.0], help="width biases (nm)")
     fs.add_argument("--jitter-nm", type=JITTER, nargs="+", default=[0.0], help="jitter sigmas (nm)")
     fs.add_argument("--corner-nm", type=CORNER, nargs="+", default=[0.0], help="corner radii (nm)")
+    fs.add_argument("--height-nm", type=num(-500, 500), nargs="+", default=[0.0],
+                    help="etch depth errors (pillar height - nominal, nm); needs --fab-library")
+    fs.add_argument("--sidewall-deg", type=num(60, 90), nargs="+", default=[90.0],
+                    help="sidewall angles (deg, 90 = vertical); needs --fab-library")
+    fs.add_argument("--height-gradient-nm", type=num(-500, 500), default=0.0,
+                    help="extra etch depth error at the aperture's +x edge (opposite at -x), nm")
+    fs.add_argument("--sidewall-gradient-deg", type=num(-30, 30), default=0.0,
+                    help="extra sidewall angle at the aperture's +x edge (opposite at -x)")
+    fs.add_argument("--fab-library", help="library with height / sidewall axes ([fab_axes]); its difference from "
+                    "its nominal slice corrects the layout's library")
     fs.add_argument("--seeds", type=integer(1, 1000), default=1, help="jitter draws per case")
     fs.add_argument("--seed", type=SEED, default=0, help="first jitter seed")
     fs.add_argument("-o", "--output", help="output folder (default: fab-study/ beside the layout)")

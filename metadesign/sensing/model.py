@@ -80,6 +80,7 @@ class AsFabricated:
 
     aperture: dict | None = None  # clear-aperture record of the layout (None: the full square)
     path: Path | None = None  # the layout file
+    fab_lib: UnitCellLibrary | None = None  # library with height / sidewall axes (for those perturbations)
 
     @classmethod
     def from_files(cls, layout_path: str | Path, lib_path: str | Path | None = None) -> "AsFabricated":
@@ -159,7 +160,7 @@ class AsFabricated:
 
         def rows(r0, r1):
             t, clamped = pillar_transmission(self.layout.index_map, self.layout.atom_widths_nm, self.lib, pert,
-                                             slice(r0, r1), rng)
+                                             slice(r0, r1), rng, self.fab_lib)
             mask = self.aperture_mask_rows(r0, r1)
             if mask is not None:  # the clear aperture is a stop: opaque outside the outline
                 t[~mask] = 0

@@ -104,7 +104,7 @@ def full_resolution_check(fab: AsFabricated, sensing: SensingRecipe, frames: np.
 
     def rows(r0, r1):
         t, c = pillar_transmission(fab.layout.index_map, fab.layout.atom_widths_nm, fab.lib, pert,
-                                   slice(r0, r1), rng)
+                                   slice(r0, r1), rng, fab.fab_lib)
         mask = fab.aperture_mask_rows(r0, r1)
         if mask is not None:
             t[~mask] = 0
@@ -121,23 +121,28 @@ def full_resolution_check(fab: AsFabricated, sensing: SensingRecipe, frames: np.
     return {"window_px": window, "rel_l2_per_channel": errs}
 
 
-FAB_STUDY_COLUMNS = ["bias_nm", "jitter_nm", "corner_nm", "seed", "pol", "k", "quadrant", "design_focal_length_mm",
+FAB_STUDY_COLUMNS = ["bias_nm", "jitter_nm", "corner_nm", "height_nm", "sidewall_deg", "seed", "pol", "k", "quadrant", "design_focal_length_mm",
                      "focusing_efficiency", "strehl", "focal_shift_mm", "centroid_shift_x_um", "centroid_shift_y_um",
                      "crosstalk", "clamped_pillars"]
 
 
 def fab_study(fab: AsFabricated, sensing: SensingRecipe, bias_nm, jitter_nm, corner_nm, seeds: int = 1,
-              seed: int = 0, progress=None) -> list[dict]:
-    """Per case (bias x jitter x corner x seed) and channel: focusing efficiency, Strehl, focal shift,
-    centroid shift, crosstalk (see :func:`~metadesign.sensing.model.channel_metrics`)."""
-    cases = list(itertools.product(bias_nm, jitter_nm, corner_nm, range(seeds)))
+              seed: int = 0, progress=None, height_nm=(0.0,), sidewall_deg=(90.0,), height_gradient_nm: float = 0.0,
+              sidewall_gradient_deg: float = 0.0) -> list[dict]:
+    """Per case (bias x jitter x corner x etch depth x sidewall x seed) and channel: focusing efficiency,
+    Strehl, focal shift, centroid shift, crosstalk (see :func:`~metadesign.sensing.model.channel_metrics`).
+    Height and sidewall cases (with the optional across-wafer gradients) need ``fab.fab_lib`` or a library
+    with fab axes."""
+    cases = list(itertools.product(bias_nm, jitter_nm, corner_nm, height_nm, sidewall_deg, range(seeds)))
     rows = []
-    for i, (b, j, c, s) in enumerate(cases):
-        pert = Perturbation(b * 1e-9, b * 1e-9, j * 1e-9, c * 1e-9, seed + s)
+    for i, (b, j, c, h, a, s) in enumerate(cases):
+        pert = Perturbation(b * 1e-9, b * 1e-9, j * 1e-9, c * 1e-9, seed + s, h * 1e-9, a,
+                            height_gradient_nm * 1e-9, sidewall_gradient_deg)
         cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert)
-        label = f"bias {b:+g} jit {j:g} cr {c:g}"
+        label = f"bias {b:+g} jit {j:g} cr {c:g}" + (f" h {h:+g} sw {a:g}" if (h or a != 90) else "")
         for r in channel_metrics(cp, sensing.sensor, fab):
             rows.append({"case": i // seeds, "label": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c,
+                         "height_nm": h, "sidewall_deg": a,
                          "seed": seed + s, "clamped_pillars": cp.n_clamped, **r,
                          "centroid_shift_x_um": r["centroid_shift_um"][0],
                          "centroid_shift_y_um": r["centroid_shift_um"][1]})

@@ -164,13 +164,18 @@ def _fab_axes_of(pert: Perturbation, lib: UnitCellLibrary, shape: tuple[int, int
 
 def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: UnitCellLibrary,
                         pert: Perturbation = Perturbation(), rows: slice | None = None,
-                        rng: np.random.Generator | None = None):
+                        rng: np.random.Generator | None = None, fab_lib: UnitCellLibrary | None = None):
     """Complex transmission ``(rows, n, 2)`` of the pillars in ``index_map``
     (``-1`` = no pillar: the bare stack's ``t``), perturbed.  Without jitter the
-    look-up is done once per atom.  Returns ``(t, n_clamped)``."""
+    look-up is done once per atom.  Returns ``(t, n_clamped)``.
+
+    Height and sidewall perturbations: ``t = t_lib(w) + t_F(w, h, a) - t_F(w, h0, 90)`` with ``F`` the
+    library with fab axes (``fab_lib``, or ``lib`` itself when it has them): exact when ``F`` is ``lib``
+    with axes, and otherwise a correction from a (possibly coarser) fab library on top of the design's own
+    library, which the nominal device keeps exactly."""
     im = index_map if rows is None else index_map[rows]
     if pert.has_fab_axes:
-        return _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng)
+        return _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng, fab_lib)
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]
     bare = np.complex64(2 * n_sub / (n_sub + n_sup))
@@ -195,8 +200,9 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     return t, clamped
 
 
-def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng):
+def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None):
     """The look-up with height / sidewall perturbations (per pillar: gradients make every pillar its own)."""
+    F = fab_lib if fab_lib is not None else lib
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]
     bare = np.complex64(2 * n_sub / (n_sub + n_sup))
@@ -204,7 +210,24 @@ def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng):
     has = im >= 0
     k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
+    if F.fab is None:
+        from ..validation import ValidationError
+
+        raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
+                              "[fab_axes] section: heights_um, sidewall_deg; pass it as --fab-library)")
+    for k in ("wavelength_m", "period_m", "height_m"):
+        if abs(F.meta["stack"][k] - lib.meta["stack"][k]) > 1e-12:
+            from ..validation import ValidationError
+
+            raise ValidationError(f"the fab library's stack differs from the design's library ({k})")
     h, a = _fab_axes_of(pert, lib, im.shape, cols)
+    h0 = float(lib.meta["stack"]["height_m"])
     t = np.full((*im.shape, 2), bare, np.complex64)
-    t[has], clamped = interpolate_t_fab(lib, wx[has], wy[has], h[has], a[has])
-    return t, clamped
+    base, _, c0 = interpolate_t(lib, wx[has], wy[has])
+    tf, clamped = interpolate_t_fab(F, wx[has], wy[has], h[has], a[has])
+    if F is lib:
+        t[has] = tf
+    else:
+        tn, _ = interpolate_t_fab(F, wx[has], wy[has], h0, 90.0)
+        t[has] = base + tf - tn
+    return t, max(clamped, c0)
