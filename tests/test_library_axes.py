@@ -55,9 +55,8 @@ def test_two_d_library_file_and_records_are_unchanged(tmp_path):
     ref = load_library(REPO / "library" / "paper.npz")
     assert ref.fab is None and "fab_axes" not in ref.meta
     assert "fab_axes" not in load_recipe(REPO / "library" / "paper.toml").to_dict()
-    save_library(tmp_path / "again.npz", ref)
-    a, b = np.load(tmp_path / "again.npz", allow_pickle=False), np.load(REPO / "library" / "paper.npz", allow_pickle=False)
-    assert sorted(a.files) == sorted(b.files)
+    save_library(tmp_path / "again.npz", ref)  # the writer (with the fab-axes branch) gives the same bytes
+    assert (tmp_path / "again.npz").read_bytes() == (REPO / "library" / "paper.npz").read_bytes()
     assert set(Perturbation(5e-9, 5e-9).to_dict()) == {"bias_x_nm", "bias_y_nm", "jitter_nm", "corner_radius_nm", "seed"}
 
 

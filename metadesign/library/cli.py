@@ -19,7 +19,7 @@ def _cmd_build(a: argparse.Namespace) -> int:
     out = out_file(Path(a.output) if a.output else Path(a.recipe).with_suffix(".npz"), suffixes=(".npz",))
     lib, rep = build_library(
         recipe, out, workers=a.workers, allow_unconverged=a.allow_unconverged,
-        progress=progress_bar("library"), log=log_to(a.json),
+        progress=progress_bar("library"), log=log_to(a.json), scheduler=a.scheduler,
     )
     s = lib.summary()
     rep["summary"] = s
@@ -169,6 +169,8 @@ def register(sub) -> None:
     b.add_argument("recipe", help="library recipe (TOML), e.g. library/paper.toml")
     b.add_argument("-o", "--output", help="library file (default: the recipe path with .npz)")
     workers_arg(b)
+    b.add_argument("--scheduler", metavar="ADDRESS",
+                   help="solve the chunks on a Dask distributed scheduler (e.g. tcp://host:8786) instead of -j")
     b.add_argument("--allow-unconverged", action="store_true",
                    help="build even if the convergence check exceeds the tolerance")
     b.add_argument("--json", action="store_true", help="print the build report as JSON")

@@ -71,6 +71,11 @@ SECTIONS = (
         Param("jitter_nm", float, 0.0, lo=0, hi=100),
         Param("corner_nm", float, 0.0, lo=0, hi=500),
         Param("seed", int, 0, lo=0, hi=_MAX_SEED),
+        Param("height_nm", float, 0.0, lo=-500, hi=500, help="etch depth error (needs fab_library)"),
+        Param("sidewall_deg", float, 90.0, lo=60, hi=90, help="sidewall angle (needs fab_library)"),
+        Param("height_gradient_nm", float, 0.0, lo=-500, hi=500),
+        Param("sidewall_gradient_deg", float, 0.0, lo=-30, hi=30),
+        Param("fab_library", str, None, help="library with height / sidewall axes (relative to the recipe)"),
     ), optional=True),
 )
 
@@ -285,6 +290,8 @@ def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=Non
 
     key = {"layout_sha256": layout_sha, "library_sha256": fab.lib.identity, "perturbation": pert.to_dict(),
            "distance_m": sensing.sensor.distance, "pupil_grid": sensing.pupil_grid}
+    if fab.fab_lib is not None:
+        key["fab_library_sha256"] = fab.fab_lib.identity
     if cache.exists():
         try:
             z = read_npz(cache, "device pupil")
@@ -393,13 +400,29 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
         if not rep.ok:
             raise ValidationError(f"dataset: Rytov {r:g}: infeasible turbulence sampling: {rep.failures[0]}")
     f = recipe.fabrication
-    pert = Perturbation(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"])
+    # lengths load in metres (config units): the height fields too
+    pert = Perturbation(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"],
+                        f.get("height_nm", 0.0) or 0.0, f.get("sidewall_deg", 90.0),
+                        f.get("height_gradient_nm", 0.0) or 0.0, f.get("sidewall_gradient_deg", 0.0) or 0.0)
     layout = ensure_layout(recipe, log)
     layout_sha = _sha256(layout)
     fab = AsFabricated.from_files(layout)
+    if pert.has_fab_axes:
+        from ..library.store import load_library
+
+        if not f.get("fab_library"):
+            raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
+                                  "library with fab axes")
+        lp = Path(f["fab_library"])
+        lp = lp if lp.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / lp
+        if not lp.is_file():
+            raise ValidationError(f"fabrication.fab_library: {lp}: no such library")
+        fab.fab_lib = load_library(lp)
     parts = {"format": DATASET_FORMAT, "recipe": recipe.raw, "sensor": sensing.sensor.to_dict(),
              "pupil_grid": sensing.pupil_grid, "scenario": scenario.to_dict(), "layout_sha256": layout_sha,
              "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}
+    if fab.fab_lib is not None:
+        parts["fab_library_sha256"] = fab.fab_lib.identity
     rhash = _recipe_hash(parts)
     if existing is not None and existing.get("recipe_hash") != rhash:
         if not overwrite:

@@ -209,19 +209,28 @@ def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=N
     w = np.asarray(atom_widths_nm, np.float64) * 1e-9
     has = im >= 0
     k = np.where(has, im, 0)
-    wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
     if F.fab is None:
         from ..validation import ValidationError
 
         raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
                               "[fab_axes] section: heights_um, sidewall_deg; pass it as --fab-library)")
-    for k in ("wavelength_m", "period_m", "height_m"):
-        if abs(F.meta["stack"][k] - lib.meta["stack"][k]) > 1e-12:
+    for key in ("wavelength_m", "period_m", "height_m"):
+        if abs(F.meta["stack"][key] - lib.meta["stack"][key]) > 1e-12:
             from ..validation import ValidationError
 
-            raise ValidationError(f"the fab library's stack differs from the design's library ({k})")
-    h, a = _fab_axes_of(pert, lib, im.shape, cols)
+            raise ValidationError(f"the fab library's stack differs from the design's library ({key})")
     h0 = float(lib.meta["stack"]["height_m"])
+    if not (pert.jitter or pert.height_gradient or pert.sidewall_gradient_deg):
+        # one height and angle everywhere: look each atom up once (as the 2-D path does)
+        ax, ay = perturb_widths(w[:, 0], w[:, 1], pert)
+        base, _, c0 = interpolate_t(lib, ax, ay)
+        tf, c1 = interpolate_t_fab(F, ax, ay, h0 + pert.height, min(pert.sidewall_deg, 90.0))
+        table = tf if F is lib else base + tf - interpolate_t_fab(F, ax, ay, h0, 90.0)[0]
+        table = np.concatenate([table.astype(np.complex64), np.full((1, 2), bare, np.complex64)])
+        kk = np.where(im < 0, len(w), im)
+        return table[kk], int(bool(c0 or c1) and has.sum())
+    wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
+    h, a = _fab_axes_of(pert, lib, im.shape, cols)
     t = np.full((*im.shape, 2), bare, np.complex64)
     base, _, c0 = interpolate_t(lib, wx[has], wy[has])
     tf, clamped = interpolate_t_fab(F, wx[has], wy[has], h[has], a[has])
