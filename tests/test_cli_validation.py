@@ -40,6 +40,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("library", "show"): [],
         ("library", "plot"): ["-o", str(out / "s1.png")],
         ("library", "export"): ["--csv", str(out / "lib.csv")],
+        ("library", "lpa-check"): [lay, "--supercells", "1", "--harmonics", "50", "--check", "0", "-o", str(out / "lpa")],
         ("design", "build"): [str(REPO / "layouts" / "demo.toml"), "-o", str(out / "d")],
         ("design", "show"): [d],
         ("design", "plot"): [d, "-o", str(out / "s2.png")],

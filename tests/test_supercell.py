@@ -76,3 +76,35 @@ def test_supercell_rects_layout():
     r = supercell_rects(MIXED, 0.7e-6)
     assert (r[1].xc, r[1].yc, r[1].wx) == (0.7e-6, 0.0, 320e-9)  # row 0, column 1
     assert (r[2].xc, r[2].yc, r[2].wy) == (0.0, 0.7e-6, 200e-9)  # row 1, column 0
+
+
+def test_lpa_check_command_end_to_end(tmp_path, demo_products, tiny_dataset):
+    """``library lpa-check`` on the demo layout (2 supercells, low harmonics, one convergence re-solve) with the
+    downstream study on the tiny dataset: widths are the layout's atoms, the matched unit-cell truncation is
+    recorded, the downstream keeps the references (uncorrected, conjugate) and changes the U-Net's input."""
+    import json
+
+    import torch
+    from conftest import run_cli
+
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    torch.manual_seed(0)
+    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
+    r = run_cli("library", "lpa-check", str(demo_products["layout"]), "--supercells", "2", "--harmonics", "120",
+                "--check", "1", "--dataset", str(tiny_dataset), "--model", str(tmp_path / "m.safetensors"),
+                "--samples", "2", "--noise", "0", "-j", "1", "-o", str(tmp_path / "lpa"), "--json")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert len(rep["rows"]) == 2 and rep["n_harmonics_supercell"] > 3.5 * rep["n_harmonics_unit"]
+    assert rep["convergence_rel_change_max"] is not None and len(rep["convergence_rel_change_max"]) == 2
+    from metadesign.layouts import read_layout
+
+    atoms = {tuple(w) for w in read_layout(demo_products["layout"]).atom_widths_nm.tolist()}
+    for row in rep["rows"]:
+        assert all(tuple(w) in atoms for w in np.asarray(row["widths_nm"]).reshape(4, 2).tolist())
+    d = rep["downstream"]
+    assert d["samples"] == 2 and 0 < d["npib_none"] < d["npib_phase_conjugate"] <= 1.0
+    strehl = {m: [c["strehl"] for c in d[m]["channels"]] for m in ("nominal", "correlated")}
+    assert len(strehl["nominal"]) == 8 and not np.allclose(strehl["nominal"], strehl["correlated"], rtol=1e-3)
+    assert (tmp_path / "lpa" / "lpa.png").stat().st_size > 0 and (tmp_path / "lpa" / "lpa.json").exists()

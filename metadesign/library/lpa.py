@@ -215,6 +215,8 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
     model, _ = load_model(model_path)
     model.eval()
     ds = PSFDataset(dataset, "test", limit=samples, screens=True)
+    if len(ds) == 0:  # a dataset without a test split (tiny ones): every sample
+        ds = PSFDataset(dataset, "all", limit=samples, screens=True)
     pib = PiB(ds.scenario(), c0, a)
     items = [ds.get(j) for j in range(len(ds))]
     e_in = [crop_to_pupil(s["received"], ng, dx, d2, c0, cp.G.shape[-1]) for s in items]
