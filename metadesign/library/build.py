@@ -397,7 +397,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
     shutil.rmtree(part_dir, ignore_errors=True)
     report = {
         "output": str(output),
-        "cells": n * n,
+        "cells": n * n * int(np.prod(extra)) if extra else n * n,
         "cells_solved": n_cells_total,
         "sweep_seconds": sweep_s,
         "total_seconds": time.perf_counter() - t_start,
