@@ -52,3 +52,16 @@ def spawn_pool(workers: int, initializer=None, initargs=()):
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def dask_client(scheduler: str):
+    """A ``dask.distributed.Client`` on ``scheduler``; an unreachable one is a one-line ValidationError."""
+    from dask.distributed import Client
+
+    from .validation import ValidationError
+
+    try:
+        return Client(scheduler, timeout="20s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
+                              f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None

@@ -114,3 +114,22 @@ def test_fab_library_correction_on_a_two_d_library_is_exact_on_the_same_grid(axe
     corrected, _ = pillar_transmission(im, atoms, flat, pert, fab_lib=F)
     np.testing.assert_allclose(corrected, direct, atol=2e-6)
     assert np.abs(direct - pillar_transmission(im, atoms, flat, Perturbation())[0]).max() > 1e-3
+
+
+def test_library_build_on_a_dask_cluster_gives_the_same_bytes(tmp_path):
+    """The chunks on a Dask LocalCluster (2 single-threaded workers) or on the local pool: the same file."""
+    from dask.distributed import LocalCluster
+
+    from metadesign.library.build import build_library
+    from metadesign.library.recipe import recipe_from_dict
+
+    d = tomllib.loads((REPO / "library" / "paper.toml").read_text())
+    d["sweep"] = {"w_min_um": 0.30, "w_max_um": 0.32, "step_nm": 10.0}
+    d["solver"]["n_harmonics"] = 40
+    d["convergence"] = {"tolerance_rad": 3.0, "reference_n_harmonics": 60, "check_cells_um": [[0.30, 0.31]]}
+    d["fab_axes"] = {"heights_um": [1.2], "sidewall_deg": [88.0, 90.0], "slices": 2, "reference_slices": 4}
+    rec = recipe_from_dict(d, "dask")
+    build_library(rec, tmp_path / "local.npz", workers=1, chunk_size=2)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        build_library(rec, tmp_path / "dask.npz", workers=1, chunk_size=2, scheduler=cl.scheduler_address)
+    assert (tmp_path / "dask.npz").read_bytes() == (tmp_path / "local.npz").read_bytes()

@@ -63,8 +63,11 @@ class ConvergenceReport:
 
 def _solve_chunk(args) -> tuple[int, dict]:
     key, cells, stack, settings = args
-    res = [solve_cell(wx, wy, stack, settings) for wx, wy in cells]
-    return key, {
+    return key, _pack([solve_cell(wx, wy, stack, settings) for wx, wy in cells])
+
+
+def _pack(res) -> dict:
+    return {
         "jones": np.array([r.jones for r in res]),
         "T0": np.array([r.T0 for r in res]),
         "T_total": np.array([r.T_total for r in res]),
@@ -85,13 +88,7 @@ def _solve_chunk_axes(args) -> tuple[int, dict]:
     for wx, wy, h, a in cells:
         st = replace(stack, height=h)
         res.append(solve_cell(wx, wy, st, settings) if a == 90.0 else solve_tapered(wx, wy, a, slices, st, settings))
-    return key, {
-        "jones": np.array([r.jones for r in res]),
-        "T0": np.array([r.T0 for r in res]),
-        "T_total": np.array([r.T_total for r in res]),
-        "R_total": np.array([r.R_total for r in res]),
-        "n_harmonics": np.array([r.n_harmonics for r in res]),
-    }
+    return key, _pack(res)
 
 
 def certify_slices(recipe: LibraryRecipe, pool=None) -> dict:
@@ -227,13 +224,11 @@ def build_library(
 
 def _dask_map(fn, jobs, scheduler: str):
     """Chunks on a Dask distributed scheduler (results as they finish, like the pool's imap_unordered)."""
-    from dask.distributed import Client, as_completed
+    from dask.distributed import as_completed
 
-    try:
-        client = Client(scheduler, timeout="20s")
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
-                         f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+    from ..parallel import dask_client
+
+    client = dask_client(scheduler)
     try:
         futures = [client.submit(_dask_chunk, fn, job, pure=False) for job in jobs]
         for fut in as_completed(futures):

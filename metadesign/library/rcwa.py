@@ -315,15 +315,25 @@ def solve_cell(
         eye = np.eye(2 * nG)
         aN, b0 = _propagate(eye, M, kp, kp_uni, q_uni, obj.thickness_list, a0)
 
-    omega = obj.omega
+    return zero_order_result(obj, a0, aN, b0, stack, stack.height)
+
+
+def zero_order_result(obj, a0, aN, b0, stack: Stack, height: float) -> CellResult:
+    """Jones matrix and efficiencies from the incident (``a0``), transmitted (``aN``) and reflected (``b0``)
+    H amplitudes (2nG x 2, one column per input polarisation) of a solved grcwa stack whose first and last
+    layers are the substrate and the superstrate; ``height``: the patterned layers' total thickness (the
+    phase reference ``exp(-i k0 n_sup h)``)."""
+    nG = int(obj.nG)
+    kx, ky, omega = obj.kx, obj.ky, obj.omega
+    eps_sub, eps_sup = stack.n_substrate**2, stack.n_superstrate**2
     q_sub = obj.q_list[0][:nG]
-    q_sup = obj.q_list[2][:nG]
+    q_sup = obj.q_list[-1][:nG]
 
     jones = np.zeros((2, 2), dtype=complex)
     T0 = np.zeros(2)
     T_tot = np.zeros(2)
     R_tot = np.zeros(2)
-    phase_ref = np.exp(-1j * 2 * np.pi * stack.n_superstrate * stack.height / stack.wavelength)
+    phase_ref = np.exp(-1j * 2 * np.pi * stack.n_superstrate * height / stack.wavelength)
     for j in range(2):
         hx_i, hy_i = a0[:nG, j], a0[nG:, j]
         hx_t, hy_t = aN[:nG, j], aN[nG:, j]

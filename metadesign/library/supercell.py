@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rcwa import CellResult, SolverSettings, Stack, Truncation, _flux, _uniform_e_fields, symmetry_bases
+from .rcwa import CellResult, SolverSettings, Stack, Truncation, symmetry_bases, zero_order_result
 
 __all__ = ["Rect", "staircase_permittivity", "solve_layers", "solve_supercell", "solve_tapered",
            "supercell_rects", "tapered_layers"]
@@ -147,25 +147,7 @@ def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 20
             aN[:, j:j + 1], b0[:, j:j + 1] = propagate(U, a0[:, j:j + 1])
     else:
         aN, b0 = propagate(np.eye(2 * nG), a0)
-    height = sum(t for t, _ in layers)
-    q_sub, q_sup = obj.q_list[0][:nG], obj.q_list[-1][:nG]
-    jones = np.zeros((2, 2), complex)
-    T0, T_tot, R_tot = np.zeros(2), np.zeros(2), np.zeros(2)
-    ref = np.exp(-1j * 2 * np.pi * stack.n_superstrate * height / stack.wavelength)
-    for j in range(2):
-        hx_i, hy_i = a0[:nG, j], a0[nG:, j]
-        hx_t, hy_t = aN[:nG, j], aN[nG:, j]
-        hx_r, hy_r = b0[:nG, j], b0[nG:, j]
-        ex_i, ey_i = _uniform_e_fields(hx_i, hy_i, kx, ky, q_sub, omega, eps_sub)
-        ex_t, ey_t = _uniform_e_fields(hx_t, hy_t, kx, ky, q_sup, omega, eps_sup)
-        e_in = ex_i[0] if j == 0 else ey_i[0]
-        jones[0, j] = ex_t[0] / e_in * ref
-        jones[1, j] = ey_t[0] / e_in * ref
-        f_in = _flux(hx_i, hy_i, kx, ky, q_sub, omega, eps_sub)[0]
-        f_t = _flux(hx_t, hy_t, kx, ky, q_sup, omega, eps_sup) / f_in
-        f_r = -_flux(hx_r, hy_r, kx, ky, -q_sub, omega, eps_sub) / f_in
-        T0[j], T_tot[j], R_tot[j] = f_t[0], f_t.sum(), f_r.sum()
-    return CellResult(jones=jones, T0=T0, T_total=T_tot, R_total=R_tot, n_harmonics=nG)
+    return zero_order_result(obj, a0, aN, b0, stack, sum(t for t, _ in layers))
 
 
 def supercell_rects(widths, period: float):

@@ -489,15 +489,13 @@ def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | N
     if not pending:
         return
     if scheduler is not None or client is not None:
-        from dask.distributed import Client, as_completed
+        from dask.distributed import as_completed
+
+        from ..parallel import dask_client
 
         own = client is None
         if own:
-            try:
-                client = Client(scheduler, timeout="20s")
-            except (OSError, TimeoutError, ValueError) as exc:
-                raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
-                                      f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+            client = dask_client(scheduler)
         try:
             ctx_f = client.scatter(ctx, broadcast=True)
             futures = [client.submit(_dask_shard, ctx_f, i, pure=False, key=f"metadesign-shard-{ctx.out}-{i}")
