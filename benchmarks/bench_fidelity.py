@@ -64,13 +64,13 @@ def main() -> int:
     rec = recipe_from_dict(d, "bench")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        _, rep = build_library(rec, Path(tmp) / "a.npz", workers=2)
+        _, rep = build_library(rec, Path(tmp) / "a.npz", workers=2, chunk_size=2)
         out["build_24_cells_local2_s"] = rep["sweep_seconds"]
         out["build_24_cells_local2_total_s"] = time.perf_counter() - t0
         from dask.distributed import LocalCluster
 
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
-            _, rep = build_library(rec, Path(tmp) / "b.npz", workers=1, scheduler=cl.scheduler_address)
+            _, rep = build_library(rec, Path(tmp) / "b.npz", workers=1, chunk_size=2, scheduler=cl.scheduler_address)
             out["build_24_cells_dask2_s"] = rep["sweep_seconds"]
     # projection to the paper grid: 81 widths -> 3321 unique pairs, x 3 heights x 3 angles (90 and two tapers)
     pairs = 81 * 82 // 2
