@@ -133,3 +133,68 @@ def test_library_build_on_a_dask_cluster_gives_the_same_bytes(tmp_path):
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
         build_library(rec, tmp_path / "dask.npz", workers=1, chunk_size=2, scheduler=cl.scheduler_address)
     assert (tmp_path / "dask.npz").read_bytes() == (tmp_path / "local.npz").read_bytes()
+
+
+def test_tolerance_cases_with_etch_depth_gradient(tmp_path, demo_products, axes_library):
+    """A reconstruction-level case with an across-wafer etch-depth gradient renders the same turbulence through
+    a different device (the fab library's correction on top of the layout's own library)."""
+    import json
+
+    import torch
+    from conftest import run_cli
+
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    torch.manual_seed(0)
+    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
+    (tmp_path / "t.toml").write_text("[model]\nbase = 4\ndepth = 3\n[train]\nbatch = 4\n")
+    (tmp_path / "tol.toml").write_text(f"""[dataset]
+layout = "{demo_products['layout']}"
+sensor = "{REPO / 'sensing' / 'demo.toml'}"
+turbulence = "{REPO / 'sensing' / 'turbulence.toml'}"
+samples = 6
+split = [0.5, 0.17, 0.33]
+seed = 3
+tensor_size = 16
+shard_size = 6
+[cases]
+bias_nm = [0.0]
+height_gradient_nm = [-25.0]
+fab_library = "{axes_library[0]}"
+[evaluate]
+model = "m.safetensors"
+noise_percent = 0.0
+[finetune]
+train = "t.toml"
+epochs = 0
+""")
+    r = run_cli("tolerance", str(tmp_path / "tol.toml"), "-o", str(tmp_path / "out"), "-j", "1", "--json")
+    assert r.returncode == 0, r.stderr
+    rows = {x["case"]: x for x in json.loads(r.stdout)["rows"]}
+    assert set(rows) == {"nominal", "heightgrad-25nm"}
+    g = rows["heightgrad-25nm"]
+    assert g["height_gradient_nm"] == -25.0 and "after" not in g
+    assert g["before"]["npib_none"] == pytest.approx(rows["nominal"]["before"]["npib_none"], rel=1e-6)
+    import zarr
+
+    def power(case):
+        return np.asarray(zarr.open_group(str(tmp_path / "out" / f"case-{case}" / "dataset"), mode="r")["psf_power"][:])
+
+    assert not np.allclose(power("heightgrad-25nm"), power("nominal"), rtol=1e-4, atol=0)
+
+
+def test_supercell_of_identical_pillars_is_the_committed_library_cell():
+    """At the library's own resolution (supercell nG 797 <-> unit nG 197) four identical pillars reproduce the
+    committed library's entry."""
+    from metadesign.library.lpa import matched_unit_harmonics
+    from metadesign.library.rcwa import Stack
+    from metadesign.library.store import load_library
+    from metadesign.library.supercell import solve_supercell
+
+    lib = load_library(REPO / "library" / "paper.npz")
+    st = Stack()
+    ns, nu = matched_unit_harmonics(800, st)
+    assert nu - 1 == lib.meta["solver"]["n_harmonics"]
+    i, j = int(np.argmin(np.abs(lib.wx - 0.30e-6))), int(np.argmin(np.abs(lib.wy - 0.20e-6)))
+    sc = solve_supercell([[(lib.wx[i], lib.wy[j])] * 2] * 2, st, ns)
+    np.testing.assert_allclose(sc.jones, lib.jones[i, j], atol=1e-7)

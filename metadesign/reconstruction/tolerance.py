@@ -34,6 +34,9 @@ TOLERANCE_SECTIONS = (
         Param("corner_nm", list, [], lo=0, hi=500),
         Param("height_nm", list, [], lo=-500, hi=500, help="etch depth errors (need fab_library)"),
         Param("sidewall_deg", list, [], lo=60, hi=90, help="sidewall angles (need fab_library)"),
+        Param("height_gradient_nm", list, [], lo=-500, hi=500,
+              help="across-wafer etch depth gradients: the error at the aperture's +x edge (need fab_library)"),
+        Param("sidewall_gradient_deg", list, [], lo=-30, hi=30, help="across-wafer sidewall gradients"),
         Param("fab_library", str, None, help="library with height / sidewall axes (relative to the recipe)"),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
     )),
@@ -55,7 +58,7 @@ TOLERANCE_SECTIONS = (
 class ToleranceRecipe:
     source: Path
     dataset: dict  # raw [dataset] section
-    cases: list  # [(label, bias_nm, jitter_nm, corner_nm, height_nm, sidewall_deg)]
+    cases: list  # [(label, bias_nm, jitter_nm, corner_nm, height_nm, sidewall_deg, height_grad_nm, sidewall_grad_deg)]
     seed: int
     model: Path
     noise_percent: float
@@ -77,13 +80,19 @@ def load_tolerance_recipe(path: str | Path) -> ToleranceRecipe:
             raise ConfigError(key, "missing")
     # lengths load in metres and percentages as fractions (config units); cases are kept in nm for the tables
     nm = [round(float(b) * 1e9, 6) for b in c["bias_nm"]]
-    cases = [("nominal", 0.0, 0.0, 0.0, 0.0, 90.0)]
-    cases += [(f"bias{b:+g}nm", b, 0.0, 0.0, 0.0, 90.0) for b in nm if b != 0]
-    cases += [(f"jitter{j * 1e9:g}nm", 0.0, round(j * 1e9, 6), 0.0, 0.0, 90.0) for j in c["jitter_nm"] if j != 0]
-    cases += [(f"corner{r * 1e9:g}nm", 0.0, 0.0, round(r * 1e9, 6), 0.0, 90.0) for r in c["corner_nm"] if r != 0]
-    cases += [(f"height{h * 1e9:+g}nm", 0.0, 0.0, 0.0, round(h * 1e9, 6), 90.0) for h in c["height_nm"] if h != 0]
-    cases += [(f"sidewall{a:g}deg", 0.0, 0.0, 0.0, 0.0, float(a)) for a in c["sidewall_deg"] if a != 90]
-    if any(x[4] or x[5] != 90 for x in cases) and not c["fab_library"]:
+    z = (0.0, 90.0, 0.0, 0.0)  # no etch depth / sidewall perturbation
+    cases = [("nominal", 0.0, 0.0, 0.0, *z)]
+    cases += [(f"bias{b:+g}nm", b, 0.0, 0.0, *z) for b in nm if b != 0]
+    cases += [(f"jitter{j * 1e9:g}nm", 0.0, round(j * 1e9, 6), 0.0, *z) for j in c["jitter_nm"] if j != 0]
+    cases += [(f"corner{r * 1e9:g}nm", 0.0, 0.0, round(r * 1e9, 6), *z) for r in c["corner_nm"] if r != 0]
+    cases += [(f"height{h * 1e9:+g}nm", 0.0, 0.0, 0.0, round(h * 1e9, 6), 90.0, 0.0, 0.0)
+              for h in c["height_nm"] if h != 0]
+    cases += [(f"sidewall{a:g}deg", 0.0, 0.0, 0.0, 0.0, float(a), 0.0, 0.0) for a in c["sidewall_deg"] if a != 90]
+    cases += [(f"heightgrad{g * 1e9:+g}nm", 0.0, 0.0, 0.0, 0.0, 90.0, round(g * 1e9, 6), 0.0)
+              for g in c["height_gradient_nm"] if g != 0]
+    cases += [(f"sidewallgrad{g:+g}deg", 0.0, 0.0, 0.0, 0.0, 90.0, 0.0, float(g))
+              for g in c["sidewall_gradient_deg"] if g != 0]
+    if any(x[4] or x[5] != 90 or x[6] or x[7] for x in cases) and not c["fab_library"]:
         raise ConfigError("cases.fab_library", "missing: height_nm / sidewall_deg cases need a library with fab axes")
     base = path.parent
     ft = None if f["bias_nm"] is None else [round(float(b) * 1e9, 6) for b in f["bias_nm"]]
@@ -110,7 +119,7 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
     out.mkdir(exist_ok=True)
     base_train = load_train_recipe(recipe.train)
     rows = []
-    for label, b, j, c, hh, sw in recipe.cases:
+    for label, b, j, c, hh, sw, hg, sg in recipe.cases:
         case = out / f"case-{label}"
         done = case / "result.json"
         if done.exists():
@@ -120,16 +129,17 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
         case.mkdir(exist_ok=True)
         raw = json.loads(json.dumps(recipe.dataset))
         raw["fabrication"] = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
-        if hh or sw != 90:
-            raw["fabrication"].update({"height_nm": hh, "sidewall_deg": sw, "fab_library": recipe.fab_library})
+        if hh or sw != 90 or hg or sg:
+            raw["fabrication"].update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg,
+                                       "sidewall_gradient_deg": sg, "fab_library": recipe.fab_library})
         ds_rec = dataset_recipe_from_dict(raw, f"tolerance-{label}", recipe.source)
         log(f"{label}: dataset ...")
         build_dataset(ds_rec, case / "dataset", workers=workers, log=log)
         res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
         key = next(iter(res["rows"]))
         row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key)}
-        if hh or sw != 90:
-            row.update({"height_nm": hh, "sidewall_deg": sw})
+        if hh or sw != 90 or hg or sg:
+            row.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg})
         log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} (captured {row['before']['captured_fraction']:.2f})")
         fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias)
         if fine:
@@ -180,8 +190,8 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
                                  gridspec_kw={"width_ratios": [3, 2]})
-    bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0 and not r.get("height_nm")
-                   and r.get("sidewall_deg", 90) == 90], key=lambda r: r["bias_nm"])
+    bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0 and "height_nm" not in r],
+                  key=lambda r: r["bias_nm"])
     x = [r["bias_nm"] for r in bias]
     a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
     fx = [r["bias_nm"] for r in bias if "after" in r or r["case"] == "nominal"]
@@ -192,7 +202,7 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
     a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
            title=f"reconstruction-level fab tolerance (noise {noise:g} %)")
     a1.legend(fontsize=8)
-    other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or r.get("height_nm") or r.get("sidewall_deg", 90) != 90]
+    other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or "height_nm" in r]
     if other:
         lab = [r["case"] for r in other]
         xx = np.arange(len(other))
