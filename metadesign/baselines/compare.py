@@ -91,6 +91,9 @@ def device_of(dataset: str | Path) -> dict:
     prov = ds.info.attrs["provenance"]
     path = Path(dataset) / "device-pupil.npz"
     if not path.is_file():
+        if ds.info.attrs.get("propagation") == "slm":
+            raise ValidationError(f"{dataset}: imported captures carry no device model (the forward model of "
+                                  "compare / retrieve / synth-captures needs a synthetic dataset)")
         raise ValidationError(f"{path}: missing (the device's coarse pupil, written by `metadesign dataset build`)")
     z = read_npz(path, "device pupil")
     cp = CoarsePupil(z["G"], z["X"], int(z["block"]), float(z["period"]), float(z["wavelength"]), float(z["z"]),

@@ -43,8 +43,11 @@ def _cmd_show(a: argparse.Namespace) -> int:
         f"test {s['split_counts']['test']}; tensor {' x '.join(map(str, s['tensor']))}",
         f"Rytov          nominal {s['rytov_nominal'][0]:.3f}..{s['rytov_nominal'][1]:.3f}, measured "
         f"{s['rytov_measured'][0]:.3f}..{s['rytov_measured'][1]:.3f} (mean {s['rytov_measured_mean']:.3f})",
-        f"device         layout {str(s['layout_sha256'])[:12]}, library {str(s['library_sha256'])[:12]}, "
-        f"perturbation {at['provenance'].get('perturbation')}",
+        (f"device         layout {str(s['layout_sha256'])[:12]}, library {str(s['library_sha256'])[:12]}, "
+         f"perturbation {at['provenance'].get('perturbation')}") if at.get("propagation") != "slm" else
+        (f"captures       {at['provenance'].get('captures')} (propagation slm), relay "
+         + ", ".join(f"{k} {v:+.3g}" for k, v in at['provenance'].get('calibration', {}).get('alignment', {}).items())
+         + f"; {len(at['provenance'].get('saturated') or [])} saturated ({at['provenance'].get('saturated_policy')})"),
         f"storage        {s['bytes_on_disk'] / 1e6:.1f} MB, {s['bytes_per_sample'] / 1e3:.1f} kB per sample; "
         f"root seed {s['root_seed']}",
     ])

@@ -28,7 +28,7 @@ def plot_dataset(info: DatasetInfo, out: str | Path, n_samples: int = 3) -> Path
         rec = np.asarray(g["received"][i])
         for c in range(8):
             ax = fig.add_subplot(gs[row, c])
-            ax.imshow(psf[c] ** 0.5, cmap="inferno", origin="upper")
+            ax.imshow(np.clip(psf[c], 0, None) ** 0.5, cmap="inferno", origin="upper")  # captures: < 0 after darks
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(_NAMES[c], fontsize=8)
