@@ -82,3 +82,17 @@ def tiny_dataset(tmp_path_factory, demo_products):
     rec = load_dataset_recipe(tiny_dataset_recipe(base, demo_products["layout"]))
     build_dataset(rec, base / "ds", workers=1)
     return base / "ds"
+
+
+def tiny_model(folder: Path) -> Path:
+    """An untrained toy U-Net for 8 x 16^2 inputs (``m.safetensors``) and a training recipe matching it
+    (``t.toml``) in ``folder``: the machinery tests of tolerance, transfer and the LPA check."""
+    import torch
+
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    torch.manual_seed(0)
+    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), Path(folder) / "m.safetensors",
+               {"noise_percent": 0})
+    (Path(folder) / "t.toml").write_text("[model]\nbase = 4\ndepth = 3\n[train]\nbatch = 4\n")
+    return Path(folder) / "m.safetensors"

@@ -223,13 +223,9 @@ def test_transfer_runs_three_models_on_the_imported_set_and_resumes(tmp_path, ti
     """``metadesign transfer`` at toy scale: device as made, captures, import (the relay recovered), and the
     unadapted / fine-tuned / scratch models on the same imported test split (the phase conjugate through the
     SLM is 1); a re-run resumes every finished step."""
-    from conftest import REPO, run_cli
+    from conftest import REPO, run_cli, tiny_model
 
-    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
-
-    torch.manual_seed(0)
-    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
-    (tmp_path / "t.toml").write_text("[model]\nbase = 4\ndepth = 3\n[train]\nbatch = 4\n")
+    tiny_model(tmp_path)
     (tmp_path / "tr.toml").write_text(f"""[dataset]
 layout = "{demo_products['layout']}"
 sensor = "{REPO / 'sensing' / 'demo.toml'}"

@@ -140,14 +140,9 @@ def test_tolerance_cases_with_etch_depth_gradient(tmp_path, demo_products, axes_
     a different device (the fab library's correction on top of the layout's own library)."""
     import json
 
-    import torch
-    from conftest import run_cli
+    from conftest import run_cli, tiny_model
 
-    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
-
-    torch.manual_seed(0)
-    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
-    (tmp_path / "t.toml").write_text("[model]\nbase = 4\ndepth = 3\n[train]\nbatch = 4\n")
+    tiny_model(tmp_path)
     (tmp_path / "tol.toml").write_text(f"""[dataset]
 layout = "{demo_products['layout']}"
 sensor = "{REPO / 'sensing' / 'demo.toml'}"

@@ -84,13 +84,9 @@ def test_lpa_check_command_end_to_end(tmp_path, demo_products, tiny_dataset):
     recorded, the downstream keeps the references (uncorrected, conjugate) and changes the U-Net's input."""
     import json
 
-    import torch
-    from conftest import run_cli
+    from conftest import run_cli, tiny_model
 
-    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
-
-    torch.manual_seed(0)
-    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
+    tiny_model(tmp_path)
     r = run_cli("library", "lpa-check", str(demo_products["layout"]), "--supercells", "2", "--harmonics", "120",
                 "--check", "1", "--dataset", str(tiny_dataset), "--model", str(tmp_path / "m.safetensors"),
                 "--samples", "2", "--noise", "0", "-j", "1", "-o", str(tmp_path / "lpa"), "--json")

@@ -14,11 +14,9 @@ torch = pytest.importorskip("torch")
 
 
 def test_tolerance_study_same_samples_every_case_and_resumes(tmp_path, demo_products):
-    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+    from conftest import tiny_model
 
-    torch.manual_seed(0)
-    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "m.safetensors", {"noise_percent": 0})
-    (tmp_path / "t.toml").write_text("[model]\nbase = 4\ndepth = 3\n[train]\nbatch = 4\n")
+    tiny_model(tmp_path)
     (tmp_path / "tol.toml").write_text(f"""[dataset]
 layout = "{demo_products['layout']}"
 sensor = "{REPO / 'sensing' / 'demo.toml'}"
