@@ -21,6 +21,7 @@ Pillars pushed outside the library's width range are clamped to it and
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,47 +110,47 @@ def interpolate_t(lib: UnitCellLibrary, wx: np.ndarray, wy: np.ndarray):
     return t.astype(np.complex64), T0.astype(np.float32), int(out.sum())
 
 
-def interpolate_t_fab(lib: UnitCellLibrary, wx, wy, height, angle):
-    """Multilinear complex interpolation of ``(t_x, t_y)`` in (wx, wy, height, sidewall angle) of a library
-    with fab axes; arguments broadcast.  Returns ``(t (..., 2) complex64, n_clamped)`` (pillars outside any
-    axis are clamped to it and counted)."""
+def _interp_fab(lib: UnitCellLibrary, wx, wy, height, angle):
+    """``(t (..., 2) complex, clamped (...) bool)``: multilinear in the four axes of ``lib.fab``."""
     fab = lib.fab
     if fab is None:
         from ..validation import ValidationError
 
         raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
-                              "[fab_axes] section: heights_um, sidewall_deg)")
-    wx, wy, height, angle = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (wx, wy, height, angle)))
+                              "[fab_axes] section: heights_um, sidewall_deg; pass it as --fab-library)")
+    vals = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (wx, wy, height, angle)))
     grids = (lib.wx, lib.wy, np.asarray(fab["heights"]), np.asarray(fab["sidewalls"]))
-    out = np.zeros(wx.shape, bool)
+    out = np.zeros(vals[0].shape, bool)
     idx, frac = [], []
-    for v, g in zip((wx, wy, height, angle), grids):
-        tol = 1e-12 if g is lib.wx or g is lib.wy else 1e-9
-        out |= (v < g[0] - tol * max(1.0, abs(g[0]))) | (v > g[-1] + tol * max(1.0, abs(g[-1])))
-        if len(g) == 1:
+    for v, g in zip(vals, grids):
+        tol = 1e-9 * max(1.0, abs(g[-1])) if g[-1] > 1e-3 else 1e-12  # degrees / metres
+        out |= (v < g[0] - tol) | (v > g[-1] + tol)
+        if len(g) == 1:  # a single value on this axis: its only corner, weight 1
             idx.append(np.zeros(v.shape, np.int64))
-            frac.append(np.zeros(v.shape))
+            frac.append(None)
             continue
         f = np.interp(v, g, np.arange(len(g)))
         i0 = np.minimum(np.floor(f).astype(np.int64), len(g) - 2)
         idx.append(i0)
         frac.append(f - i0)
     tab = np.stack([fab["jones"][..., 0, 0], fab["jones"][..., 1, 1]], axis=-1)  # (nx, ny, nh, na, 2)
-    t = np.zeros((*wx.shape, 2), complex)
-    for corner in range(16):
-        bits = [(corner >> k) & 1 for k in range(4)]
-        w = np.ones(wx.shape)
-        ii = []
-        for b, i0, f, g in zip(bits, idx, frac, grids):
-            if len(g) == 1 and b:
-                w = w * 0.0
-                ii.append(i0)
-                continue
-            w = w * (f if b else 1 - f)
-            ii.append(i0 + b if len(g) > 1 else i0)
-        if not w.any():
+    t = np.zeros((*out.shape, 2), complex)
+    for bits in itertools.product((0, 1), repeat=4):
+        if any(b and f is None for b, f in zip(bits, frac)):
             continue
-        t += w[..., None] * tab[ii[0], ii[1], ii[2], ii[3]]
+        w = np.ones(out.shape)
+        for b, f in zip(bits, frac):
+            if f is not None:
+                w = w * (f if b else 1 - f)
+        t += w[..., None] * tab[tuple(i0 + b for i0, b in zip(idx, bits))]
+    return t, out
+
+
+def interpolate_t_fab(lib: UnitCellLibrary, wx, wy, height, angle):
+    """Multilinear complex interpolation of ``(t_x, t_y)`` in (wx, wy, height, sidewall angle) of a library
+    with fab axes; arguments broadcast.  Returns ``(t (..., 2) complex64, n_clamped)`` (pillars outside any
+    axis are clamped to it and counted)."""
+    t, out = _interp_fab(lib, wx, wy, height, angle)
     return t.astype(np.complex64), int(out.sum())
 
 
@@ -200,43 +201,44 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     return t, clamped
 
 
-def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None):
-    """The look-up with height / sidewall perturbations (per pillar: gradients make every pillar its own)."""
-    F = fab_lib if fab_lib is not None else lib
-    n_sub = lib.meta["stack"]["n_substrate"]
-    n_sup = lib.meta["stack"]["n_superstrate"]
-    bare = np.complex64(2 * n_sub / (n_sub + n_sup))
-    w = np.asarray(atom_widths_nm, np.float64) * 1e-9
-    has = im >= 0
-    k = np.where(has, im, 0)
-    if F.fab is None:
-        from ..validation import ValidationError
+def _fab_t(lib: UnitCellLibrary, F: UnitCellLibrary, wx, wy, h, a):
+    """``t_lib(w) + t_F(w, h, a) - t_F(w, h0, 90)`` (just ``t_F`` when ``F`` is ``lib``) and the clamped mask."""
+    tf, out = _interp_fab(F, wx, wy, h, a)
+    if F is lib:
+        return tf, out
+    h0 = float(lib.meta["stack"]["height_m"])
+    base, _, _ = interpolate_t(lib, wx, wy)
+    tn, _ = _interp_fab(F, wx, wy, h0, 90.0)
+    gx, gy = lib.wx, lib.wy
+    out = out | (wx < gx[0] - 1e-12) | (wx > gx[-1] + 1e-12) | (wy < gy[0] - 1e-12) | (wy > gy[-1] + 1e-12)
+    return base + tf - tn, out
 
-        raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
-                              "[fab_axes] section: heights_um, sidewall_deg; pass it as --fab-library)")
+
+def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None):
+    """The look-up with height / sidewall perturbations: once per atom for a global height and angle without
+    jitter, else per pillar (gradients and jitter make every pillar its own)."""
+    F = fab_lib if fab_lib is not None else lib
     for key in ("wavelength_m", "period_m", "height_m"):
         if abs(F.meta["stack"][key] - lib.meta["stack"][key]) > 1e-12:
             from ..validation import ValidationError
 
             raise ValidationError(f"the fab library's stack differs from the design's library ({key})")
+    n_sub = lib.meta["stack"]["n_substrate"]
+    n_sup = lib.meta["stack"]["n_superstrate"]
+    bare = np.complex64(2 * n_sub / (n_sub + n_sup))
+    w = np.asarray(atom_widths_nm, np.float64) * 1e-9
+    has = im >= 0
     h0 = float(lib.meta["stack"]["height_m"])
     if not (pert.jitter or pert.height_gradient or pert.sidewall_gradient_deg):
-        # one height and angle everywhere: look each atom up once (as the 2-D path does)
         ax, ay = perturb_widths(w[:, 0], w[:, 1], pert)
-        base, _, c0 = interpolate_t(lib, ax, ay)
-        tf, c1 = interpolate_t_fab(F, ax, ay, h0 + pert.height, min(pert.sidewall_deg, 90.0))
-        table = tf if F is lib else base + tf - interpolate_t_fab(F, ax, ay, h0, 90.0)[0]
-        table = np.concatenate([table.astype(np.complex64), np.full((1, 2), bare, np.complex64)])
-        kk = np.where(im < 0, len(w), im)
-        return table[kk], int(bool(c0 or c1) and has.sum())
+        t_atoms, bad = _fab_t(lib, F, ax, ay, h0 + pert.height, min(pert.sidewall_deg, 90.0))
+        table = np.concatenate([t_atoms.astype(np.complex64), np.full((1, 2), bare, np.complex64)])
+        k = np.where(has, im, len(w))
+        return table[k], int(np.append(bad, False)[k].sum())
+    k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
     h, a = _fab_axes_of(pert, lib, im.shape, cols)
     t = np.full((*im.shape, 2), bare, np.complex64)
-    base, _, c0 = interpolate_t(lib, wx[has], wy[has])
-    tf, clamped = interpolate_t_fab(F, wx[has], wy[has], h[has], a[has])
-    if F is lib:
-        t[has] = tf
-    else:
-        tn, _ = interpolate_t_fab(F, wx[has], wy[has], h0, 90.0)
-        t[has] = base + tf - tn
-    return t, max(clamped, c0)
+    tt, bad = _fab_t(lib, F, wx[has], wy[has], h[has], a[has])
+    t[has] = tt
+    return t, int(bad.sum())
