@@ -168,16 +168,20 @@ def fit_alignment(reference: np.ndarray, measured: np.ndarray, shape: tuple[int,
         A[0::2] = np.c_[P[:, 0], -P[:, 1], np.ones(n), np.zeros(n)]
         A[1::2] = np.c_[P[:, 1], P[:, 0], np.zeros(n), np.ones(n)]
         a, b, tx, ty = np.linalg.lstsq(A, Q.reshape(-1), rcond=None)[0]
-        s = float(np.hypot(a, b))
-        try:
-            al = Alignment(float(tx), float(ty), float(np.rad2deg(np.arctan2(b, a))), s)
-        except ValueError as exc:
-            raise ValidationError(f"calibration: the fitted relay misalignment is out of range ({exc}); "
-                                  "check the flat captures and the reference") from None
+        al = _checked(lambda: Alignment.from_matrix(np.array([[a, -b], [b, a]]), (tx, ty)))
     else:
         raise ValidationError(f"--fit: expected shift or similarity, got {mode!r}")
     res = np.linalg.norm(al.forward(reference, shape) - measured, axis=1)
     return al, res
+
+
+def _checked(make):
+    """An alignment from ``make()``, its range errors as one calibration line."""
+    try:
+        return make()
+    except ValueError as exc:
+        raise ValidationError(f"calibration: the fitted relay misalignment is out of range ({exc}); "
+                              "check the flat captures and the reference") from None
 
 
 def _warp(frames: np.ndarray, alignment) -> tuple[np.ndarray, np.ndarray]:
@@ -214,15 +218,7 @@ def calibrate(flat: np.ndarray, reference: np.ndarray, sensor, mode: str = "simi
         c_meas = spot_centroids(warped, sensor, threshold)
         c_r = spot_centroids(reference * seen, sensor, threshold)
         step, res = fit_alignment(c_r, c_meas, shape, mode)
-        m_n, m_s = al._m(), step._m()
-        m = m_n @ m_s
-        t = np.array([al.shift_x_px, al.shift_y_px]) + m_n @ np.array([step.shift_x_px, step.shift_y_px])
-        try:
-            al = Alignment(float(t[0]), float(t[1]), float(np.rad2deg(np.arctan2(m[1, 0], m[0, 0]))),
-                           float(np.hypot(m[0, 0], m[1, 0])))
-        except ValueError as exc:
-            raise ValidationError(f"calibration: the fitted relay misalignment is out of range ({exc}); "
-                                  "check the flat captures and the reference") from None
+        al = _checked(lambda: al.then(step))
         if np.abs(step.forward(c_r, shape) - c_r).max() < 1e-3:
             break
     return al, res, c_first
@@ -448,7 +444,8 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         g["seed"][:] = np.arange(n, dtype=np.int64)
         fl = g.create_array("flags", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=0,
                             dimension_names=("sample",))
-        fl[:] = np.array([1 if rows[j]["sample"] in set(flagged) else 0 for j in kept], np.uint8)
+        flagged_set = set(flagged)
+        fl[:] = np.array([rows[j]["sample"] in flagged_set for j in kept], np.uint8)
         nm = g.create_array("manifest_row", shape=(n,), chunks=(max(n, 1),), dtype="int64", fill_value=-1,
                             dimension_names=("sample",))
         nm[:] = np.array(kept, np.int64)  # row of the manifest

@@ -51,14 +51,33 @@ class Alignment:
         th = np.deg2rad(self.rotation_deg)
         return self.scale * np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
 
+    @property
+    def _t(self) -> np.ndarray:
+        return np.array([self.shift_x_px, self.shift_y_px])
+
+    @staticmethod
+    def _centre(shape: tuple[int, int]) -> np.ndarray:
+        return np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+
+    @classmethod
+    def from_matrix(cls, m: np.ndarray, t) -> "Alignment":
+        """The alignment of a similarity matrix ``m`` (scale x rotation) and shift ``t`` (pixels)."""
+        return cls(float(t[0]), float(t[1]), float(np.rad2deg(np.arctan2(m[1, 0], m[0, 0]))),
+                   float(np.hypot(m[0, 0], m[1, 0])))
+
+    def then(self, inner: "Alignment") -> "Alignment":
+        """``self o inner``: apply ``inner`` in nominal coordinates, then ``self``."""
+        m = self._m()
+        return Alignment.from_matrix(m @ inner._m(), self._t + m @ inner._t)
+
     def forward(self, p: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """Nominal pixel coordinates (..., 2) as (col, row) -> camera coordinates."""
-        c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
-        return (np.asarray(p, float) - c) @ self._m().T + c + np.array([self.shift_x_px, self.shift_y_px])
+        c = self._centre(shape)
+        return (np.asarray(p, float) - c) @ self._m().T + c + self._t
 
     def inverse(self, q: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-        c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
-        return (np.asarray(q, float) - c - np.array([self.shift_x_px, self.shift_y_px])) @ np.linalg.inv(self._m()).T + c
+        c = self._centre(shape)
+        return (np.asarray(q, float) - c - self._t) @ np.linalg.inv(self._m()).T + c
 
     def to_dict(self) -> dict:
         return asdict(self)
