@@ -402,15 +402,14 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     f = recipe.fabrication
     # lengths load in metres (config units): the height fields too
     pert = Perturbation(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"],
-                        f.get("height_nm", 0.0) or 0.0, f.get("sidewall_deg", 90.0),
-                        f.get("height_gradient_nm", 0.0) or 0.0, f.get("sidewall_gradient_deg", 0.0) or 0.0)
+                        f["height_nm"], f["sidewall_deg"], f["height_gradient_nm"], f["sidewall_gradient_deg"])
     layout = ensure_layout(recipe, log)
     layout_sha = _sha256(layout)
     fab = AsFabricated.from_files(layout)
     if pert.has_fab_axes:
         from ..library.store import load_library
 
-        if not f.get("fab_library"):
+        if not f["fab_library"]:
             raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
                                   "library with fab axes")
         lp = Path(f["fab_library"])
