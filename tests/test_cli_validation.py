@@ -5,6 +5,7 @@ traceback, nothing written on exit 2."""
 from __future__ import annotations
 
 import argparse
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,15 @@ def _numeric_options(p):
             yield a
 
 
+def _copy(ds: Path | None, to: Path) -> Path | None:
+    """A private copy of the shared tiny dataset for commands that write into a dataset."""
+    if ds is None:
+        return None
+    if not to.exists():
+        shutil.copytree(ds, to)
+    return to
+
+
 def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str] | None:
     d, lay, sen = str(prod["design"]), str(prod["layout"]), str(prod["sensor"])
     return {
@@ -54,6 +64,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("demo",): ["-o", str(out / "demo")],
         ("dataset", "build"): [str(REPO / "sensing" / "dataset-demo.toml"), "-o", str(out / "ds")],
         ("dataset", "show"): [str(ds)],
+        ("dataset", "operators"): [str(_copy(ds, out / "ds-ops"))],
         ("dataset", "plot"): [str(ds), "-o", str(out / "ds.png")],
         ("dataset", "import"): [str(out / "no-captures"), "-o", str(out / "imp"), "--calibration",
                                 str(out / "no-captures" / "flat.csv"), "--reference", str(ds)],

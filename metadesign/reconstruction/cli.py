@@ -31,6 +31,21 @@ def _cmd_build(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_operators(a: argparse.Namespace) -> int:
+    from .operators import build_operators
+
+    rep = build_operators(a.dataset, a.splits, workers=a.workers, scheduler=a.scheduler, overwrite=a.overwrite,
+                          progress=progress_bar("operators", unit="sample"), log=log_to(a.json))
+    text = (f"{rep['output']}: bucket operators of {'/'.join(rep['splits'])} ({rep['samples']} samples, "
+            f"{rep['bucket_pixels']} x {rep['aperture_pixels']} complex64, {rep['bytes_per_operator'] / 1e3:.0f} kB "
+            f"each, {rep['bytes_on_disk'] / 1e9:.2f} GB on disk); {rep['computed_samples']} computed "
+            f"({rep['resumed_shards']} shards resumed) in {rep['seconds']:.1f} s on {rep['workers']} worker(s)")
+    if rep["per_sample_seconds"]:
+        text += f", {1e3 * rep['per_sample_seconds']['operator']:.0f} ms per sample per worker"
+    emit(rep, a.json, text)
+    return 0
+
+
 def _cmd_show(a: argparse.Namespace) -> int:
     from .dataset import open_dataset
 
@@ -312,7 +327,8 @@ def register(sub) -> None:
     tr.set_defaults(func=_cmd_train)
 
     ds = sub.add_parser(
-        "dataset", help="stage 6: training data: dataset build RECIPE | show | plot | import CAPTURES | synth-captures",
+        "dataset", help="stage 6: training data: dataset build RECIPE | operators | show | plot | import CAPTURES | "
+        "synth-captures",
         description="Stage 6a. `dataset build RECIPE` renders seeded scintillated beacons through the "
         "as-fabricated metasurface onto the sensor (zarr v3, sharded, resumable; a local process pool or a "
         "Dask cluster). `dataset show` summarises a dataset, `dataset plot` draws a few samples and the "
@@ -329,6 +345,21 @@ def register(sub) -> None:
     b.add_argument("--overwrite", action="store_true", help="replace a dataset built from a different recipe")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.set_defaults(func=_cmd_build)
+    op = dsub.add_parser(
+        "operators", help="store each sample's bucket operator: the end-to-end loss as a small matrix product",
+        description="Compute each sample's bucket operator A (the bucket pixels' rows of the back-propagation "
+        "through its screens, on the receiver aperture: NPiB = ||A u||^2 / ideal) and store it in the dataset; "
+        "training then reads A instead of regenerating the screens (train.pib_operator = auto/stored). "
+        "Resumable; a local process pool or a Dask cluster.")
+    op.add_argument("dataset", help="dataset folder (from `dataset build` or `dataset import`)")
+    op.add_argument("--splits", nargs="+", default=["train"], choices=["train", "val", "test"],
+                    help="splits to compute (default: train)")
+    workers_arg(op)
+    op.add_argument("--scheduler", metavar="ADDRESS",
+                    help="run the shards on a Dask distributed scheduler (e.g. tcp://host:8786) instead of -j")
+    op.add_argument("--overwrite", action="store_true", help="recompute operators stored for other splits")
+    op.add_argument("--json", action="store_true", help="print the report as JSON")
+    op.set_defaults(func=_cmd_operators)
     s = dsub.add_parser("show", help="summarise a dataset")
     s.add_argument("dataset", help="dataset folder")
     s.add_argument("--json", action="store_true", help="print as JSON")

@@ -37,12 +37,13 @@ def apply_noise(psf: np.ndarray, rng: np.random.Generator, gaussian_percent: flo
 
 class PSFDataset:
     """Samples of one split: ``{"psf": (8,S,S) float32, "received": (A,A) complex64, "rytov", "rytov_measured",
-    "seed", "index"}`` as torch tensors.  Works with ``DataLoader(num_workers > 0)``: nothing but small
+    "seed", "index"}`` as torch tensors, plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
+    operator) when asked.  Works with ``DataLoader(num_workers > 0)``: nothing but small
     metadata is read in the constructor; each worker opens the store on first use."""
 
     def __init__(self, path: str | Path, split: str = "train", gaussian_percent: float = 0.0,
                  photons_at_peak: float | None = None, read_noise_e: float = 0.0, noise_seed: int = 0,
-                 limit: int | None = None, screens: bool = False):
+                 limit: int | None = None, screens: bool = False, operators: bool = False):
         if split not in ("train", "val", "test", "all"):
             raise ValidationError(f"split: expected train, val, test or all, got {split!r}")
         check_number("gaussian_percent", gaussian_percent, 0, 100)
@@ -59,8 +60,18 @@ class PSFDataset:
         self.noise_seed = noise_seed
         self.epoch = 0
         self.screens = screens  # regenerate each sample's screens (the end-to-end loss needs them)
+        self.operators = operators  # load each sample's stored bucket operator ("A": dataset operators)
+        if operators:
+            self.require_operators(split)
         self._g = None
         self._tb = None
+
+    def require_operators(self, split: str) -> None:
+        from .operators import has_operators
+
+        if not has_operators(self.info.attrs, split):
+            raise ValidationError(f"{self.path}: no stored bucket operators for the {split} split "
+                                  f"(run `metadesign dataset operators {self.path} --splits {split}`)")
 
     def scenario(self):
         """The turbulence scenario the dataset was made with (from its provenance)."""
@@ -127,6 +138,8 @@ class PSFDataset:
                "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i}
         if self.screens:
             out["screens"] = self.screens_of(i)
+        if self.operators:
+            out["A"] = np.asarray(g["pib_operator"][i])
         return out
 
     def __getitem__(self, j: int) -> dict:
@@ -137,4 +150,5 @@ class PSFDataset:
                 "rytov": torch.tensor(s["rytov"], dtype=torch.float32),
                 "rytov_measured": torch.tensor(s["rytov_measured"], dtype=torch.float32),
                 "seed": torch.tensor(s["seed"], dtype=torch.int64), "index": torch.tensor(s["index"]),
-                **({"screens": torch.from_numpy(s["screens"])} if "screens" in s else {})}
+                **({"screens": torch.from_numpy(s["screens"])} if "screens" in s else {}),
+                **({"A": torch.from_numpy(s["A"])} if "A" in s else {})}

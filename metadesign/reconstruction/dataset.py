@@ -187,6 +187,10 @@ class ShardContext:
     rytov_range: tuple
     rytov_values: tuple | None
     _chain: object = None
+    kind = "shard"
+
+    def make(self, shard: int) -> dict:
+        return make_shard(self, shard)
 
     def chain(self):
         if self._chain is None:
@@ -340,7 +344,7 @@ class _LocalPool:
 
     def run(self, shards):
         if self.pool is None:
-            return (make_shard(self.ctx, i) for i in shards)
+            return (self.ctx.make(i) for i in shards)
         return self.pool.imap_unordered(_worker_shard, shards)
 
     def close(self):
@@ -361,7 +365,7 @@ def _init_worker(ctx: ShardContext) -> None:
 
 
 def _worker_shard(i: int) -> dict:
-    return make_shard(_WORKER_CTX, i)
+    return _WORKER_CTX.make(i)
 
 
 def _dask_shard(ctx: ShardContext, i: int) -> dict:
@@ -369,7 +373,7 @@ def _dask_shard(ctx: ShardContext, i: int) -> dict:
 
     single_thread_env()
     keep_freed_memory()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubles a sample's cost otherwise
-    return make_shard(ctx, i)
+    return ctx.make(i)
 
 
 def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int = 1, scheduler: str | None = None,
@@ -497,7 +501,7 @@ def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | N
             client = dask_client(scheduler)
         try:
             ctx_f = client.scatter(ctx, broadcast=True)
-            futures = [client.submit(_dask_shard, ctx_f, i, pure=False, key=f"metadesign-shard-{ctx.out}-{i}")
+            futures = [client.submit(_dask_shard, ctx_f, i, pure=False, key=f"metadesign-{ctx.kind}-{ctx.out}-{i}")
                        for i in pending]
             for fut in as_completed(futures):
                 yield fut.result()

@@ -50,7 +50,7 @@ SECTIONS = (
         Param("weight_decay", float, 0.01, lo=0, hi=1),
         Param("lr_halve_every", int, 200, lo=1, hi=100000),
         Param("loss", str, "pib", choices=list(LOSSES)),
-        Param("pib_operator", str, "split_step", choices=["split_step", "quadratic"]),
+        Param("pib_operator", str, "auto", choices=["auto", "split_step", "quadratic", "stored"]),
         Param("pretrain_loss", str, "phase", choices=list(LOSSES)),
         Param("pretrain_epochs", int, 0, lo=0, hi=100000),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
@@ -146,6 +146,12 @@ def _save_checkpoint(path: Path, state: dict) -> None:
         tmp.write_bytes(buf.getvalue())
 
 
+def _dataset_attrs(dataset: Path) -> dict:
+    from .dataset import open_dataset
+
+    return open_dataset(dataset).attrs
+
+
 def _collate(batch):
     import torch
 
@@ -198,14 +204,26 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
     if resume and not ckpt.exists():
         raise ValidationError(f"{run}: no checkpoint.pt to resume from")
-    # pib_operator = "quadratic": each training sample's bucket operator A (bucket(back-propagate(u)) =
-    # A u on the aperture, PiB.bucket_operator) is computed the first time the sample is drawn and kept
-    # in memory; the loss is then ||A u||^2, and screens are no longer loaded once every sample has one.
+    # How the end-to-end loss meets a sample's screens (train.pib_operator):
+    # * "stored": the bucket operators A stored in the dataset (`metadesign dataset operators`): the loader
+    #   reads A instead of regenerating 13 screens, and the loss is ||A u||^2 (a small matrix product);
+    # * "quadratic": A computed the first time a sample is drawn and kept in memory (no stored operators);
+    # * "split_step": the screens regenerated per draw and the split step run forward and back;
+    # * "auto" (default): "stored" when the dataset's training split has operators, else "split_step".
+    # All three give the same loss (tests); they differ in cost only.
+    from .operators import has_operators
+
+    any_pib = any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
+    mode = recipe.pib_operator
+    if mode == "auto":
+        mode = "stored" if has_operators(_dataset_attrs(dataset), "train") else "split_step"
     ops: dict[int, object] = {}
-    quadratic = recipe.pib_operator == "quadratic" and any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
-    needs_screens = lambda ep: recipe.loss_at(ep) == "pib" and not (quadratic and len(ops) >= len(tr))  # noqa: E731
+    quadratic = mode == "quadratic" and any_pib
+    stored = mode == "stored" and any_pib
+    needs_screens = lambda ep: recipe.loss_at(ep) == "pib" and not stored and not (  # noqa: E731
+        quadratic and len(ops) >= len(tr))
     tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
-                    limit=recipe.train_limit or None, screens=recipe.loss_at(0) == "pib")
+                    limit=recipe.train_limit or None, screens=needs_screens(0), operators=stored)
     va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(tr) < recipe.batch:
@@ -255,6 +273,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     for epoch in range(start, recipe.epochs):
         loss_name = recipe.loss_at(epoch)
         tr.screens = needs_screens(epoch)
+        tr.operators = stored and loss_name == "pib"
         tr.set_epoch(epoch)
         sampler.set_epoch(epoch)
         loader = torch.utils.data.DataLoader(tr, batch_size=recipe.batch // world, sampler=sampler,
@@ -275,7 +294,10 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
                 phi = ddp_model(x)
             phi = phi.float()
-            if loss_name == "pib" and quadratic:
+            if loss_name == "pib" and stored:
+                loss, npib = pib.loss(phi, A=b["A"].to(device))
+                npib_tr.append(npib.detach().cpu())
+            elif loss_name == "pib" and quadratic:
                 idx = [int(i) for i in b["index"]]
                 miss = [k for k, i in enumerate(idx) if i not in ops]
                 if miss:
@@ -346,7 +368,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         if stop or (recipe.max_minutes and time.perf_counter() - t_start > 60 * recipe.max_minutes):
             break
     report = {"run": str(run), "epochs_done": len(history), "history": history, "best_val_npib": best,
-              "world_size": world, "device": str(device)}
+              "world_size": world, "device": str(device), "pib_operator": mode if any_pib else None}
     if world > 1:
         import torch.distributed as dist
 

@@ -1,0 +1,173 @@
+"""Stored bucket operators of the end-to-end loss (stage 6b).
+
+The end-to-end PiB loss is a quadratic form: the back-propagation through a sample's fixed screens is
+linear in the aperture correction ``u``, so its power in bucket is ``||A u||^2`` with ``A`` the bucket
+pixels' rows of that operator on the receiver-aperture pixels (:meth:`PiB.bucket_operator`: one adjoint
+split step per bucket pixel, ~0.3 s per sample on one core at the demo grid).  ``metadesign dataset
+operators DATASET`` computes ``A`` once per sample of the chosen splits and stores it beside the samples
+(array ``pib_operator``: ``(samples, bucket pixels, aperture pixels)`` complex64, one inner chunk per
+sample, sharded like the dataset, samples of other splits not stored).  Training then loads ``A`` instead
+of regenerating 13 screens, and its loss is a small matrix product instead of 12 FFT pairs forward and
+back (``train.pib_operator``: ``auto`` uses stored operators when the training split has them).
+
+Resumable like the build: a shard is finished when its marker ``DATASET/.operators/NNNNNN`` exists
+(written atomically after its block); ``pib_operator.complete`` is set in the store's attributes at the end.
+One torch thread per sample: the same bytes whatever the worker count or scheduler."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..io import atomic_write_text
+from ..validation import ValidationError
+
+__all__ = ["OperatorContext", "build_operators", "operator_info"]
+
+ARRAY = "pib_operator"
+SPLITS = ("train", "val", "test")
+
+
+def _marker(out: Path, shard: int) -> Path:
+    return Path(out) / ".operators" / f"{shard:06d}"
+
+
+def operator_info(attrs: dict) -> dict | None:
+    """The store's ``pib_operator`` attribute block, or None."""
+    return attrs.get(ARRAY)
+
+
+def has_operators(attrs: dict, split: str) -> bool:
+    """Whether every sample of ``split`` has a stored operator (a finished ``dataset operators`` run)."""
+    info = operator_info(attrs)
+    return bool(info and info.get("complete") and split in info.get("splits", ()))
+
+
+@dataclass
+class OperatorContext:
+    """What a worker needs to compute the operators of one shard."""
+
+    out: str
+    shard_size: int
+    n: int
+    wanted: np.ndarray  # bool (n,): the samples of the chosen splits
+    kind: str = "operators"
+
+    def make(self, shard: int) -> dict:
+        import torch
+        import zarr
+
+        from .data import PSFDataset
+        from .losses import PiB
+
+        i0, i1 = shard * self.shard_size, min(self.n, (shard + 1) * self.shard_size)
+        ds = PSFDataset(self.out, "all")
+        pib = PiB(ds.scenario(), *ds.crop())
+        g = zarr.open_group(self.out, mode="r+")
+        arr = g[ARRAY]
+        block = np.zeros((i1 - i0, *arr.shape[1:]), np.complex64)
+        t0 = time.perf_counter()
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # FFT sums in one order: same bytes on any worker
+        try:
+            with torch.no_grad():
+                for i in range(i0, i1):
+                    if self.wanted[i]:
+                        scr = torch.from_numpy(ds.screens_of(i)[None])
+                        block[i - i0] = pib.bucket_operator(scr)[0].numpy()
+        finally:
+            torch.set_num_threads(threads)
+        arr[i0:i1] = block
+        atomic_write_text(_marker(Path(self.out), shard), json.dumps({"samples": [i0, i1]}))
+        return {"shard": shard, "samples": int(self.wanted[i0:i1].sum()),
+                "timings": {"operator": time.perf_counter() - t0}}
+
+
+def build_operators(path: str | Path, splits=("train",), workers: int = 1, scheduler: str | None = None,
+                    overwrite: bool = False, progress: Callable[[int, int], None] | None = None,
+                    log: Callable[[str], None] = lambda s: None, client=None) -> dict:
+    """Compute (or resume) the stored bucket operators of ``splits`` of the dataset at ``path``."""
+    import zarr
+
+    from .dataset import _run, open_dataset
+    from .losses import PiB
+
+    splits = tuple(dict.fromkeys(splits))
+    bad = [s for s in splits if s not in SPLITS]
+    if bad or not splits:
+        raise ValidationError(f"--splits: expected some of {', '.join(SPLITS)}, got {' '.join(splits) or 'none'}")
+    info = open_dataset(path)
+    out = Path(path)
+    wanted = np.isin(info.split, [SPLITS.index(s) for s in splits])
+    c0, a = (int(info.attrs["received_crop"][k]) for k in ("start", "size"))
+    from .data import PSFDataset
+
+    pib = PiB(PSFDataset(out, "all").scenario(), c0, a)
+    nb, n_ap = len(pib.bucket), int(pib.ap.sum())
+    n, shard = info.n, int(info.attrs["shard_size"])
+    n_shards = (n + shard - 1) // shard
+    want_attrs = {"splits": sorted(splits, key=SPLITS.index), "bucket_pixels": nb, "aperture_pixels": n_ap,
+                  "dtype": "complex64",
+                  "layout": "A[i] (bucket pixels x aperture pixels): rows in PiB.bucket order (row-major "
+                            "beacon-plane pixels), columns the aperture pixels of the received crop, row-major",
+                  "meaning": "bucket power of a unit-power aperture correction u is ||A u||^2; NPiB = that / "
+                             "the ideal beam's bucket power (PiB.npib_quadratic)"}
+    old = operator_info(info.attrs)
+    g = zarr.open_group(str(out), mode="r+")
+    if old is not None and {k: old.get(k) for k in want_attrs} != want_attrs:
+        if not overwrite:
+            raise ValidationError(f"{out}: holds operators of splits {'/'.join(old.get('splits', []))}; "
+                                  "use --overwrite to recompute them for the splits asked")
+        log(f"--overwrite: removing the stored operators of {out}")
+        del g[ARRAY]
+        del g.attrs[ARRAY]
+        shutil.rmtree(out / ".operators", ignore_errors=True)
+        old = None
+    if old is not None and old.get("complete"):
+        log(f"{out}: operators of {'/'.join(want_attrs['splits'])} are up to date")
+        return {"output": str(out), "samples": int(wanted.sum()), "computed_samples": 0, "resumed_shards": 0,
+                "seconds": 0.0, "per_sample_seconds": {}, **_sizes(out, nb, n_ap, int(wanted.sum())),
+                "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
+    if ARRAY not in g:
+        from ..validation import check_memory
+
+        check_memory("dataset operators (one shard)", shard * nb * n_ap * 8 * 2, "a smaller dataset shard_size")
+        g.create_array(ARRAY, shape=(n, nb, n_ap), chunks=(1, nb, n_ap), shards=(shard, nb, n_ap),
+                       dtype="complex64", fill_value=0j, compressors=None,
+                       dimension_names=("sample", "bucket", "aperture"))
+        g.attrs.update({ARRAY: {**want_attrs, "complete": False}})
+    done = {i for i in range(n_shards) if _marker(out, i).exists()}
+    pending = [i for i in range(n_shards) if i not in done and wanted[i * shard:(i + 1) * shard].any()]
+    todo = int(sum(wanted[i * shard:(i + 1) * shard].sum() for i in pending))
+    log(f"operators of {out} ({'/'.join(want_attrs['splits'])}): {int(wanted.sum())} samples, "
+        f"{nb} x {n_ap} complex64 each ({nb * n_ap * 8 / 1e3:.0f} kB); {len(pending)} shards to compute")
+    t0 = time.perf_counter()
+    ctx = OperatorContext(str(out), shard, n, wanted)
+    total = int(wanted.sum())
+    got = total - todo
+    if progress:
+        progress(got, total)
+    tim = 0.0
+    for r in _run(ctx, pending, workers, scheduler, client):
+        got += r["samples"]
+        tim += r["timings"]["operator"]
+        if progress:
+            progress(got, total)
+    g = zarr.open_group(str(out), mode="r+")
+    g.attrs.update({ARRAY: {**want_attrs, "complete": True}})
+    shutil.rmtree(out / ".operators", ignore_errors=True)
+    return {"output": str(out), "samples": total, "computed_samples": todo, "resumed_shards": len(done),
+            "seconds": time.perf_counter() - t0, "per_sample_seconds": {"operator": tim / max(todo, 1)},
+            **_sizes(out, nb, n_ap, total),
+            "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
+
+
+def _sizes(out: Path, nb: int, n_ap: int, samples: int) -> dict:
+    on_disk = sum(p.stat().st_size for p in (out / ARRAY).rglob("*") if p.is_file()) if (out / ARRAY).exists() else 0
+    return {"bytes_per_operator": nb * n_ap * 8, "bytes_on_disk": on_disk}
