@@ -140,6 +140,9 @@ class PSFDataset:
             out["screens"] = self.screens_of(i)
         if self.operators:
             out["A"] = np.asarray(g["pib_operator"][i])
+            if not out["A"].any():  # the fill value: a shard file lost after the operators were finished
+                raise ValidationError(f"{self.path}: sample {i} has no stored bucket operator (damaged store: "
+                                      "rerun `metadesign dataset operators --overwrite`)")
         return out
 
     def __getitem__(self, j: int) -> dict:

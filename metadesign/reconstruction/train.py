@@ -232,8 +232,10 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     cfg = UNetConfig(8, recipe.base, recipe.depth, tr.info.tensor_size, a, recipe.norm)
     torch.manual_seed(recipe.seed)
     model = build_unet(cfg).to(device)
+    init_card = None
     if init is not None:
         src, card = load_model(init)
+        init_card = {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
         if asdict(src.config) != asdict(cfg):
             raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
                                   f"{asdict(cfg)}")
@@ -347,7 +349,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
                 save_model(model, run / "model.safetensors", {
                     "dataset": {"path": str(dataset), "recipe_hash": tr.info.attrs.get("recipe_hash"),
                                 "layout_sha256": tr.info.attrs["provenance"].get("layout_sha256")},
-                    "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row,
+                    "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row, "init": init_card,
                     "input_normalisation": tr.info.attrs.get("normalisation"),
                     "noise_percent": recipe.noise_percent, "received_crop": tr.info.attrs.get("received_crop"),
                     "output": "received phase (vacuum removed) on the A x A receiver-aperture crop, rad; the "
