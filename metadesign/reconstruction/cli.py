@@ -65,6 +65,10 @@ def _cmd_show(a: argparse.Namespace) -> int:
          + f"; {len(at['provenance'].get('saturated') or [])} saturated ({at['provenance'].get('saturated_policy')})"),
         f"storage        {s['bytes_on_disk'] / 1e6:.1f} MB, {s['bytes_per_sample'] / 1e3:.1f} kB per sample; "
         f"root seed {s['root_seed']}",
+        "PiB operators  " + ("none (metadesign dataset operators DATASET adds them)" if not at.get("pib_operator") else
+                             f"{'/'.join(at['pib_operator']['splits'])}, {at['pib_operator']['bucket_pixels']} x "
+                             f"{at['pib_operator']['aperture_pixels']} each"
+                             + ("" if at["pib_operator"].get("complete") else " (unfinished: rerun to complete)")),
     ])
     emit(s | {"attributes": at}, a.json, text)
     return 0
