@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -22,13 +21,9 @@ sys.path.insert(0, str(REPO))
 
 
 def _time(fn, n=5):
-    fn()
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(sorted(ts)[len(ts) // 2])
+    from metadesign.timing import repeat_seconds
+
+    return repeat_seconds(fn, n)
 
 
 def measure(dataset: str, device: str = "cpu") -> dict:

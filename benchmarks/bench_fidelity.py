@@ -29,13 +29,9 @@ sys.path.insert(0, str(REPO))
 
 
 def _t(fn, n=1):
-    fn()
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return sorted(ts)[len(ts) // 2]
+    from metadesign.timing import repeat_seconds
+
+    return repeat_seconds(fn, n)
 
 
 def main() -> int:

@@ -25,10 +25,6 @@ CONFIGS = {"demo": dict(base=16, depth=5, size=64, batch=32, steps=4),
            "paper": dict(base=64, depth=5, size=256, batch=4, steps=2)}
 
 
-def _med(ts):
-    return float(sorted(ts)[len(ts) // 2])
-
-
 def measure(dataset: str, name: str, device: str = "cpu") -> dict:
     import torch
 
@@ -65,18 +61,12 @@ def measure(dataset: str, name: str, device: str = "cpu") -> dict:
         x = torch.nn.functional.interpolate(x, size=(c["size"], c["size"]), mode="bilinear")
     m = build_unet(UNetConfig(8, c["base"], c["depth"], c["size"], a)).to(dev)
     torch.nn.init.normal_(m.head.weight, std=1e-3)
-    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    from metadesign.timing import repeat_seconds
 
-    def timeit(fn, reps):
-        fn()
-        sync()
-        ts = []
-        for _ in range(reps):
-            t = time.perf_counter()
-            fn()
-            sync()
-            ts.append(time.perf_counter() - t)
-        return _med(ts) / c["batch"]
+    sync = torch.cuda.synchronize if dev.type == "cuda" else None
+
+    def timeit(fn, reps, batch=c["batch"]):
+        return repeat_seconds(fn, reps, sync=sync) / batch
 
     def unet_step():
         m.zero_grad()
@@ -106,10 +96,7 @@ def measure(dataset: str, name: str, device: str = "cpu") -> dict:
     def quad_step():
         (-torch.log(pib.npib_quadratic(A, phq))).mean().backward()
 
-    c_batch = c["batch"]
-    c["batch"] = A.shape[0]
-    res["quadratic_loss_fwd_bwd_ms"] = 1e3 * timeit(quad_step, c["steps"])
-    c["batch"] = c_batch
+    res["quadratic_loss_fwd_bwd_ms"] = 1e3 * timeit(quad_step, c["steps"], A.shape[0])
     res["quadratic_bytes_per_sample"] = int(A[0].numel() * 8)
     try:
         from torch.utils.flop_counter import FlopCounterMode

@@ -8,7 +8,6 @@ plus 13 screen FFTs; goal: within 2x).
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -19,13 +18,9 @@ import scipy.fft as sfft  # noqa: E402
 
 
 def best(fn, reps=40):
-    fn()
-    ts = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.min(ts))  # best of reps: the least disturbed by the shared cores
+    from metadesign.timing import repeat_seconds
+
+    return repeat_seconds(fn, reps, stat="min")  # best of reps: the least disturbed by the shared cores
 
 
 def main() -> int:

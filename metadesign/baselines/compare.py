@@ -199,20 +199,15 @@ class _Runner:
         """Single-sample latency (ms) of each method; for the iterative ones, at each checkpoint."""
         import torch
 
+        from ..timing import repeat_seconds
         from .retrieval import retrieve
 
         st = self.st
         items = self.items(range(min(st.latency_samples, len(self.ds))))
         out = {}
 
-        def median_ms(fn, n=15):
-            fn()
-            ts = []
-            for _ in range(n):
-                t0 = time.perf_counter()
-                fn()
-                ts.append(time.perf_counter() - t0)
-            return 1e3 * float(np.median(ts))
+        def median_ms(fn):
+            return 1e3 * repeat_seconds(fn, 15)
 
         psf1 = torch.from_numpy(items[0]["psf"][None])
         if self.model is not None:

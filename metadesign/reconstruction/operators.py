@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from ..io import atomic_write_text
-from ..validation import ValidationError
+from ..validation import ValidationError, check_memory
 
 __all__ = ["OperatorContext", "build_operators", "operator_info"]
 
@@ -58,17 +58,27 @@ class OperatorContext:
     n: int
     wanted: np.ndarray  # bool (n,): the samples of the chosen splits
     kind: str = "operators"
+    _ds: object = None
+
+    def dataset_and_pib(self):
+        """The dataset (screens regenerated from its seeds) and the loss geometry, built once per worker."""
+        if self._ds is None:
+            from .data import PSFDataset
+            from .losses import PiB
+
+            ds = PSFDataset(self.out, "all")
+            self._ds = (ds, PiB(ds.scenario(), *ds.crop()))
+        return self._ds
+
+    def __getstate__(self):  # workers build their own (a PiB holds the propagation kernels)
+        return {**self.__dict__, "_ds": None}
 
     def make(self, shard: int) -> dict:
         import torch
         import zarr
 
-        from .data import PSFDataset
-        from .losses import PiB
-
         i0, i1 = shard * self.shard_size, min(self.n, (shard + 1) * self.shard_size)
-        ds = PSFDataset(self.out, "all")
-        pib = PiB(ds.scenario(), *ds.crop())
+        ds, pib = self.dataset_and_pib()
         g = zarr.open_group(self.out, mode="r+")
         arr = g[ARRAY]
         block = np.zeros((i1 - i0, *arr.shape[1:]), np.complex64)
@@ -96,7 +106,6 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
     import zarr
 
     from .dataset import _run, open_dataset
-    from .losses import PiB
 
     splits = tuple(dict.fromkeys(splits))
     bad = [s for s in splits if s not in SPLITS]
@@ -105,13 +114,11 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
     info = open_dataset(path)
     out = Path(path)
     wanted = np.isin(info.split, [SPLITS.index(s) for s in splits])
-    c0, a = (int(info.attrs["received_crop"][k]) for k in ("start", "size"))
-    from .data import PSFDataset
-
-    pib = PiB(PSFDataset(out, "all").scenario(), c0, a)
-    nb, n_ap = len(pib.bucket), int(pib.ap.sum())
     n, shard = info.n, int(info.attrs["shard_size"])
-    n_shards = (n + shard - 1) // shard
+    ctx = OperatorContext(str(out), shard, n, wanted)
+    pib = ctx.dataset_and_pib()[1]
+    nb, n_ap = len(pib.bucket), int(pib.ap.sum())
+    per_shard = np.add.reduceat(wanted.astype(int), np.arange(0, n, shard))  # wanted samples per shard
     want_attrs = {"splits": sorted(splits, key=SPLITS.index), "bucket_pixels": nb, "aperture_pixels": n_ap,
                   "dtype": "complex64",
                   "layout": "A[i] (bucket pixels x aperture pixels): rows in PiB.bucket order (row-major "
@@ -129,27 +136,31 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
         del g.attrs[ARRAY]
         shutil.rmtree(out / ".operators", ignore_errors=True)
         old = None
+    total = int(wanted.sum())
+    t0 = time.perf_counter()
+
+    def report(computed: int, resumed: int, seconds_computing: float) -> dict:
+        on_disk = sum(p.stat().st_size for p in (out / ARRAY).rglob("*") if p.is_file())
+        return {"output": str(out), "samples": total, "computed_samples": computed, "resumed_shards": resumed,
+                "seconds": time.perf_counter() - t0,
+                "per_sample_seconds": {"operator": seconds_computing / computed} if computed else {},
+                "bytes_per_operator": nb * n_ap * 8, "bytes_on_disk": on_disk,
+                "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
+
     if old is not None and old.get("complete"):
         log(f"{out}: operators of {'/'.join(want_attrs['splits'])} are up to date")
-        return {"output": str(out), "samples": int(wanted.sum()), "computed_samples": 0, "resumed_shards": 0,
-                "seconds": 0.0, "per_sample_seconds": {}, **_sizes(out, nb, n_ap, int(wanted.sum())),
-                "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
+        return report(0, 0, 0.0)
     if ARRAY not in g:
-        from ..validation import check_memory
-
         check_memory("dataset operators (one shard)", shard * nb * n_ap * 8 * 2, "a smaller dataset shard_size")
         g.create_array(ARRAY, shape=(n, nb, n_ap), chunks=(1, nb, n_ap), shards=(shard, nb, n_ap),
                        dtype="complex64", fill_value=0j, compressors=None,
                        dimension_names=("sample", "bucket", "aperture"))
         g.attrs.update({ARRAY: {**want_attrs, "complete": False}})
-    done = {i for i in range(n_shards) if _marker(out, i).exists()}
-    pending = [i for i in range(n_shards) if i not in done and wanted[i * shard:(i + 1) * shard].any()]
-    todo = int(sum(wanted[i * shard:(i + 1) * shard].sum() for i in pending))
-    log(f"operators of {out} ({'/'.join(want_attrs['splits'])}): {int(wanted.sum())} samples, "
+    done = {i for i in range(len(per_shard)) if _marker(out, i).exists()}
+    pending = [i for i, k in enumerate(per_shard) if k and i not in done]
+    todo = int(per_shard[pending].sum())
+    log(f"operators of {out} ({'/'.join(want_attrs['splits'])}): {total} samples, "
         f"{nb} x {n_ap} complex64 each ({nb * n_ap * 8 / 1e3:.0f} kB); {len(pending)} shards to compute")
-    t0 = time.perf_counter()
-    ctx = OperatorContext(str(out), shard, n, wanted)
-    total = int(wanted.sum())
     got = total - todo
     if progress:
         progress(got, total)
@@ -162,12 +173,4 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
     g = zarr.open_group(str(out), mode="r+")
     g.attrs.update({ARRAY: {**want_attrs, "complete": True}})
     shutil.rmtree(out / ".operators", ignore_errors=True)
-    return {"output": str(out), "samples": total, "computed_samples": todo, "resumed_shards": len(done),
-            "seconds": time.perf_counter() - t0, "per_sample_seconds": {"operator": tim / max(todo, 1)},
-            **_sizes(out, nb, n_ap, total),
-            "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
-
-
-def _sizes(out: Path, nb: int, n_ap: int, samples: int) -> dict:
-    on_disk = sum(p.stat().st_size for p in (out / ARRAY).rglob("*") if p.is_file()) if (out / ARRAY).exists() else 0
-    return {"bytes_per_operator": nb * n_ap * 8, "bytes_on_disk": on_disk}
+    return report(todo, len(done), tim)

@@ -146,12 +146,6 @@ def _save_checkpoint(path: Path, state: dict) -> None:
         tmp.write_bytes(buf.getvalue())
 
 
-def _dataset_attrs(dataset: Path) -> dict:
-    from .dataset import open_dataset
-
-    return open_dataset(dataset).attrs
-
-
 def _collate(batch):
     import torch
 
@@ -211,19 +205,22 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     # * "split_step": the screens regenerated per draw and the split step run forward and back;
     # * "auto" (default): "stored" when the dataset's training split has operators, else "split_step".
     # All three give the same loss (tests); they differ in cost only.
+    # The loader's screens / operators flags are set per epoch below.
     from .operators import has_operators
 
+    tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
+                    limit=recipe.train_limit or None)
     any_pib = any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
     mode = recipe.pib_operator
     if mode == "auto":
-        mode = "stored" if has_operators(_dataset_attrs(dataset), "train") else "split_step"
+        mode = "stored" if has_operators(tr.info.attrs, "train") else "split_step"
     ops: dict[int, object] = {}
     quadratic = mode == "quadratic" and any_pib
     stored = mode == "stored" and any_pib
+    if stored:
+        tr.require_operators("train")
     needs_screens = lambda ep: recipe.loss_at(ep) == "pib" and not stored and not (  # noqa: E731
         quadratic and len(ops) >= len(tr))
-    tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
-                    limit=recipe.train_limit or None, screens=needs_screens(0), operators=stored)
     va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(tr) < recipe.batch:
