@@ -31,17 +31,17 @@ def measure(dataset: str, device: str = "cpu") -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from metadesign.baselines.compare import device_of
-    from metadesign.baselines.retrieval import RetrievalConfig, RetrievalContext, retrieve
-    from metadesign.baselines.shack_hartmann import SHConfig, ShackHartmann
     from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.dataset import load_device
     from metadesign.reconstruction.model import load_model
+    from metadesign.reconstruction.retrieval import RetrievalConfig, RetrievalContext, retrieve
+    from metadesign.reconstruction.shack_hartmann import ShackHartmann, SHConfig
     from metadesign.sensing.forward import sensor_frames
     from metadesign.sensing.sensor import psf_tensor
     from metadesign.sensing.twin import TorchTwin, crop_to_pupil, twin_error, twin_operators
 
-    dev = device_of(dataset)
-    cp, sensor, geom = dev["pupil"], dev["sensor"], dev["geometry"]
+    dev = load_device(dataset)
+    cp, sensor, geom = dev.pupil, dev.sensor, dev.geometry
     c0, a, ng, dx, d2 = geom
     ds = PSFDataset(dataset, "test", gaussian_percent=5, limit=8)
     items = [ds.get(i) for i in range(len(ds))]
@@ -70,14 +70,13 @@ def measure(dataset: str, device: str = "cpu") -> dict:
     for its, label in (((1,), "modal"), ((), "zonal")):
         cfg = RetrievalConfig(modal_orders=(2,) if its else (2,), modal_iterations=10 if its else 0,
                               zonal_iterations=0 if its else 10, misfit="gaussian", noise_percent=5)
-        ctx = RetrievalContext.build(cp, sensor, geom, cfg, device)
+        ctx = RetrievalContext.build(dev, cfg, device)
         init = None if its else torch.zeros((1, a, a))
         out[f"retrieval_{label}_iteration_ms"] = 1e3 * _time(lambda: retrieve(psf[:1], ctx, cfg, init=init), 3) / 10
         init8 = None if its else torch.zeros((8, a, a))
         out[f"retrieval_{label}_iteration_batch8_ms_per_sample"] = \
             1e3 * _time(lambda: retrieve(psf, ctx, cfg, init=init8), 3) / 80
-    sc = dev["scenario"]
-    sh = ShackHartmann(SHConfig(lenslets=5), a, c0, sc.n_grid, sc.dx, sc.receiver_aperture, sc.wavelength)
+    sh = ShackHartmann.for_device(SHConfig(lenslets=5), dev)
     spots = sh.add_noise(sh.frames(rec[:1]), 5.0, np.random.default_rng(0))
     out["shack_hartmann_ms"] = 1e3 * _time(lambda: sh.reconstruct(*sh.centroids(spots, 5.0)), 20)
     model_path = REPO / "sensing" / "models" / "demo-unet.safetensors"

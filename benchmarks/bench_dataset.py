@@ -27,8 +27,13 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=256, help="samples per scale-out run (default 256)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
-    from metadesign.reconstruction.dataset import (ShardContext, build_dataset, ensure_layout, load_dataset_recipe,
-                                                   make_sample)
+    from metadesign.reconstruction.dataset import (
+        ShardContext,
+        build_dataset,
+        ensure_layout,
+        load_dataset_recipe,
+        make_sample,
+    )
     from metadesign.sensing.model import AsFabricated, load_sensing_recipe
     from metadesign.sensing.render import render_psf
     from metadesign.turbulence.validate import load_scenario

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from .validation import ConfigError, ValidationError
+from .validation import ConfigError, InputError, ValidationError
 
 __all__ = ["ConfigError", "InputError", "ValidationError", "Param", "Section", "parse", "load_toml", "UNIT_SCALE"]
 
@@ -35,8 +35,6 @@ _REQUIRED = object()
 
 
 
-#: historical name of :class:`~metadesign.validation.ValidationError`
-InputError = ValidationError
 
 
 @dataclass(frozen=True)

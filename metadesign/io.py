@@ -7,11 +7,16 @@
   arrays give the same bytes.
 * :func:`read_npz` never unpickles (``allow_pickle=False``) and turns corrupt
   or truncated files into one-line :class:`~metadesign.config.InputError`.
+* :func:`output_lock` keeps a second process from writing the same output while
+  one is (an advisory ``flock`` the kernel releases when a writer dies, even by
+  SIGKILL); :func:`check_replaceable` lets ``--overwrite`` replace only a folder
+  this project wrote; :func:`check_not_input` keeps an output off its inputs.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import io
 import json
 import os
@@ -25,7 +30,7 @@ import numpy as np
 from .config import InputError
 
 __all__ = ["atomic_path", "atomic_write_text", "write_npz", "read_npz", "read_product", "json_array",
-           "from_json_array"]
+           "from_json_array", "output_lock", "check_replaceable", "check_not_input", "lock_path"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
@@ -133,3 +138,73 @@ def read_product(path: str | Path, what: str, need: tuple[str, ...], fmt: str) -
     if meta.get("format") != fmt:
         raise InputError(f"{path}: unsupported {what} format {meta.get('format')!r} (expected {fmt})")
     return z, meta
+
+
+def lock_path(out: str | Path) -> Path:
+    """The lock file of an output: a hidden file beside it (inside, it would be removed with the output)."""
+    out = Path(out)
+    return out.parent / f".{out.name}.lock"
+
+
+@contextlib.contextmanager
+def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
+    """Hold an exclusive lock on ``out`` while writing it; a second writer gets a one-line InputError.
+
+    An advisory ``flock`` on ``.NAME.lock`` beside ``out``: the kernel drops it when the holder exits, so
+    a writer killed by SIGKILL leaves no stale lock (only the empty file, reused by the next writer)."""
+    out = Path(out)
+    lock = lock_path(out)
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise InputError(f"{out}: cannot create the lock {lock} ({exc.strerror})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise InputError(f"{out}: another metadesign process is writing this {what}; wait for it to finish "
+                             "or choose another output") from None
+        try:  # the holder before us may have removed the file between our open and our lock
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+
+
+def check_replaceable(out: str | Path, is_ours, what: str) -> None:
+    """Refuse to replace ``out`` unless it is absent, an empty folder, or a product of this project
+    (``is_ours(out)`` true: it carries the product's format marker).  Anything else, dot-files included,
+    is a user's and is never deleted."""
+    out = Path(out)
+    if not out.exists() and not out.is_symlink():
+        return
+    if out.is_symlink() or not out.is_dir():
+        raise InputError(f"{out}: exists and is not a {what} folder (refusing to replace it)")
+    if not any(out.iterdir()) or is_ours(out):
+        return
+    raise InputError(f"{out}: exists and is not a {what} (it holds files metadesign did not write; refusing to "
+                     "write into or replace it: choose another output)")
+
+
+def check_not_input(out: str | Path, inputs: Mapping[str, str | Path | None]) -> None:
+    """Refuse an output that is one of the inputs, lies inside one, or contains one."""
+    o = Path(out).resolve()
+    for name, p in inputs.items():
+        if p is None:
+            continue
+        q = Path(p).resolve()
+        if o == q or q in o.parents or o in q.parents:
+            raise InputError(f"{out}: the output overlaps the input {name} {p} (an input is never its own output)")
+

@@ -6,6 +6,8 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 
+from .validation import ValidationError
+
 __all__ = ["THREAD_ENV", "spawn_pool", "single_thread_env", "keep_freed_memory"]
 
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -57,8 +59,6 @@ def spawn_pool(workers: int, initializer=None, initargs=()):
 def dask_client(scheduler: str):
     """A ``dask.distributed.Client`` on ``scheduler``; an unreachable one is a one-line ValidationError."""
     from dask.distributed import Client
-
-    from .validation import ValidationError
 
     try:
         return Client(scheduler, timeout="20s")

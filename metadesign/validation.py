@@ -17,12 +17,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ValidationError", "ConfigError", "check_number", "check_int", "check_finite_array", "describe_range",
+__all__ = ["ValidationError", "InputError", "ConfigError", "check_number", "check_int", "check_finite_array", "describe_range",
            "check_memory", "available_memory", "MEMORY_FRACTION"]
 
 
 class ValidationError(ValueError):
     """A user-facing input problem: one line, exit status 2 at the CLI."""
+
+
+class InputError(ValidationError):
+    """An input file or folder that cannot be used: missing, of the wrong kind, damaged, or an output that
+    would overwrite what metadesign did not write."""
 
 
 class ConfigError(ValidationError):

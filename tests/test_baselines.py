@@ -8,7 +8,6 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
 
 torch = pytest.importorskip("torch")
@@ -146,15 +145,17 @@ def test_zernike_are_orthonormal_on_the_disk():
 def test_retrieval_recovers_a_known_aberration():
     """Noise-free 8 PSFs of a known Zernike aberration (1.2 rad RMS) rendered by the exact twin: the
     retrieval finds it to < 0.05 rad RMS (piston removed), from a zero start."""
-    from metadesign.baselines.retrieval import RetrievalConfig, RetrievalContext, retrieve
     from metadesign.optics.zernike import zernike
+    from metadesign.reconstruction.retrieval import RetrievalConfig, RetrievalContext, retrieve
     from metadesign.sensing.twin import normalise
 
     cp, sensor = synthetic_device()
     cfg = RetrievalConfig(coarse=(1, None), fine=(1, None), modal_orders=(2, 4), modal_iterations=100,
                           zonal_iterations=50, starts=3, misfit="amplitude", amplitude=False, lr_modal=0.1,
                           lr_zonal=0.02)
-    ctx = RetrievalContext.build(cp, sensor, GEOM, cfg)
+    from metadesign.sensing.device import Device, ReceiverCrop
+
+    ctx = RetrievalContext.build(Device(cp, sensor, ReceiverCrop(*GEOM)), cfg)
     a = GEOM[1]
     x = (np.arange(a) - 10) / 10.0
     X, Y = np.meshgrid(x, x)
@@ -176,7 +177,7 @@ def test_retrieval_recovers_a_known_aberration():
 
 
 def _sh(lenslets=5, **kw):
-    from metadesign.baselines.shack_hartmann import SHConfig, ShackHartmann
+    from metadesign.reconstruction.shack_hartmann import ShackHartmann, SHConfig
 
     # the demo geometry: 2.5 mm grid, 10 cm aperture (41-pixel crop centred on sample 128 of 256)
     return ShackHartmann(SHConfig(lenslets=lenslets, **kw), 41, 108, 256, 2.5e-3, 0.1, 1.55e-6)

@@ -32,7 +32,8 @@ def _perturbed_device(base, layout):
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory, tiny_dataset, demo_products):
-    from metadesign.sensing.captures import Alignment, CameraSpec, synth_captures
+    from metadesign.sensing.camera import Alignment, CameraSpec
+    from metadesign.studies.captures import synth_captures
 
     base = tmp_path_factory.mktemp("captures")
     dev = _perturbed_device(base, demo_products["layout"])
@@ -42,24 +43,23 @@ def captures(tmp_path_factory, tiny_dataset, demo_products):
 
 
 def _render(dev_dataset, phases):
-    from metadesign.baselines.compare import device_of
-    from metadesign.reconstruction.dataset import normalise_psf
-    from metadesign.sensing.captures import slm_pupil_field
+    from metadesign.reconstruction.dataset import load_device, normalise_psf
+    from metadesign.sensing.camera import slm_pupil_field
     from metadesign.sensing.forward import sensor_frames
     from metadesign.sensing.sensor import psf_tensor
 
-    dev = device_of(dev_dataset)
+    dev = load_device(dev_dataset)
     out = []
     for phi in phases:
-        e = slm_pupil_field(phi, dev["geometry"], dev["pupil"].G.shape[-1])
-        out.append(normalise_psf(psf_tensor(sensor_frames(dev["pupil"], dev["sensor"], e), dev["sensor"]))[0])
+        e = slm_pupil_field(phi, dev.geometry, dev.pupil_n)
+        out.append(normalise_psf(psf_tensor(sensor_frames(dev.pupil, dev.sensor, e), dev.sensor))[0])
     return np.stack(out)
 
 
 def test_import_recovers_the_misalignment_and_the_tensors(captures, tmp_path):
     from metadesign.reconstruction.captures import import_captures
     from metadesign.reconstruction.data import PSFDataset
-    from metadesign.sensing.captures import Alignment
+    from metadesign.sensing.camera import Alignment
 
     cap = captures["cap"]
     rep = import_captures(cap, tmp_path / "imp", cap / "flat.csv", captures["ref"], sorted((cap / "dark").glob("*")))
@@ -81,11 +81,10 @@ def test_import_recovers_the_misalignment_and_the_tensors(captures, tmp_path):
     want = _render(captures["device"], phases)
     # compare where the camera saw the light: tensor pixels whose window lies wholly on the frame (the
     # relay shifts ~3 px of each window off the frame; this small device spreads light to the edges)
-    from metadesign.baselines.compare import device_of
     from metadesign.reconstruction.captures import aligned_tensor, read_frame
-    from metadesign.reconstruction.dataset import normalise_psf
+    from metadesign.reconstruction.dataset import load_device, normalise_psf
 
-    sensor = device_of(captures["ref"])["sensor"]
+    sensor = load_device(captures["ref"]).sensor
     ones = np.ones((2, 512, 640))
     seen = aligned_tensor(ones, sensor, fitted, sensor.tensor_size)[0] > 0.999 * aligned_tensor(
         ones, sensor, Alignment(), sensor.tensor_size)[0]
@@ -198,7 +197,8 @@ def test_synthetic_captures_are_seeded_and_16_bit(captures, tmp_path):
     """Same seed, same bytes; frames are uint16 with the dark offset, the over-exposed sample clips; through
     the nominal device the calibration recovers the relay to 0.1 px."""
     from metadesign.reconstruction.captures import import_captures, read_frame
-    from metadesign.sensing.captures import Alignment, CameraSpec, synth_captures
+    from metadesign.sensing.camera import Alignment, CameraSpec
+    from metadesign.studies.captures import synth_captures
 
     cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
     for name in ("c1", "c2"):
@@ -267,3 +267,105 @@ pretrain_epochs = 1
     assert (tmp_path / "out" / "transfer.png").stat().st_size > 0
     again = run_cli("transfer", str(tmp_path / "tr.toml"), "-o", str(tmp_path / "out"), "-j", "1", "--json")
     assert again.returncode == 0 and json.loads(again.stdout)["rows"] == rows
+
+
+def _tree(folder) -> set:
+    return {(str(p.relative_to(folder)), p.stat().st_size) for p in folder.rglob("*") if p.is_file()}
+
+
+def test_import_never_deletes_what_it_did_not_write(captures, tmp_path, capsys):
+    """--overwrite replaces only a metadesign dataset: a user's folder, or the captures themselves (an input
+    is never its own output), survive byte for byte with one line and exit 2."""
+    cap, ref = captures["cap"], captures["ref"]
+    mine = tmp_path / "mine"
+    (mine / ".ssh").mkdir(parents=True)
+    (mine / ".ssh" / "id").write_text("key")
+    (mine / "notes.txt").write_text("thesis")
+    before = _tree(mine)
+    rc, _, err = _run(["dataset", "import", cap, "-o", mine, "--calibration", cap / "flat.csv", "--reference", ref,
+                       "--overwrite"], capsys)
+    assert rc == 2 and len(err) == 1 and "not a metadesign dataset" in err[0], err
+    assert _tree(mine) == before
+    copy = tmp_path / "cap"
+    shutil.copytree(cap, copy)
+    before = _tree(copy)
+    for out in (copy, copy / "frames", tmp_path):  # the captures, inside them, around them
+        rc, _, err = _run(["dataset", "import", copy, "-o", out, "--calibration", copy / "flat.csv",
+                           "--reference", ref, "--overwrite"], capsys)
+        assert rc == 2 and len(err) == 1 and "overlaps the input" in err[0], err
+        assert _tree(copy) == before
+    # a dataset the project wrote is replaced
+    ok = tmp_path / "ok"
+    assert _run(["dataset", "import", cap, "-o", ok, "--calibration", cap / "flat.csv", "--reference", ref],
+                capsys)[0] == 0
+    assert _run(["dataset", "import", cap, "-o", ok, "--calibration", cap / "flat.csv", "--reference", ref,
+                 "--overwrite"], capsys)[0] == 0
+
+
+@pytest.mark.parametrize("value", ["inf", "-3", "nan", "12", "abc"])
+def test_manifest_rytov_out_of_range_is_one_line(captures, tmp_path, capsys, value):
+    cap, ref = captures["cap"], captures["ref"]
+    src = _edit_manifest(cap, tmp_path / "m", lambda r: [{**x, "rytov": value if i == 1 else x["rytov"]}
+                                                         for i, x in enumerate(r)])
+    rc, _, err = _run(["dataset", "import", src, "-o", tmp_path / "out", "--calibration", cap / "flat.csv",
+                       "--reference", ref], capsys)
+    assert rc == 2 and len(err) == 1 and "rytov" in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_rytov_is_stored_and_reported_as_unknown(captures, tmp_path, capsys):
+    cap, ref = captures["cap"], captures["ref"]
+    src = _edit_manifest(cap, tmp_path / "m", lambda r: [{k: v for k, v in x.items() if k != "rytov"} for x in r])
+    out = tmp_path / "out"
+    assert _run(["dataset", "import", src, "-o", out, "--calibration", cap / "flat.csv", "--reference", ref],
+                capsys)[0] == 0
+    rc, text, _ = _run(["dataset", "show", out], capsys)
+    assert rc == 0 and "Rytov          unknown" in text, text
+    rc, js, _ = _run(["dataset", "show", out, "--json"], capsys)
+    s = json.loads(js)
+    assert s["rytov_nominal"] is None and s["rytov_unknown"] == s["samples"]
+    from metadesign.reconstruction.evaluate import summarise
+
+    r = {"none": np.full(3, 0.1), "unet": np.full(3, 0.3), "phase_conjugate": np.full(3, 0.5),
+         "complex_conjugate": np.full(3, 0.6), "residual_rms": np.ones(3), "residual_tiptilt_rms": np.ones(3),
+         "rytov_measured": np.full(3, np.nan)}
+    assert list(summarise(r)["by_rytov"]) == ["unknown"]
+
+
+def test_slm_phase_on_another_grid_needs_its_extent_and_is_resampled(captures, tmp_path, capsys):
+    """A 4x finer SLM map of a tilt: refused without slm_extent_mm; with it, resampled onto the receiver crop
+    it equals the tilt evaluated at the crop's own coordinates (the analytic answer)."""
+    from metadesign.reconstruction.captures import _phase
+    from metadesign.reconstruction.dataset import load_device
+
+    cap, ref = captures["cap"], captures["ref"]
+    crop = load_device(ref).crop
+    m = 4 * crop.size + 3
+    ext = 1.3 * crop.extent
+    u = (np.arange(m) - (m - 1) / 2) * ext / m
+    g = 2.0 / crop.aperture  # rad per metre: a gentle tilt (no wraps across a crop sample)
+    tilt = (g * u)[None, :] + 0 * u[:, None]
+    np.save(tmp_path / "fine.npy", tilt)
+    got = _phase(tmp_path / "fine.npy", crop, 1.0, ext)
+    want = (g * crop.coords())[None, :] + 0 * crop.coords()[:, None]
+    assert np.abs(got - want).max() < 2e-3 * np.abs(want).max()
+    with pytest.raises(Exception, match="slm_extent_mm"):
+        _phase(tmp_path / "fine.npy", crop, 1.0)
+    src = _edit_manifest(cap, tmp_path / "m", lambda r: [{**x, "slm_phase": str(tmp_path / "fine.npy")} for x in r])
+    rc, _, err = _run(["dataset", "import", src, "-o", tmp_path / "out", "--calibration", cap / "flat.csv",
+                       "--reference", ref], capsys)
+    assert rc == 2 and len(err) == 1 and "slm_extent_mm" in err[0] and f"{crop.size} x {crop.size}" in err[0]
+    src2 = _edit_manifest(cap, tmp_path / "m2", lambda r: [{**x, "slm_phase": str(tmp_path / "fine.npy"),
+                                                            "slm_extent_mm": f"{ext * 1e3:.9g}"} for x in r])
+    assert _run(["dataset", "import", src2, "-o", tmp_path / "out2", "--calibration", cap / "flat.csv",
+                 "--reference", ref], capsys)[0] == 0
+
+
+def test_synth_captures_refuses_an_empty_split(captures, tmp_path, capsys):
+    ref = captures["ref"]
+    from metadesign.reconstruction.dataset import open_dataset
+
+    empty = next(s for s in ("train", "val", "test") if not len(open_dataset(ref).indices(s)))
+    rc, _, err = _run(["dataset", "synth-captures", ref, "--device", ref, "--split", empty, "-o",
+                       tmp_path / "c"], capsys)
+    assert rc == 2 and len(err) == 1 and "empty" in err[0] and not (tmp_path / "c").exists()

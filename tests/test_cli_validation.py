@@ -64,6 +64,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("demo",): ["-o", str(out / "demo")],
         ("dataset", "build"): [str(REPO / "sensing" / "dataset-demo.toml"), "-o", str(out / "ds")],
         ("dataset", "show"): [str(ds)],
+        ("dataset", "verify"): [str(ds)],
         ("dataset", "operators"): [str(_copy(ds, out / "ds-ops"))],
         ("dataset", "plot"): [str(ds), "-o", str(out / "ds.png")],
         ("dataset", "import"): [str(out / "no-captures"), "-o", str(out / "imp"), "--calibration",

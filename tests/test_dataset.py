@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import REPO, tiny_dataset_recipe
+
 from metadesign.cli import main
 from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe, open_dataset
 
@@ -59,8 +59,8 @@ def test_screens_regenerate_from_the_stored_seed_and_psf_equals_a_fresh_render(t
     from dataclasses import replace
 
     from metadesign.reconstruction.dataset import received_crop
-    from metadesign.sensing.chain import BeaconChain
     from metadesign.sensing.model import AsFabricated, load_sensing_recipe
+    from metadesign.turbulence.chain import BeaconChain
     from metadesign.turbulence.propagate import split_step
     from metadesign.turbulence.validate import load_scenario
 

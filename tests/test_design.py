@@ -4,11 +4,19 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
+
 from metadesign.design import (
-    AtomTable, Metric, NearestAtom, SupercellSpec, brute_force_nearest, cell_coordinates, design_phase_rows,
-    paper_channels, select_atoms, wrap,
+    AtomTable,
+    Metric,
+    NearestAtom,
+    SupercellSpec,
+    brute_force_nearest,
+    cell_coordinates,
+    design_phase_rows,
+    paper_channels,
+    select_atoms,
+    wrap,
 )
 from metadesign.design.build import discretize_design
 

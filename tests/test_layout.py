@@ -4,13 +4,18 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
+
 from metadesign.config import InputError
 from metadesign.design import AtomTable, SupercellSpec, paper_channels
 from metadesign.design.store import Design
 from metadesign.layouts import (
-    LayoutOptions, drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout,
+    LayoutOptions,
+    drc_check,
+    read_layout,
+    read_layout_klayout,
+    verify_against_design,
+    write_layout,
 )
 
 CX, CY = paper_channels()

@@ -8,7 +8,6 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from conftest import REPO
 
 
@@ -57,7 +56,7 @@ def test_two_d_library_file_and_records_are_unchanged(tmp_path):
     assert "fab_axes" not in load_recipe(REPO / "library" / "paper.toml").to_dict()
     save_library(tmp_path / "again.npz", ref)  # the writer (with the fab-axes branch) gives the same bytes
     assert (tmp_path / "again.npz").read_bytes() == (REPO / "library" / "paper.npz").read_bytes()
-    assert set(Perturbation(5e-9, 5e-9).to_dict()) == {"bias_x_nm", "bias_y_nm", "jitter_nm", "corner_radius_nm", "seed"}
+    assert set(Perturbation(5e-9, 5e-9).to_dict()) == {"bias_x_nm", "bias_y_nm", "jitter_nm", "corner_nm", "seed"}
 
 
 def test_fab_lookup_interpolates_in_height_and_angle(axes_library):
@@ -181,10 +180,10 @@ epochs = 0
 def test_supercell_of_identical_pillars_is_the_committed_library_cell():
     """At the library's own resolution (supercell nG 797 <-> unit nG 197) four identical pillars reproduce the
     committed library's entry."""
-    from metadesign.library.lpa import matched_unit_harmonics
     from metadesign.library.rcwa import Stack
     from metadesign.library.store import load_library
     from metadesign.library.supercell import solve_supercell
+    from metadesign.studies.lpa import matched_unit_harmonics
 
     lib = load_library(REPO / "library" / "paper.npz")
     st = Stack()

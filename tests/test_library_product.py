@@ -32,7 +32,7 @@ def test_committed_library_loads_and_matches_a_rebuild(paper_library):
     lib = paper_library
     assert lib.meta["convergence"]["passed"]
     assert lib.meta["convergence"]["max_phase_change_rad"] <= 0.02
-    from metadesign.library.rcwa import Stack, SolverSettings
+    from metadesign.library.rcwa import SolverSettings, Stack
     st = lib.meta["stack"]
     stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
                   st["n_superstrate"])

@@ -9,7 +9,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from conftest import REPO  # noqa: F401  (sys.path)
 
 torch = pytest.importorskip("torch")

@@ -5,7 +5,13 @@ import pytest
 from scipy.special import j1
 
 from metadesign.optics.propagation import (
-    SamplingError, angular_spectrum, asm_transfer, cexp, check_asm_sampling, fresnel_points, grid,
+    SamplingError,
+    angular_spectrum,
+    asm_transfer,
+    cexp,
+    check_asm_sampling,
+    fresnel_points,
+    grid,
 )
 
 LAM = 1.55e-6

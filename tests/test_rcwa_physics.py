@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 
 from metadesign.library.rcwa import (
-    Factorization, SolverSettings, Stack, fabry_perot_t, solve_cell,
+    Factorization,
+    SolverSettings,
+    Stack,
+    fabry_perot_t,
+    solve_cell,
 )
 
 PAPER = Stack()

@@ -4,10 +4,10 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 from scipy.special import fresnel
 
-from conftest import run_cli
-from metadesign.design import SupercellSpec, LensChannel, select_atoms
+from metadesign.design import LensChannel, SupercellSpec, select_atoms
 from metadesign.design.build import discretize_design
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import run_design
@@ -102,11 +102,11 @@ def test_psf_centres_orientation_and_channel_order(demo):
 
 def test_area_resampling_conserves_power_and_matches_box_integral():
     """Independent reference: upsample by an integer factor (pixel replication / area) then box-sum."""
-    from metadesign.sensing.sensor import _resample
+    from metadesign.sensing.sensor import area_resample
 
     rng = np.random.default_rng(3)
     img = rng.random((40, 50))
-    out = _resample(img, 20)
+    out = area_resample(img, 20)
     assert out.sum() == pytest.approx(img.sum(), rel=1e-6)
     fine = np.kron(img, np.ones((20, 20))) / 400.0  # 800 x 1000 sub-pixels carrying the power
     ref = fine.reshape(20, 40, 20, 50).sum(axis=(1, 3))
@@ -114,7 +114,7 @@ def test_area_resampling_conserves_power_and_matches_box_integral():
     # a point of power moves with the output pixel it falls on, never split for an aligned factor
     pt = np.zeros((40, 40))
     pt[13, 27] = 1.0
-    o = _resample(pt, 20)
+    o = area_resample(pt, 20)
     assert o[6, 13] == pytest.approx(1.0) and o.sum() == pytest.approx(1.0)
 
 

@@ -8,9 +8,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from metadesign.library.rcwa import SolverSettings, Stack, fabry_perot_t, permittivity_matrices, solve_cell, Factorization
-from metadesign.library.supercell import (Rect, solve_layers, solve_supercell, solve_tapered, staircase_permittivity,
-                                          supercell_rects, tapered_layers)
+from metadesign.library.rcwa import (
+    Factorization,
+    SolverSettings,
+    Stack,
+    fabry_perot_t,
+    permittivity_matrices,
+    solve_cell,
+)
+from metadesign.library.supercell import (
+    Rect,
+    solve_layers,
+    solve_supercell,
+    solve_tapered,
+    staircase_permittivity,
+    supercell_rects,
+    tapered_layers,
+)
 
 ST = Stack()
 MIXED = np.array([[(205e-9, 285e-9), (320e-9, 305e-9)], [(320e-9, 200e-9), (345e-9, 270e-9)]])
@@ -43,7 +57,7 @@ def test_sliced_and_90_degree_tapered_pillars_equal_the_vertical_one():
 def test_supercell_of_identical_pillars_is_the_unit_cell():
     """Translation symmetry: at the matched truncation (the unit cell's harmonics = the supercell's even
     ones) the odd harmonics decouple and the supercell is the unit cell exactly."""
-    from metadesign.library.lpa import matched_unit_harmonics
+    from metadesign.studies.lpa import matched_unit_harmonics
 
     ns, nu = matched_unit_harmonics(240, ST)
     cell = solve_cell(0.32e-6, 0.21e-6, ST, SolverSettings(nu))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from conftest import REPO, run_cli
 
 torch = pytest.importorskip("torch")

@@ -5,8 +5,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
+
 from metadesign.turbulence.path import Scenario, check_sampling, solve_path
 from metadesign.turbulence.propagate import Turbulence, split_step, split_step_torch
 from metadesign.turbulence.screens import ScreenGrid, screens, structure_function_theory
@@ -68,8 +68,8 @@ def test_path_model_satisfies_s5_s6_and_caps():
 def test_infeasible_sampling_is_refused_with_the_failing_constraint():
     rep = check_sampling(replace(SC, n_grid=128), solve_path(SC))
     assert not rep.ok and any(f.startswith("C2") and "raise n_grid" in f for f in rep.failures)
-    from metadesign.config import InputError
-    with pytest.raises(InputError, match="C2"):
+    from metadesign.validation import ValidationError
+    with pytest.raises(ValidationError, match="C2"):
         Turbulence(replace(SC, n_grid=128))
 
 

@@ -53,7 +53,7 @@ def _cmd_show(a: argparse.Namespace) -> int:
 
 
 def _cmd_plot(a: argparse.Namespace) -> int:
-    from ..config import InputError
+    from ..validation import ValidationError
     from .plot import plot_design
     from .store import design_library, load_design
 
@@ -64,7 +64,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
     lib = None
     try:
         lib = design_library(d)
-    except InputError:
+    except ValidationError:
         pass  # coverage dots need the library; the rest does not
     plot_design(d, out, lib)
     print(f"wrote {out}")

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import centered
-
 from ..library.store import UnitCellLibrary
 from ..plotting import pyplot, save_figure
 from .build import discretized_phase

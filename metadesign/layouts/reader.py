@@ -26,6 +26,8 @@ def check_file(path: Path) -> str:
 
     if not path.exists():
         raise InputError(f"{path}: no such layout file")
+    if not path.is_file():
+        raise InputError(f"{path}: is a folder, expected a layout file (.oas or .gds)")
     with open(path, "rb") as fh:
         head = fh.read(16)
         fh.seek(max(0, path.stat().st_size - 4))

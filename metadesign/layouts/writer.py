@@ -27,6 +27,7 @@ import numpy as np
 from .. import __version__
 from ..config import InputError
 from ..io import atomic_path, atomic_write_text
+from ..library.locate import relative_to_product
 
 __all__ = ["LayoutOptions", "write_layout", "snap_widths", "layout_geometry", "TOP_CELL", "PROPERTY"]
 
@@ -191,8 +192,6 @@ def write_layout(design, out: Path, fmt: str = "oas", opts: LayoutOptions = Layo
     prov = provenance_of(design, opts)
     lib_rec = design.meta.get("library", {}).get("path")
     if lib_rec and design.meta.get("_file"):
-        from ..library.locate import relative_to_product
-
         prov["library_path"] = relative_to_product(Path(design.meta["_file"]).parent / lib_rec, out.parent)
     lib, snapping = build_gdstk_library(design, opts, prov)
     t_build = time.perf_counter() - t0

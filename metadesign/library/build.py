@@ -23,9 +23,12 @@ import numpy as np
 from .. import __version__
 from ..config import InputError
 from ..io import atomic_write_text, read_npz, write_npz
+from ..parallel import dask_client, single_thread_env, spawn_pool
+from ..validation import ValidationError
 from .rcwa import SolverSettings, Stack, solve_cell
 from .recipe import LibraryRecipe
 from .store import UnitCellLibrary, save_library
+from .supercell import solve_tapered
 
 __all__ = ["build_library", "certify_convergence", "ConvergenceReport", "solve_cells", "THREAD_ENV"]
 
@@ -81,8 +84,6 @@ def _solve_chunk_axes(args) -> tuple[int, dict]:
     else a tapered one as ``slices`` slices."""
     from dataclasses import replace
 
-    from .supercell import solve_tapered
-
     key, cells, stack, settings, slices = args
     res = []
     for wx, wy, h, a in cells:
@@ -122,8 +123,6 @@ class _Pool:
         self.workers = workers
         self.pool = None
         if workers > 1:
-            from ..parallel import spawn_pool
-
             self.pool = spawn_pool(workers, _init_worker)
 
     def imap(self, fn, jobs):
@@ -226,8 +225,6 @@ def _dask_map(fn, jobs, scheduler: str):
     """Chunks on a Dask distributed scheduler (results as they finish, like the pool's imap_unordered)."""
     from dask.distributed import as_completed
 
-    from ..parallel import dask_client
-
     client = dask_client(scheduler)
     try:
         futures = [client.submit(_dask_chunk, fn, job, pure=False) for job in jobs]
@@ -238,8 +235,6 @@ def _dask_map(fn, jobs, scheduler: str):
 
 
 def _dask_chunk(fn, job):
-    from ..parallel import single_thread_env
-
     single_thread_env()
     return fn(job)
 
@@ -296,7 +291,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
         if f.exists():
             try:
                 done[k] = read_npz(f, "chunk")
-            except InputError:
+            except ValidationError:  # a damaged chunk is recomputed
                 f.unlink()
     if done:
         log(f"resuming: {len(done)}/{len(chunks)} chunks already on disk")

@@ -7,6 +7,7 @@ import hashlib
 import os
 from pathlib import Path
 
+from ..paths import repo_root
 from ..validation import ValidationError
 
 __all__ = ["file_sha256", "find_library", "relative_to_product"]
@@ -35,8 +36,6 @@ def find_library(sha256: str | None, recorded: str | None, product_dir: str | Pa
     every ``*.npz`` in the repository's ``library/`` folder, the product's
     folder and the working directory, accepting the first whose sha256 equals
     the recorded one (any existing file when no sha256 was recorded)."""
-    from ..paths import repo_root
-
     product_dir = Path(product_dir)
     tried: list[Path] = []
     cands: list[Path] = []

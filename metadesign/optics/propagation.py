@@ -10,9 +10,9 @@ complex64; phases are written with cos/sin (not ``np.exp(1j*...)``).
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft as sfft
 
 from ..conventions import centered
-import scipy.fft as sfft
 
 __all__ = [
     "SamplingError", "cexp", "asm_transfer", "angular_spectrum", "check_asm_sampling", "mft",

@@ -2,13 +2,15 @@
 
 Inputs (paths in the CSVs are relative to the CSV):
 
-* ``FOLDER/manifest.csv``: columns ``sample, frame_x, frame_y, slm_phase`` and optionally ``rytov`` and
-  ``split`` (train / val / test).  One frame per polarisation per sample (the paper rotates a
-  polariser between captures): 16-bit PNG or TIFF, or ``.npy`` (any real dtype), ``width x height`` of the
-  reference sensor (640 x 512 for the paper's).  ``slm_phase``: the phase the SLM applied, sampled on the
-  receiver crop of the turbulence grid (A x A, spanning ``A dx``; another square size is resampled onto
-  it), as ``.npy`` in radians or as a 16-bit image with ``--phase-per-count`` rad per count (default
-  ``2 pi / 65536``: the full range is one wave).
+* ``FOLDER/manifest.csv``: columns ``sample, frame_x, frame_y, slm_phase`` and optionally ``rytov`` (empty
+  or absent: unknown, stored as NaN and reported so), ``split`` (train / val / test) and ``slm_extent_mm``.
+  One frame per polarisation per sample (the paper rotates a polariser between captures): 16-bit PNG or
+  TIFF, or ``.npy`` (any real dtype), ``width x height`` of the reference sensor (640 x 512 for the
+  paper's).  ``slm_phase``: the phase the SLM applied, as ``.npy`` in radians or as a 16-bit image with
+  ``--phase-per-count`` rad per count (default ``2 pi / 65536``: the full range is one wave), either on
+  the receiver crop of the reference's turbulence grid (A x A samples spanning ``A dx``: ``dataset show
+  REFERENCE`` prints both) or, with ``slm_extent_mm`` (the map's side length), on any square grid centred on
+  the aperture, resampled area-weighted onto the crop; another size without an extent is refused.
 * ``--calibration FLAT.csv``: flat-wavefront captures (columns ``frame_x, frame_y``; averaged).
 * ``--dark FILE ...``: dark frames (averaged): subtracted from every frame; pixels brighter than the dark
   median by ``--hot-sigma`` robust sigmas are hot and replaced by the median of their non-hot neighbours.
@@ -20,7 +22,7 @@ Calibration: the thresholded centre of gravity of each of the 8 spots (per polar
 quadrant window) in the mean flat capture and in the reference render; the relay misalignment is the
 similarity transform (shift, rotation, magnification; ``--fit shift`` for shift only) that maps the
 reference centres onto the measured ones in least squares, iterated on the capture warped back into
-nominal coordinates (:func:`calibrate`) (convention: :class:`metadesign.sensing.captures.
+nominal coordinates (:func:`calibrate`) (convention: :class:`metadesign.sensing.camera.
 Alignment`).  Every frame is then resampled (bilinear) at the transformed nominal quadrant windows, area-
 resampled to the tensor size and normalised as synthetic data (8 channels sum to 8).
 
@@ -46,12 +48,19 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
+from ..io import atomic_path, atomic_write_text, check_not_input, check_replaceable, output_lock
+from ..sensing.camera import Alignment
+from ..sensing.forward import sensor_frames
+from ..sensing.sensor import area_resample, quadrant_slices
 from ..validation import ValidationError
+from .dataset import DATASET_FORMAT, _create_store, _read_attrs, load_device, normalise_psf, open_dataset, split_labels
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
+RYTOV_MAX = 5.0  # the largest Rytov number a dataset recipe takes
 
 
 def read_frame(path: Path, what: str = "frame") -> tuple[np.ndarray, float | None]:
@@ -134,8 +143,6 @@ def fix_hot_pixels(frame: np.ndarray, hot: np.ndarray) -> np.ndarray:
 def spot_centroids(frames: np.ndarray, sensor, threshold: float = 0.1) -> np.ndarray:
     """(8, 2) spot centres (col, row) in frame pixels: thresholded centre of gravity in each nominal
     quadrant window of each polarisation frame (channel order of the tensor)."""
-    from ..sensing.sensor import quadrant_slices
-
     out = np.empty((8, 2))
     for p in range(2):
         for k in range(1, 5):
@@ -154,8 +161,6 @@ def spot_centroids(frames: np.ndarray, sensor, threshold: float = 0.1) -> np.nda
 def fit_alignment(reference: np.ndarray, measured: np.ndarray, shape: tuple[int, int], mode: str = "similarity"):
     """Least-squares :class:`Alignment` mapping ``reference`` centres (N, 2) onto ``measured`` ones, and
     the residuals (N,) in pixels."""
-    from ..sensing.captures import Alignment
-
     c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
     P, Q = reference - c, measured - c
     if mode == "shift":
@@ -207,8 +212,6 @@ def calibrate(flat: np.ndarray, reference: np.ndarray, sensor, mode: str = "simi
     compared with the reference's (masked alike where the warp left the frame), and the small similarity
     between them is composed into the estimate.  Returns (alignment, residuals of the last fit (px),
     first-pass measured centres)."""
-    from ..sensing.captures import Alignment
-
     shape = flat.shape[-2:]
     c_ref = spot_centroids(reference, sensor, threshold)
     c_first = spot_centroids(flat, sensor, threshold)
@@ -230,8 +233,6 @@ def aligned_tensor(frames: np.ndarray, sensor, alignment, tensor_size: int) -> t
     fell outside the frame."""
     from scipy.ndimage import map_coordinates
 
-    from ..sensing.sensor import _resample, quadrant_slices
-
     H, W = frames.shape[-2:]
     out = np.empty((8, tensor_size, tensor_size), np.float32)
     outside = 0.0
@@ -242,7 +243,7 @@ def aligned_tensor(frames: np.ndarray, sensor, alignment, tensor_size: int) -> t
         outside += float(np.mean((q[:, 0] < -0.5) | (q[:, 0] > W - 0.5) | (q[:, 1] < -0.5) | (q[:, 1] > H - 0.5)))
         for p in range(2):
             win = map_coordinates(frames[p], [q[:, 1], q[:, 0]], order=1, mode="constant", cval=0.0)
-            out[4 * p + k - 1] = _resample(win.reshape(rr.shape), tensor_size)
+            out[4 * p + k - 1] = area_resample(win.reshape(rr.shape), tensor_size)
     return out, outside / 4
 
 
@@ -259,19 +260,40 @@ class ImportOptions:
     shard_size: int = 64
 
 
-def _phase(path: Path, a: int, per_count: float) -> np.ndarray:
+def _phase(path: Path, crop, per_count: float, extent_m: float | None = None) -> np.ndarray:
+    """The SLM phase of ``path`` on the receiver crop (``crop``: a :class:`~metadesign.sensing.device.
+    ReceiverCrop`).  A map of the crop's own size is the crop; a map of another size needs its side length
+    ``extent_m`` (the manifest's ``slm_extent_mm``): it is then resampled area-weighted (the field
+    ``exp(i phi)`` averaged over each crop sample's footprint, then sampled bilinearly at the crop's
+    coordinates, both grids centred on the aperture)."""
+    from scipy.ndimage import map_coordinates, uniform_filter
+
     arr, full = read_frame(path, "SLM phase")
     if full is not None:
         arr = arr * per_count
     if arr.shape[0] != arr.shape[1]:
         raise ValidationError(f"{path}: SLM phase: expected a square map, got {arr.shape[1]} x {arr.shape[0]}")
-    if arr.shape[0] != a:
-        from scipy.ndimage import map_coordinates
-
-        u = (np.arange(a) + 0.5) / a * arr.shape[0] - 0.5
-        yy, xx = np.meshgrid(u, u, indexing="ij")
-        arr = map_coordinates(arr, [yy, xx], order=1, mode="nearest")
-    return arr
+    m, a = arr.shape[0], crop.size
+    if extent_m is None:
+        if m != a:
+            raise ValidationError(f"{path}: SLM phase: {m} x {m} samples, but the receiver crop is {a} x {a} samples "
+                                  f"spanning {crop.extent * 1e3:.6g} mm (pitch {crop.dx * 1e3:.6g} mm): give the map "
+                                  "on that grid, or its side length in the manifest column slm_extent_mm")
+        return arr
+    if extent_m < crop.aperture:
+        raise ValidationError(f"{path}: SLM phase: slm_extent_mm {extent_m * 1e3:.6g} does not cover the receiver "
+                              f"aperture ({crop.aperture * 1e3:.6g} mm)")
+    pitch = extent_m / m
+    f = np.cos(arr) + 1j * np.sin(arr)
+    box = crop.dx / pitch
+    if box > 1.5:  # the map is finer than the crop: average the field over each crop sample
+        k = int(round(box))
+        f = uniform_filter(f.real, k, mode="nearest") + 1j * uniform_filter(f.imag, k, mode="nearest")
+    u = crop.coords() / pitch + (m - 1) / 2  # crop coordinates in map-index units (both centred on the axis)
+    yy, xx = np.meshgrid(u, u, indexing="ij")
+    re = map_coordinates(f.real, [yy, xx], order=1, mode="nearest")
+    im = map_coordinates(f.imag, [yy, xx], order=1, mode="nearest")
+    return np.arctan2(im, re)
 
 
 def _mean_frames(paths, shape, what, dark=None, hot=None):
@@ -294,19 +316,23 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
                     darks: list | None = None, options: ImportOptions = ImportOptions(), overwrite: bool = False,
                     progress=None, log=lambda s: None) -> dict:
     """Import a capture folder into a dataset at ``out`` (see the module docstring); returns a report."""
-    import zarr
-
-    from .. import __version__
-    from ..baselines.compare import device_of
-    from ..sensing.forward import sensor_frames
-    from .dataset import DATASET_FORMAT, _create_store, normalise_psf, open_dataset, split_labels
-
     t0 = time.perf_counter()
     folder, out = Path(folder), Path(out)
     if options.saturated not in ("flag", "drop", "error"):
         raise ValidationError(f"--saturated: expected flag, drop or error, got {options.saturated!r}")
+    check_not_input(out, {"captures": folder, "--calibration": calibration, "--reference": reference,
+                          **{f"--dark {d}": d for d in (darks or [])}})
     if out.exists() and not overwrite:
         raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
+    check_replaceable(out, lambda p: _read_attrs(p) is not None, "metadesign dataset")
+    with output_lock(out, "dataset"):
+        return _import(folder, out, calibration, reference, darks, options, progress, log, t0)
+
+
+def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, progress, log,
+            t0: float) -> dict:
+    import zarr
+
     manifest = folder / "manifest.csv" if folder.is_dir() else folder
     rows = read_manifest(manifest, ("sample", "frame_x", "frame_y", "slm_phase"))
     names = [r["sample"] for r in rows]
@@ -314,10 +340,9 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         dup = next(n for n in names if names.count(n) > 1)
         raise ValidationError(f"{manifest}: sample {dup!r} is listed twice")
     flats = read_manifest(Path(calibration), ("frame_x", "frame_y"), "calibration list")
-    ref = device_of(reference)
+    ref = load_device(reference)
     ref_info = open_dataset(reference)
-    sensor, sc = ref["sensor"], ref["scenario"]
-    c0, a = ref["crop"]
+    sensor, a = ref.sensor, ref.crop.size
     shape = (sensor.height_px, sensor.width_px)
     S = ref_info.tensor_size
 
@@ -328,7 +353,7 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         hot = hot_pixel_map(dark, options.hot_sigma)
     # calibration
     flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot) for p in "xy"])
-    ref_frames = sensor_frames(ref["pupil"], sensor, None)
+    ref_frames = sensor_frames(ref.pupil, sensor, None)
     c_ref = spot_centroids(ref_frames, sensor, options.threshold)
     al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
     notes = [f"calibration: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
@@ -349,13 +374,28 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
     rytov_all = []
     for r in rows:
         try:
-            v = float(r.get("rytov") or "nan")
+            txt = (r.get("rytov") or "").strip()
+            v = float(txt) if txt else float("nan")  # empty: unknown
         except ValueError:
             raise ValidationError(f"{manifest}: sample {r['sample']}: rytov {r.get('rytov')!r} is not a number") from None
+        if txt and not (np.isfinite(v) and 0 <= v <= RYTOV_MAX):
+            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov: expected a number in [0, {RYTOV_MAX:g}] "
+                                  f"or empty (unknown), got {txt}")
         rytov_all.append(v)
+    slm_extent: list[float | None] = []  # side of each SLM phase map (m), when not on the receiver crop
+    for r in rows:
+        txt = (r.get("slm_extent_mm") or "").strip()
+        try:
+            v = float(txt) if txt else None
+        except ValueError:
+            v = float("nan")
+        if v is not None and not (np.isfinite(v) and 0 < v <= 1e5):
+            raise ValidationError(f"{manifest}: sample {r['sample']}: slm_extent_mm: expected a side length in "
+                                  f"(0, 100000] mm or empty, got {txt!r}")
+        slm_extent.append(None if v is None else v * 1e-3)
 
     # pass 1: every frame read, checked, converted (a failure writes nothing)
-    ap = _aperture(sc, c0, a)
+    ap = ref.crop.aperture_mask()
     kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
     for j, r in enumerate(rows):
         fr, sat = [], False
@@ -382,7 +422,7 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
             flagged.append(r["sample"])
             if options.saturated == "drop":
                 continue
-        phi = _phase(r["slm_phase"], a, options.phase_per_count)
+        phi = _phase(r["slm_phase"], ref.crop, options.phase_per_count, slm_extent[j])
         t, outside = aligned_tensor(np.stack(fr), sensor, al, S)
         outside_max = max(outside_max, outside)
         x, pw = normalise_psf(t)
@@ -417,8 +457,8 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         "name": out.name, "samples": n, "shard_size": options.shard_size,
         "n_shards": (n + options.shard_size - 1) // options.shard_size, "tensor_size": S, "root_seed": options.seed,
         "split_fractions": [float(np.mean(split == v)) for v in range(3)],
-        "rytov": {"range": [float(np.nanmin(rytov)), float(np.nanmax(rytov))] if np.isfinite(rytov).any() else [0, 0],
-                  "values": None},
+        "rytov": {"range": [float(np.nanmin(rytov)), float(np.nanmax(rytov))] if np.isfinite(rytov).any() else None,
+                  "values": None, "unknown": int(np.isnan(rytov).sum())},
         "propagation": "slm",
         "provenance": {**parts, "captures": str(folder), "reference": str(reference),
                        "scenario": prov_ref["scenario"], "sensor": prov_ref["sensor"],
@@ -434,13 +474,13 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _create_store(tmp, n, S, options.shard_size, a, attrs, split)
+        _create_store(tmp, n, S, options.shard_size, a, attrs, split, rytov_fill=-1.0)
         g = zarr.open_group(str(tmp), mode="r+")
         g["psf"][:] = np.stack(psf)
         g["received"][:] = np.stack(rec)
         g["psf_power"][:] = np.array(power, np.float32)
-        g["rytov"][:] = np.nan_to_num(rytov, nan=0.0)
-        g["rytov_measured"][:] = np.nan_to_num(rytov, nan=0.0)
+        g["rytov"][:] = rytov  # NaN: unknown (no rytov in the manifest)
+        g["rytov_measured"][:] = rytov
         g["seed"][:] = np.arange(n, dtype=np.int64)
         fl = g.create_array("flags", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=0,
                             dimension_names=("sample",))
@@ -450,7 +490,6 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
                             dimension_names=("sample",))
         nm[:] = np.array(kept, np.int64)  # row of the manifest
         g.attrs.update({"complete": True})
-        from ..io import atomic_write_text
 
         atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
         _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
@@ -466,20 +505,11 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
             "seconds": time.perf_counter() - t0, **info.summary()}
 
 
-def _aperture(sc, c0: int, a: int) -> np.ndarray:
-    from ..conventions import fft_centered
-
-    x = fft_centered(sc.n_grid, sc.dx)[c0:c0 + a]
-    return (x[None, :] ** 2 + x[:, None] ** 2) <= (sc.receiver_aperture / 2) ** 2
-
-
 def _plot_calibration(path: Path, flat, c_ref, c_meas, al, res) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..io import atomic_path
 
     fig, axs = plt.subplots(1, 2, figsize=(12, 4.6))
     for p, ax in enumerate(axs):

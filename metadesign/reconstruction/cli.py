@@ -1,4 +1,6 @@
-"""``metadesign dataset build|show|plot`` (stage 6 CLI; training and evaluation join here)."""
+"""The stage-6 commands: ``dataset build|operators|show|verify|plot|import``, ``train``, ``evaluate``,
+``export``.  (The studies on top of stage 6, ``compare``, ``retrieve``, ``tolerance``, ``transfer``,
+``table-s2`` and ``dataset synth-captures``, are :mod:`metadesign.studies.cli`.)"""
 
 from __future__ import annotations
 
@@ -46,6 +48,17 @@ def _cmd_operators(a: argparse.Namespace) -> int:
     return 0
 
 
+def _crop_line(info) -> str:
+    c0, a = info.crop()
+    try:
+        sc = info.scenario()
+        return (f"received crop  {a} x {a} samples of the {sc.n_grid}^2 turbulence grid from index {c0} "
+                f"(pitch {sc.dx * 1e3:.4g} mm: {a * sc.dx * 1e3:.4g} mm square; receiver aperture "
+                f"{sc.receiver_aperture * 1e3:.4g} mm)")
+    except Exception:  # the summary of a damaged store still prints
+        return f"received crop  {a} x {a} samples from index {c0}"
+
+
 def _cmd_show(a: argparse.Namespace) -> int:
     from .dataset import open_dataset
 
@@ -56,8 +69,11 @@ def _cmd_show(a: argparse.Namespace) -> int:
         f"dataset        {at.get('name')} ({s['path']}), format {at.get('format')}, metadesign {s['version']}",
         f"samples        {s['samples']}: train {s['split_counts']['train']}, val {s['split_counts']['val']}, "
         f"test {s['split_counts']['test']}; tensor {' x '.join(map(str, s['tensor']))}",
-        f"Rytov          nominal {s['rytov_nominal'][0]:.3f}..{s['rytov_nominal'][1]:.3f}, measured "
-        f"{s['rytov_measured'][0]:.3f}..{s['rytov_measured'][1]:.3f} (mean {s['rytov_measured_mean']:.3f})",
+        ("Rytov          unknown (captures imported without a rytov column)" if s["rytov_nominal"] is None else
+         f"Rytov          nominal {s['rytov_nominal'][0]:.3f}..{s['rytov_nominal'][1]:.3f}, measured "
+         f"{s['rytov_measured'][0]:.3f}..{s['rytov_measured'][1]:.3f} (mean {s['rytov_measured_mean']:.3f})"
+         + (f"; unknown for {s['rytov_unknown']} samples" if s["rytov_unknown"] else "")),
+        _crop_line(info),
         (f"device         layout {str(s['layout_sha256'])[:12]}, library {str(s['library_sha256'])[:12]}, "
          f"perturbation {at['provenance'].get('perturbation')}") if at.get("propagation") != "slm" else
         (f"captures       {at['provenance'].get('captures')} (propagation slm), relay "
@@ -72,6 +88,21 @@ def _cmd_show(a: argparse.Namespace) -> int:
     ])
     emit(s | {"attributes": at}, a.json, text)
     return 0
+
+
+def _cmd_verify(a: argparse.Namespace) -> int:
+    from .dataset import verify_dataset
+
+    rep = verify_dataset(a.dataset, progress=None if a.json else progress_bar("verify", unit="sample"))
+    bad = rep["damaged_shards"]
+    lines = [f"{rep['path']}: {rep['samples']} samples in {rep['shards']} shards, arrays {', '.join(rep['arrays'])}: "
+             + ("every sample reads back and checks out" if not bad else f"{len(bad)} damaged shard(s)")]
+    lines += [f"  shard {b['shard']} (samples {b['samples'][0]}..{b['samples'][1]}): {b['problem']}" for b in bad]
+    if bad:
+        lines.append("  remedy: rebuild it (`metadesign dataset build RECIPE -o DIR --overwrite`: the same recipe gives "
+                     "the same bytes), or restore it from a copy")
+    emit(rep, a.json, "\n".join(lines))
+    return 0 if rep["ok"] else 1
 
 
 def _cmd_plot(a: argparse.Namespace) -> int:
@@ -158,40 +189,6 @@ def _cmd_export(a: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_table_s2(a: argparse.Namespace) -> int:
-    from .tables import run_table_s2
-
-    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    rep = run_table_s2(a.recipe, out, workers=a.workers, log=log_to(a.json))
-    lines = [f"Table S2 ({rep['samples']} samples at Rytov {rep['rytov']}, {rep['epochs']} epochs) -> {out}",
-             "  model split  PiB ratio (mean of NPiB_unet / NPiB_pc)  ratio of means   NPiB U-Net / none / conjugate"]
-    for r in rep["rows"]:
-        lines.append(f"  {r['model']:<5} {r['split']:<5}  {100 * r['pib_ratio']:6.1f} %                        "
-                     f"{100 * r['pib_ratio_of_means']:6.1f} %          {r['npib_unet']:.3f} / {r['npib_none']:.3f} / "
-                     f"{r['npib_phase_conjugate']:.3f}")
-    lines.append("  paper: E2E 96.3 % / 96.0 %, MSE 94.6 % / 71.5 % (train / test)")
-    emit(rep, a.json, "\n".join(lines))
-    return 0
-
-
-def _cmd_tolerance(a: argparse.Namespace) -> int:
-    from .tolerance import load_tolerance_recipe, run_tolerance
-
-    rec = load_tolerance_recipe(a.recipe)
-    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    rep = run_tolerance(rec, out, workers=a.workers, log=log_to(a.json))
-    lines = [f"fab tolerance of {rec.model.name} at {rep['noise_percent']:g} % noise -> {out} ({Path(rep['figure']).name})",
-             "  case              NPiB U-Net  captured  gain(median) | fine-tuned U-Net  captured | conjugate  none"]
-    for r in rep["rows"]:
-        b, f = r["before"], r.get("after")
-        lines.append(f"  {r['case']:<16}  {b['npib_unet']:.3f}       {b['captured_fraction']:5.2f}     "
-                     f"{b['gain_median']:6.1f}     | " + (f"{f['npib_unet']:.3f}             {f['captured_fraction']:5.2f}"
-                                                           if f else "  -                  -  ")
-                     + f"     | {b['npib_phase_conjugate']:.3f}      {b['npib_none']:.3f}")
-    emit(rep, a.json, "\n".join(lines))
-    return 0
-
-
 def _cmd_import(a: argparse.Namespace) -> int:
     from .captures import ImportOptions, import_captures
 
@@ -217,77 +214,8 @@ def _cmd_import(a: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_synth(a: argparse.Namespace) -> int:
-    from ..sensing.captures import Alignment, CameraSpec, synth_captures
-
-    out = out_dir(a.output)
-    al = Alignment(a.shift[0], a.shift[1], a.rotation_deg, a.scale)
-    cam = CameraSpec(peak_counts=a.peak_counts, photons_at_peak=a.photons, read_noise_e=a.read_noise_e,
-                     dark_counts=a.dark_counts, hot_pixels=a.hot_pixels, seed=a.seed)
-    rep = synth_captures(a.phases, a.device, out, al, cam, samples=a.samples, split=a.split, fmt=a.format,
-                         saturate=a.saturate, seed=a.seed, progress=progress_bar("captures", unit="frame"))
-    emit(rep, a.json, f"wrote {out}: {rep['samples']} samples ({rep['format']}), {rep['flats']} flat and "
-         f"{rep['darks']} dark captures, {rep['saturated']} over-exposed; manifest {out / 'manifest.csv'}")
-    return 0
-
-
-def _cmd_transfer(a: argparse.Namespace) -> int:
-    from .transfer import load_transfer_recipe, run_transfer
-
-    rec = load_transfer_recipe(a.recipe)
-    out = out_dir(a.output or Path(a.recipe).with_name(Path(a.recipe).stem + "-out"))
-    rep = run_transfer(rec, out, workers=a.workers, log=log_to(a.json),
-                       progress=None if a.json else progress_bar("captures", unit="frame"))
-    r = rep["rows"]
-    tr, fi = rep["truth_alignment"], rep["fitted_alignment"]
-    lines = [f"transfer to captured frames -> {out} ({Path(rep['figure']).name}); relay true "
-             f"({tr['shift_x_px']:+.2f}, {tr['shift_y_px']:+.2f}) px {tr['rotation_deg']:+.3f} deg x{tr['scale']:.4f}, "
-             f"fitted ({fi['shift_x_px']:+.2f}, {fi['shift_y_px']:+.2f}) px {fi['rotation_deg']:+.3f} deg x{fi['scale']:.4f}",
-             "  model                 NPiB mean  median  captured"]
-    for k in ("unadapted", "scratch", "finetuned"):
-        if k in r:
-            lines.append(f"  {k:<20}  {r[k]['npib_unet']:.3f}      {r[k]['npib_unet_median']:.3f}   "
-                         f"{r[k]['captured_fraction']:.2f}")
-    lines.append(f"  uncorrected {r['unadapted']['npib_none']:.3f}, phase conjugate "
-                 f"{r['unadapted']['npib_phase_conjugate']:.3f} ({r['unadapted']['n']} test captures)")
-    emit(rep, a.json, "\n".join(lines))
-    return 0
-
-
-def register(sub) -> None:
-    tf = sub.add_parser(
-        "transfer", help="stage 6: fab-to-lab transfer learning on (synthetic) captured frames",
-        description="Render the lab device (the design as made) and SLM screens, synthesise camera captures "
-        "through a misaligned relay, import them against the nominal dataset, and compare the synthetic model "
-        "unadapted, fine-tuned from it (--init) and trained from scratch on the same captures.")
-    tf.add_argument("recipe", help="transfer recipe (TOML), e.g. sensing/transfer-demo.toml")
-    tf.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
-    workers_arg(tf)
-    tf.add_argument("--json", action="store_true", help="print the summary as JSON")
-    tf.set_defaults(func=_cmd_transfer)
-    tol = sub.add_parser(
-        "tolerance", help="stage 6: reconstruction-level fab tolerance (NPiB vs bias/jitter/corner, fine-tune recovery)",
-        description="For each fabrication case of the recipe (one-at-a-time sweeps of width bias, jitter and "
-        "corner rounding around the nominal device): render a dataset through the perturbed layout (same "
-        "turbulence samples in every case), evaluate the nominal model on its test split, fine-tune it on the "
-        "case's small training split (train --init) and evaluate again. Resumable; writes OUT/tolerance.csv, "
-        ".json and .png.")
-    tol.add_argument("recipe", help="tolerance recipe (TOML), e.g. sensing/tolerance-demo.toml")
-    tol.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
-    workers_arg(tol)
-    tol.add_argument("--json", action="store_true", help="print the table as JSON")
-    tol.set_defaults(func=_cmd_tolerance)
-
-
-    t2 = sub.add_parser("table-s2", help="stage 6: reproduce Table S2 (E2E vs MSE loss: train and test PiB ratio)",
-                        description="Build the recipe's dataset, train the same U-Net with the end-to-end PiB loss "
-                        "and with the MSE phase loss, and evaluate both on their train and test splits.")
-    t2.add_argument("recipe", help="Table S2 recipe (TOML), e.g. sensing/table-s2.toml")
-    t2.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
-    workers_arg(t2)
-    t2.add_argument("--json", action="store_true", help="print the table as JSON")
-    t2.set_defaults(func=_cmd_table_s2)
-
+def register(sub) -> dict:
+    """Add the stage-6 commands; returns the ``dataset`` action group (studies add theirs to it)."""
     ex = sub.add_parser("export", help="stage 6: export a model for deployment (ONNX, dynamic batch)",
                         description="Export the U-Net as ONNX with a dynamic batch axis and check it against "
                         "torch in onnxruntime.")
@@ -368,6 +296,13 @@ def register(sub) -> None:
     s.add_argument("dataset", help="dataset folder")
     s.add_argument("--json", action="store_true", help="print as JSON")
     s.set_defaults(func=_cmd_show)
+    v = dsub.add_parser("verify", help="read back every sample and check it (exit 1 when damaged)",
+                        description="Integrity check: decode every shard of every array (shard-index checksums), "
+                        "check finite values and each PSF tensor's normalisation (8 channels sum to 8); list the "
+                        "damaged shards. Exit status 1 when any is damaged.")
+    v.add_argument("dataset", help="dataset folder")
+    v.add_argument("--json", action="store_true", help="print the report as JSON")
+    v.set_defaults(func=_cmd_verify)
     p = dsub.add_parser("plot", help="draw a few samples and the Rytov histogram")
     p.add_argument("dataset", help="dataset folder")
     p.add_argument("-o", "--output", help="PNG path (default: DATASET/fig-dataset.png)")
@@ -400,28 +335,4 @@ def register(sub) -> None:
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     im.add_argument("--json", action="store_true", help="print the report as JSON")
     im.set_defaults(func=_cmd_import)
-    sy = dsub.add_parser(
-        "synth-captures", help="synthetic camera captures from a dataset's phases through a (perturbed) device",
-        description="The SLM shows the received phases of PHASES' samples; frames are rendered through DEVICE's "
-        "coarse pupil onto a misaligned camera with shot and read noise, dark offset and hot pixels (16-bit PNG, "
-        "TIFF or .npy), with flat and dark captures and a manifest: input for `dataset import`.")
-    sy.add_argument("phases", help="dataset whose received phases the SLM shows (also the sensor geometry)")
-    sy.add_argument("--device", required=True, help="dataset (or its device-pupil.npz) of the device to render")
-    sy.add_argument("-o", "--output", required=True, help="capture folder to write")
-    sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
-    sy.add_argument("--samples", type=integer(1, 10_000_000), help="at most this many samples")
-    sy.add_argument("--shift", nargs=2, type=num(-200, 200), default=(0.0, 0.0), metavar=("DX", "DY"),
-                    help="relay shift, camera pixels")
-    sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)
-    sy.add_argument("--scale", type=num(0.8, 1.25), default=1.0, help="relay magnification / nominal")
-    sy.add_argument("--format", choices=("png", "tiff", "npy"), default="png")
-    sy.add_argument("--peak-counts", type=num(1, 65535), default=40000.0)
-    sy.add_argument("--photons", type=num(0, 1e9), default=20000.0, help="photo-electrons at the peak (0: none)")
-    sy.add_argument("--read-noise-e", type=num(0, 1e4), default=5.0)
-    sy.add_argument("--dark-counts", type=num(0, 65535), default=100.0)
-    sy.add_argument("--hot-pixels", type=integer(0, 100000), default=20)
-    sy.add_argument("--saturate", type=integer(0, 10_000_000), default=0,
-                    help="over-expose the last N samples (2x: clipped at full scale)")
-    sy.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
-    sy.add_argument("--json", action="store_true", help="print the report as JSON")
-    sy.set_defaults(func=_cmd_synth)
+    return {"dataset": dsub}

@@ -1,7 +1,8 @@
-"""A ``torch.utils.data.Dataset`` over a metadesign dataset store: opens the
-zarr arrays lazily in each DataLoader worker, applies the noise when samples
-are read (seeded per sample and epoch, so one dataset serves every noise
-study), and returns tensors."""
+"""Reading a dataset: :class:`PSFDataset`, a ``torch.utils.data.Dataset`` over a metadesign dataset store
+(the store itself, its format, build, checks and device: :mod:`.dataset`).  It opens the zarr arrays
+lazily in each DataLoader worker, checks every sample it reads (a damaged one is one line naming its
+shard), applies the noise when samples are read (seeded per sample and epoch, so one dataset serves
+every noise study), and returns tensors."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..turbulence.propagate import Turbulence
 from ..validation import ValidationError, check_int, check_number
-from .dataset import open_dataset
+from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, sample_rytov
 
 __all__ = ["PSFDataset", "apply_noise"]
 
@@ -67,26 +69,23 @@ class PSFDataset:
         self._tb = None
 
     def require_operators(self, split: str) -> None:
-        from .operators import has_operators
-
         if not has_operators(self.info.attrs, split):
             raise ValidationError(f"{self.path}: no stored bucket operators for the {split} split "
                                   f"(run `metadesign dataset operators {self.path} --splits {split}`)")
 
     def scenario(self):
         """The turbulence scenario the dataset was made with (from its provenance)."""
-        from ..turbulence.validate import scenario_from_dict
-
-        return scenario_from_dict(self.info.attrs["provenance"]["scenario"], f"{self.path} (provenance)")
+        return self.info.scenario()
 
     def crop(self) -> tuple[int, int]:
-        c = self.info.attrs["received_crop"]
-        return int(c["start"]), int(c["size"])
+        return self.info.crop()
+
+    def device(self):
+        """The device the dataset was made with (:func:`~.dataset.load_device`)."""
+        return load_device(self.path)
 
     def exact_rytov(self, i: int) -> float:
         """The float64 Rytov number sample ``i`` was made with (stored as float32), from the root seed."""
-        from .dataset import sample_rytov
-
         r = self.info.attrs["rytov"]
         return sample_rytov(int(self.info.attrs["root_seed"]), i, tuple(r["range"]), r["values"])
 
@@ -97,12 +96,13 @@ class PSFDataset:
             sc = self.scenario()
             c0, a = self.crop()
             out = np.zeros((sc.n_screens, sc.n_grid, sc.n_grid), np.float32)
-            rec = np.asarray(self._arrays()["received"][i])
+            try:
+                rec = np.asarray(self._arrays()["received"][i])
+            except Exception as exc:
+                raise damaged(self.path, i, self.info.attrs["shard_size"], exc) from None
             out[-1, c0:c0 + a, c0:c0 + a] = np.where(np.abs(rec) > 0, np.angle(rec), 0)
             return out
         if self._tb is None:
-            from ..turbulence.propagate import Turbulence
-
             self._tb = Turbulence(self.scenario(), check=False)
         return self._tb.at_rytov(self.exact_rytov(i), check=False).screens(int(self.info.seed[i]))
 
@@ -133,16 +133,26 @@ class PSFDataset:
         """Sample ``j`` of this split as numpy arrays."""
         i = int(self.idx[j])
         g = self._arrays()
-        psf = np.asarray(g["psf"][i])
+        try:
+            psf = np.asarray(g["psf"][i])
+            received = np.asarray(g["received"][i])
+        except Exception as exc:  # a truncated shard or a damaged chunk: zarr/numcodecs raise many kinds
+            raise damaged(self.path, i, self.info.attrs["shard_size"], exc) from None
+        why = check_psf(psf) or (None if np.isfinite(received).all() else "non-finite received field")
+        if why:
+            raise damaged(self.path, i, self.info.attrs["shard_size"], why)
         if any(self.noise[:2]):
             rng = np.random.default_rng(np.random.SeedSequence(self.noise_seed, spawn_key=(self.epoch, i)))
             psf = apply_noise(psf, rng, *self.noise)
-        out = {"psf": psf, "received": np.asarray(g["received"][i]), "rytov": float(self.info.rytov[i]),
+        out = {"psf": psf, "received": received, "rytov": float(self.info.rytov[i]),
                "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i}
         if self.screens:
             out["screens"] = self.screens_of(i)
         if self.operators:
-            out["A"] = np.asarray(g["pib_operator"][i])
+            try:
+                out["A"] = np.asarray(g["pib_operator"][i])
+            except Exception as exc:
+                raise damaged(self.path, i, self.info.attrs["shard_size"], exc) from None
             if not out["A"].any():  # the fill value: a shard file lost after the operators were finished
                 raise ValidationError(f"{self.path}: sample {i} has no stored bucket operator (damaged store: "
                                       "rerun `metadesign dataset operators --overwrite`)")

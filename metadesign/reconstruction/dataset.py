@@ -1,6 +1,7 @@
-"""Stage 6a: seeded, sharded datasets of 8-PSF frames from scintillated beacons
+"""Stage 6a, the dataset store: seeded, sharded datasets of 8-PSF frames from scintillated beacons
 through the as-fabricated metasurface (zarr v3), built on a local process pool
-or a Dask cluster, resumable after SIGKILL.
+or a Dask cluster, resumable after SIGKILL; opened, verified and asked for its device here (reading
+samples for training and evaluation: :mod:`.data`).
 
 Store layout (``OUT/``, a zarr v3 group; readable with plain ``zarr`` + numpy):
 
@@ -40,12 +41,25 @@ import numpy as np
 
 from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
-from ..io import atomic_write_text
+from ..design.recipe import load_design_recipe
+from ..design.store import load_design, run_design
+from ..io import atomic_write_text, check_not_input, output_lock, read_npz
+from ..layouts import read_layout, verify_against_design, write_layout
+from ..library.locate import file_sha256
+from ..library.store import load_library
+from ..parallel import dask_client, keep_freed_memory, single_thread_env, spawn_pool
+from ..sensing.device import Device, ReceiverCrop, load_pupil, save_pupil
+from ..sensing.model import AsFabricated, load_sensing_recipe
+from ..sensing.sensor import SensorSpec
+from ..sensing.transmission import Perturbation
+from ..turbulence.chain import BeaconChain
+from ..turbulence.path import check_sampling, solve_path
+from ..turbulence.validate import load_scenario, scenario_from_dict
 from ..validation import ValidationError
 
 __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",
            "DatasetInfo", "DATASET_FORMAT", "sample_seed", "sample_rytov", "make_sample", "ShardContext",
-           "received_crop", "normalise_psf"]
+           "received_crop", "normalise_psf", "load_device", "expected_sizes", "verify_dataset", "check_psf", "damaged"]
 
 DATASET_FORMAT = "metadesign.dataset/1"
 _MAX_SEED = 2**63 - 1
@@ -165,6 +179,21 @@ def split_labels(root: int, n: int, fractions) -> np.ndarray:
     return lab
 
 
+#: the stored bucket operators' array (``metadesign dataset operators``, :mod:`.operators`)
+OPERATOR_ARRAY = "pib_operator"
+
+
+def operator_info(attrs: dict) -> dict | None:
+    """The store's ``pib_operator`` attribute block, or None."""
+    return attrs.get(OPERATOR_ARRAY)
+
+
+def has_operators(attrs: dict, split: str) -> bool:
+    """Whether every sample of ``split`` has a stored operator (a finished ``dataset operators`` run)."""
+    info = operator_info(attrs)
+    return bool(info and info.get("complete") and split in info.get("splits", ()))
+
+
 def received_crop(sc) -> tuple[int, int]:
     """(start index, size) of the square crop of the turbulence grid holding the receiver aperture
     (FFT-centred grid: the centre is sample n/2)."""
@@ -194,8 +223,6 @@ class ShardContext:
 
     def chain(self):
         if self._chain is None:
-            from ..sensing.chain import BeaconChain
-
             self._chain = BeaconChain(self.pupil, self.sensing, self.scenario, self.aperture)
         return self._chain
 
@@ -259,8 +286,6 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
 
 
 def _sha256(path: Path) -> str:
-    from ..library.locate import file_sha256
-
     return file_sha256(path)
 
 
@@ -270,9 +295,6 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
         return recipe.layout
     if recipe.design is None:
         raise ValidationError(f"dataset.layout: {recipe.layout}: no such layout (give dataset.design to build it)")
-    from ..design.recipe import load_design_recipe
-    from ..design.store import load_design, run_design
-    from ..layouts import read_layout, verify_against_design, write_layout
 
     dr = load_design_recipe(recipe.design)
     out = recipe.layout.parent if recipe.layout is not None else dr.default_output()
@@ -289,9 +311,6 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
 
 def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=None):
     """The device's coarse pupil, cached beside the dataset (keyed by layout, library, perturbation, sensor)."""
-    from ..io import read_npz, write_npz
-    from ..sensing.forward import CoarsePupil
-
     key = {"layout_sha256": layout_sha, "library_sha256": fab.lib.identity, "perturbation": pert.to_dict(),
            "distance_m": sensing.sensor.distance, "pupil_grid": sensing.pupil_grid}
     if fab.fab_lib is not None:
@@ -300,31 +319,59 @@ def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=Non
         try:
             z = read_npz(cache, "device pupil")
             if json.loads(str(z["key"])) == key:
-                return CoarsePupil(z["G"], z["X"], int(z["block"]), float(z["period"]), float(z["wavelength"]),
-                                   float(z["z"]), int(z["n_clamped"]))
+                return load_pupil(cache, z)
         except (ValidationError, KeyError, ValueError):
             pass
     cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
-    write_npz(cache, {"G": cp.G, "X": cp.X, "block": cp.block, "period": cp.period, "wavelength": cp.wavelength,
-                      "z": cp.z, "n_clamped": cp.n_clamped, "key": np.array(json.dumps(key, sort_keys=True))})
+    save_pupil(cache, cp, key=np.array(json.dumps(key, sort_keys=True)))
     return cp
+
+
+def expected_sizes(recipe: DatasetRecipe) -> tuple[int, int]:
+    """(tensor size, received-crop size) of the dataset a recipe would build (no build): what a model
+    must take and give to be trained or evaluated on it."""
+    return recipe.tensor_size, received_crop(load_scenario(recipe.turbulence))[1]
+
+
+def load_device(dataset: str | Path) -> Device:
+    """The device a dataset was made with (:class:`~metadesign.sensing.device.Device`): its coarse pupil
+    (``device-pupil.npz``, written by ``dataset build``), sensor and received-field crop; the dataset's
+    turbulence scenario must be at the device's wavelength."""
+    info = open_dataset(dataset)
+    path = Path(dataset) / "device-pupil.npz"
+    if not path.is_file():
+        if info.attrs.get("propagation") == "slm":
+            raise ValidationError(f"{dataset}: imported captures carry no device model (the forward model of "
+                                  "compare / retrieve / synth-captures needs a synthetic dataset)")
+        raise ValidationError(f"{path}: missing (the device's coarse pupil, written by `metadesign dataset build`)")
+    cp = load_pupil(path)
+    dev = Device(cp, info.sensor(), info.receiver_crop())
+    dev.check_wavelength(info.scenario().wavelength, f"{dataset}: turbulence scenario")
+    return dev
 
 
 def _recipe_hash(parts: dict) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray):
+def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray,
+                  rytov_fill: float = float("nan")):
+    """The store's arrays and attributes.  ``rytov_fill``: imported captures store an unknown Rytov number as
+    NaN, so their fill value is another (-1) and NaN chunks are written."""
     import zarr
+    from zarr.codecs import Crc32cCodec, ZstdCodec
 
     g = zarr.open_group(str(out), mode="w")
+    # every sample's chunk carries a CRC-32C (zarr checks it on each read: a flipped bit is an error, not a
+    # wrong number; zstd itself has no checksum here), as every shard index does
+    checked = [ZstdCodec(level=0, checksum=False), Crc32cCodec()]
     # fill values no sample can hold: zarr does not store chunks equal to the fill value
     g.create_array("psf", shape=(n, 8, s, s), chunks=(1, 8, s, s), shards=(shard, 8, s, s), dtype="float32",
-                   fill_value=float("nan"), dimension_names=("sample", "channel", "row", "col"))
+                   fill_value=float("nan"), dimension_names=("sample", "channel", "row", "col"), compressors=checked)
     g.create_array("received", shape=(n, a, a), chunks=(1, a, a), shards=(shard, a, a), dtype="complex64",
-                   fill_value=0j, dimension_names=("sample", "y", "x"))
-    for k, dt, fv in (("psf_power", "float32", float("nan")), ("rytov", "float32", float("nan")),
-                      ("rytov_measured", "float32", float("nan")), ("seed", "int64", -1)):
+                   fill_value=0j, dimension_names=("sample", "y", "x"), compressors=checked)
+    for k, dt, fv in (("psf_power", "float32", float("nan")), ("rytov", "float32", rytov_fill),
+                      ("rytov_measured", "float32", rytov_fill), ("seed", "int64", -1)):
         g.create_array(k, shape=(n,), chunks=(shard,), dtype=dt, fill_value=fv, dimension_names=("sample",))
     sp = g.create_array("split", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=255,
                         dimension_names=("sample",))
@@ -337,8 +384,6 @@ class _LocalPool:
     """Spawned single-threaded worker processes (one BLAS/FFT/torch thread each), or in-process for 1."""
 
     def __init__(self, workers: int, ctx: ShardContext):
-        from ..parallel import spawn_pool
-
         self.ctx = ctx
         self.pool = spawn_pool(workers, _init_worker, (ctx,)) if workers > 1 else None
 
@@ -358,7 +403,6 @@ _WORKER_CTX: ShardContext | None = None
 
 def _init_worker(ctx: ShardContext) -> None:
     global _WORKER_CTX
-    from ..parallel import single_thread_env
 
     single_thread_env()
     _WORKER_CTX = ctx
@@ -369,8 +413,6 @@ def _worker_shard(i: int) -> dict:
 
 
 def _dask_shard(ctx: ShardContext, i: int) -> dict:
-    from ..parallel import keep_freed_memory, single_thread_env
-
     single_thread_env()
     keep_freed_memory()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubles a sample's cost otherwise
     return ctx.make(i)
@@ -383,18 +425,44 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
 
     ``scheduler``: address of a running Dask scheduler (or ``client``, a ``dask.distributed.Client``);
     default: a local pool of ``workers`` spawned processes."""
-    from ..sensing.model import AsFabricated, load_sensing_recipe
-    from ..sensing.transmission import Perturbation
-    from ..turbulence.path import check_sampling, solve_path
-    from ..turbulence.validate import load_scenario
-
     out = Path(out or recipe.default_output())
     if out.exists() and not out.is_dir():
         raise ValidationError(f"-o/--output {out}: exists and is not a folder")
+    check_not_input(out, {"dataset.layout": recipe.layout, "dataset.sensor": recipe.sensor,
+                          "dataset.turbulence": recipe.turbulence, "the recipe": recipe.source})
+    with output_lock(out, "dataset"):
+        own = None
+        if scheduler is not None and client is None:  # an unreachable scheduler fails before anything is written
+            client = own = dask_client(scheduler)
+        try:
+            return _build_dataset(recipe, out, workers, client is not None, overwrite, progress, log, client)
+        finally:
+            if own is not None:
+                own.close()
+
+
+def _is_partial_dataset(out: Path) -> bool:
+    """A folder holding only what an interrupted ``dataset build`` leaves before its store exists."""
+    return all(p.name.startswith(("device-pupil", ".device-pupil", ".shards")) for p in out.iterdir())
+
+
+def _check_disk(out: Path, n: int, s: int, a: int) -> int:
+    """Refuse a dataset whose arrays (uncompressed: an upper bound) exceed the free disk; returns the bytes."""
+    need = n * (8 * s * s * 4 + a * a * 8 + 64)
+    free = shutil.disk_usage(out.parent if not out.exists() else out).free
+    if need > free:
+        raise ValidationError(f"dataset.samples: {n} samples of 8 x {s}^2 need up to {need / 1e9:.1f} GB on disk "
+                              f"(uncompressed), {free / 1e9:.1f} GB are free at {out.parent}: use fewer samples, a "
+                              "smaller tensor_size or another output")
+    return need
+
+
+def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, overwrite: bool, progress, log,
+                   client) -> dict:
     existing = _read_attrs(out) if (out / "zarr.json").exists() else None
-    if out.exists() and existing is None and any(not (p.name.startswith(".") or p.name.startswith("device-pupil"))
-                                                 for p in out.iterdir()):
-        raise ValidationError(f"{out}: exists and is not a metadesign dataset (refusing to write into it)")
+    if out.exists() and existing is None and not _is_partial_dataset(out):
+        raise ValidationError(f"{out}: exists and is not a metadesign dataset (it holds files metadesign did not "
+                              "write; refusing to write into it)")
     sensing = load_sensing_recipe(recipe.sensor)
     sensing = replace(sensing, sensor=replace(sensing.sensor, tensor_size=recipe.tensor_size))
     scenario = load_scenario(recipe.turbulence)
@@ -404,15 +472,11 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
         if not rep.ok:
             raise ValidationError(f"dataset: Rytov {r:g}: infeasible turbulence sampling: {rep.failures[0]}")
     f = recipe.fabrication
-    # lengths load in metres (config units): the height fields too
-    pert = Perturbation(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"],
-                        f["height_nm"], f["sidewall_deg"], f["height_gradient_nm"], f["sidewall_gradient_deg"])
+    pert = Perturbation.from_config(f)
     layout = ensure_layout(recipe, log)
     layout_sha = _sha256(layout)
     fab = AsFabricated.from_files(layout)
     if pert.has_fab_axes:
-        from ..library.store import load_library
-
         if not f["fab_library"]:
             raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
                                   "library with fab axes")
@@ -437,8 +501,10 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     n, shard = recipe.samples, recipe.shard_size
     n_shards = (n + shard - 1) // shard
     t_start = time.perf_counter()
-    out.mkdir(exist_ok=True)
     c0, a = received_crop(scenario)
+    if existing is None:
+        _check_disk(out, n, recipe.tensor_size, a)
+    out.mkdir(exist_ok=True)
     if existing is None:
         attrs = {
             "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
@@ -467,7 +533,7 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     if progress:
         progress(samples_done, n)
     t_sweep = time.perf_counter()
-    results = _run(ctx, pending, workers, scheduler, client)
+    results = _run(ctx, pending, workers, None, client)
     for r in results:
         for k, v in r["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
@@ -485,7 +551,7 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     return {"output": str(out), "samples": n, "shards": n_shards, "resumed_shards": len(done),
             "computed_samples": computed, "seconds": time.perf_counter() - t_start, "sweep_seconds": sweep,
             "per_sample_seconds": {k: v / max(computed, 1) for k, v in timings.items()},
-            "workers": workers if scheduler is None and client is None else "dask", **info.summary()}
+            "workers": "dask" if dask else workers, **info.summary()}
 
 
 def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | None, client):
@@ -493,8 +559,6 @@ def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | N
         return
     if scheduler is not None or client is not None:
         from dask.distributed import as_completed
-
-        from ..parallel import dask_client
 
         own = client is None
         if own:
@@ -543,6 +607,41 @@ class DatasetInfo:
     seed: np.ndarray
     bytes_on_disk: int
 
+    def attr(self, key: str):
+        """A store attribute the reader needs; a store without it is damaged (one line)."""
+        if key not in self.attrs:
+            raise ValidationError(f"{self.path}: damaged dataset: the store lacks its {key!r} attribute")
+        return self.attrs[key]
+
+    def scenario(self):
+        """The turbulence scenario the dataset was made with (from its provenance)."""
+        prov = self.attr("provenance")
+        if "scenario" not in prov:
+            raise ValidationError(f"{self.path}: damaged dataset: its provenance lacks the turbulence scenario")
+        return scenario_from_dict(prov["scenario"], f"{self.path} (provenance)")
+
+    def sensor(self) -> SensorSpec:
+        """The sensor the dataset's tensors were rendered on (tensor size: the dataset's)."""
+        s = self.attr("provenance").get("sensor")
+        try:
+            return SensorSpec(int(s["width_px"]), int(s["height_px"]), float(s["pixel_um"]) * 1e-6,
+                              float(s["magnification"]), float(s["distance_mm"]) * 1e-3, int(self.tensor_size))
+        except (TypeError, KeyError, ValueError) as exc:
+            raise ValidationError(f"{self.path}: damaged dataset: its provenance has no valid sensor ({exc})") \
+                from None
+
+    def crop(self) -> tuple[int, int]:
+        """(start, size) of the received-field crop on the turbulence grid."""
+        c = self.attr("received_crop")
+        try:
+            return int(c["start"]), int(c["size"])
+        except (TypeError, KeyError, ValueError):
+            raise ValidationError(f"{self.path}: damaged dataset: bad received_crop attribute {c!r}") from None
+
+    def receiver_crop(self) -> ReceiverCrop:
+        c0, a = self.crop()
+        return ReceiverCrop.of_scenario(self.scenario(), c0, a)
+
     def indices(self, split: str) -> np.ndarray:
         lab = {"train": 0, "val": 1, "test": 2}
         if split == "all":
@@ -551,10 +650,15 @@ class DatasetInfo:
 
     def summary(self) -> dict:
         counts = {k: int(np.sum(self.split == v)) for k, v in (("train", 0), ("val", 1), ("test", 2))}
+        def span(x):  # NaN: unknown (captures imported without a Rytov number)
+            ok = x[np.isfinite(x)]
+            return [float(ok.min()), float(ok.max())] if ok.size else None
+
+        known = self.rytov_measured[np.isfinite(self.rytov_measured)]
         return {"path": str(self.path), "samples": self.n, "tensor": [8, self.tensor_size, self.tensor_size],
-                "split_counts": counts, "rytov_nominal": [float(self.rytov.min()), float(self.rytov.max())],
-                "rytov_measured": [float(self.rytov_measured.min()), float(self.rytov_measured.max())],
-                "rytov_measured_mean": float(self.rytov_measured.mean()),
+                "split_counts": counts, "rytov_nominal": span(self.rytov), "rytov_measured": span(self.rytov_measured),
+                "rytov_measured_mean": float(known.mean()) if known.size else None,
+                "rytov_unknown": int(self.n - known.size),
                 "bytes_on_disk": self.bytes_on_disk, "bytes_per_sample": self.bytes_on_disk / max(self.n, 1),
                 "root_seed": self.attrs.get("root_seed"), "version": self.attrs.get("version"),
                 "layout_sha256": self.attrs.get("provenance", {}).get("layout_sha256"),
@@ -576,6 +680,9 @@ def open_dataset(path: str | Path) -> DatasetInfo:
     if not attrs.get("complete"):
         raise ValidationError(f"{path}: incomplete dataset (the build was interrupted): rerun the same "
                               "`metadesign dataset build` to finish it")
+    for key in ("samples", "tensor_size", "shard_size", "provenance", "received_crop"):
+        if key not in attrs:
+            raise ValidationError(f"{path}: damaged dataset: the store lacks its {key!r} attribute")
     n = int(attrs["samples"])
     try:
         g = zarr.open_group(str(path), mode="r")
@@ -597,3 +704,66 @@ def open_dataset(path: str | Path) -> DatasetInfo:
     size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
     return DatasetInfo(path, attrs, n, int(attrs["tensor_size"]), small["split"], small["rytov"],
                        small["rytov_measured"], small["seed"], size)
+
+
+#: |sum of a sample's 8 normalised channels - 8| above which a PSF tensor is damaged (float32 sums: ~1e-5)
+PSF_SUM_TOL = 1e-3
+
+
+def damaged(path: str | Path, i: int, shard_size: int, exc: BaseException | str) -> ValidationError:
+    """The one-line error of an unreadable or corrupt sample: names the sample, its shard and the remedy."""
+    why = exc if isinstance(exc, str) else f"{exc.__class__.__name__}: {str(exc).strip().splitlines()[0][:80]}" \
+        if str(exc).strip() else exc.__class__.__name__
+    return ValidationError(f"{path}: damaged dataset: sample {i} (shard {i // max(int(shard_size), 1)}) is unreadable "
+                           f"or corrupt ({why}); `metadesign dataset verify {path}` lists every damaged shard")
+
+
+def check_psf(psf: np.ndarray) -> str | None:
+    """Why a stored (noise-free, normalised) PSF tensor is corrupt, or None: every value finite, the 8
+    channels summing to 8 (the normalisation every writer applies; imported, dark-subtracted captures may
+    hold small negative values)."""
+    if not np.isfinite(psf).all():
+        return "non-finite PSF values"
+    s = float(psf.sum(dtype=np.float64))
+    if abs(s - 8.0) > PSF_SUM_TOL * 8 and s != 0.0:  # 0: a sample without light is stored unnormalised
+        return f"PSF channels sum to {s:.6g}, not 8"
+    return None
+
+
+def verify_dataset(path: str | Path, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Read every sample of every array of a dataset and check it (decodes, checksums of the shard
+    indexes, finite values, the PSF normalisation); returns the damaged shards, never raises on damage."""
+    import zarr
+
+    info = open_dataset(path)
+    g = zarr.open_group(str(path), mode="r")
+    shard = int(info.attrs["shard_size"])
+    names = [k for k in ("psf", "received", "psf_power", OPERATOR_ARRAY) if k in g]
+    bad: dict[int, str] = {}
+    n = info.n
+    for j0 in range(0, n, shard):
+        j1 = min(n, j0 + shard)
+        k = j0 // shard
+        for name in names:
+            if k in bad:
+                break
+            try:
+                arr = np.asarray(g[name][j0:j1])
+            except Exception as exc:  # zarr/numcodecs raise many kinds on damaged chunks
+                bad[k] = f"{name}: {exc.__class__.__name__}"
+                continue
+            if name == "psf":
+                for r, x in enumerate(arr):
+                    why = check_psf(x)
+                    if why:
+                        bad[k] = f"psf of sample {j0 + r}: {why}"
+                        break
+            elif np.iscomplexobj(arr) or np.issubdtype(arr.dtype, np.floating):
+                if not np.isfinite(arr).all():
+                    bad[k] = f"{name}: non-finite values"
+        if progress:
+            progress(j1, n)
+    return {"path": str(path), "samples": n, "shards": -(-n // shard), "arrays": names,
+            "damaged_shards": [{"shard": k, "samples": [k * shard, min(n, (k + 1) * shard) - 1], "problem": v}
+                               for k, v in sorted(bad.items())], "ok": not bad}
+

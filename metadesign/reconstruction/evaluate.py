@@ -11,6 +11,15 @@ from typing import Callable
 
 import numpy as np
 
+from ..io import atomic_path
+from ..plotting import pyplot, save_figure
+from ..validation import ValidationError
+from .data import PSFDataset
+from .losses import PiB
+from .metrics import EVAL_NOISE_SEED, captured_fraction, gain
+from .model import check_fits, load_model
+from .train import _collate, pick_device
+
 __all__ = ["evaluate_model", "summarise", "residual_rms", "plot_fig3"]
 
 RYTOV_BINS = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 10.0)
@@ -42,11 +51,6 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     """Per-sample results for every noise level (``photons``: shot + read noise instead of Gaussian)."""
     import torch
 
-    from .data import PSFDataset
-    from .losses import PiB
-    from .model import load_model
-    from .train import _collate, pick_device
-
     dev = torch.device(device) if device else pick_device()
     model, card = load_model(model_path, device=str(dev))
     rows: dict = {}
@@ -54,14 +58,8 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     total = 0
     base = PSFDataset(dataset, split, limit=limit, screens=True)
     if len(base) == 0:
-        from ..validation import ValidationError
-
         raise ValidationError(f"{dataset}: the {split} split is empty")
-    if model.config.input_size != base.info.tensor_size:
-        from ..validation import ValidationError
-
-        raise ValidationError(f"model input {model.config.input_size}^2 does not match the dataset's tensors "
-                              f"({base.info.tensor_size}^2)")
+    check_fits(model, base.info, str(model_path))
     c0, a = base.crop()
     pib = PiB(base.scenario(), c0, a, dev)
     ap = pib.ap.cpu().numpy().astype(bool)
@@ -70,7 +68,7 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     for kind, level in levels:
         ds = PSFDataset(dataset, split, gaussian_percent=level if kind == "gaussian" else 0.0,
                         photons_at_peak=level if kind == "photons" else None,
-                        read_noise_e=3.0 if kind == "photons" else 0.0, noise_seed=12345, limit=limit,
+                        read_noise_e=3.0 if kind == "photons" else 0.0, noise_seed=EVAL_NOISE_SEED, limit=limit,
                         screens=True)
         loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
         acc = {k: [] for k in ("index", "rytov", "rytov_measured", "none", "unet", "phase_conjugate",
@@ -106,7 +104,7 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
 def summarise(r: dict) -> dict:
     """Means, medians, gains (per-sample mean, median, ratio of means), captured fraction, by Rytov bin."""
     none, unet, pc = r["none"], r["unet"], r["phase_conjugate"]
-    gain = unet / np.maximum(none, 1e-12)
+    g = gain(none, unet)
 
     def block(m):
         if not np.any(m):
@@ -115,10 +113,9 @@ def summarise(r: dict) -> dict:
                 "npib": {k: float(np.mean(r[k][m])) for k in ("none", "unet", "phase_conjugate", "complex_conjugate")},
                 "npib_median": {k: float(np.median(r[k][m])) for k in ("none", "unet", "phase_conjugate",
                                                                          "complex_conjugate")},
-                "gain": {"mean": float(np.mean(gain[m])), "median": float(np.median(gain[m])),
+                "gain": {"mean": float(np.mean(g[m])), "median": float(np.median(g[m])),
                          "ratio_of_means": float(np.mean(unet[m]) / max(np.mean(none[m]), 1e-12))},
-                "captured_fraction": float((np.mean(unet[m]) - np.mean(none[m]))
-                                           / max(np.mean(pc[m]) - np.mean(none[m]), 1e-12)),
+                "captured_fraction": captured_fraction(none[m], unet[m], pc[m]),
                 "residual_rms_rad": float(np.mean(r["residual_rms"][m])),
                 "residual_tiptilt_rms_rad": float(np.mean(r["residual_tiptilt_rms"][m]))}
 
@@ -129,12 +126,12 @@ def summarise(r: dict) -> dict:
         b = block((x >= lo) & (x < hi))
         if b:
             out["by_rytov"][f"{lo:g}-{hi:g}"] = b
+    if not np.isfinite(x).all():  # captures imported without a Rytov number
+        out["by_rytov"]["unknown"] = block(~np.isfinite(x))
     return out
 
 
 def write_results(res: dict, out: Path) -> list[Path]:
-    from ..io import atomic_path
-
     files = []
     for key, r in res["rows"].items():
         p = out / f"per-sample-{key.replace(':', '-')}.csv"
@@ -152,8 +149,6 @@ def write_results(res: dict, out: Path) -> list[Path]:
 def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
     """Fig. 3b (NPiB vs per-sample Rytov number) at the first noise level, Fig. 3c/d (box plots vs
     noise level), and predicted vs true phase for a few samples."""
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     figs = []
     keys = list(res["rows"])

@@ -17,7 +17,16 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PiB", "phase_loss", "mse_loss", "split_step_batched", "unwrap_ls"]
+from ..turbulence.propagate import Turbulence
+
+__all__ = ["PiB", "phase_loss", "mse_loss", "split_step_batched", "unwrap_ls", "LOSSES"]
+
+#: the training losses, by the name recipes use (``train.loss``, ``train.pretrain_loss``): one registry
+LOSSES = {
+    "pib": "end to end: -log NPiB of the corrected beam through the sample's own turbulence (PiB)",
+    "phase": "piston-free MSE against the received phase, on the aperture (phase_loss)",
+    "mse": "MSE against the least-squares unwrapped received phase (mse_loss; Table S2's baseline)",
+}
 
 # The end-to-end loss is a quadratic form.  Back-propagation through a sample's fixed screens is linear
 # in the aperture correction u, so the power in the bucket is ||A u||^2 with A the bucket pixels' rows of
@@ -44,8 +53,6 @@ class PiB:
 
     def __init__(self, scenario, crop_start: int, crop_size: int, device="cpu", double: bool = False):
         import torch
-
-        from ..turbulence.propagate import Turbulence
 
         tb = Turbulence(scenario, check=False)
         self.tb = tb

@@ -17,9 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import atomic_path, atomic_write_text
 from ..validation import ValidationError, check_int
 
-__all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask"]
+__all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
+           "check_sizes"]
 
 MODEL_FORMAT = "metadesign.unet/1"
 
@@ -117,8 +119,6 @@ def save_model(model, path: str | Path, card: dict) -> tuple[Path, Path]:
     """Weights as ``PATH`` (safetensors) and the card as ``PATH.json`` (both written atomically)."""
     from safetensors.torch import save_file
 
-    from ..io import atomic_path, atomic_write_text
-
     path = Path(path)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     with atomic_path(path) as tmp:
@@ -144,10 +144,14 @@ def load_model(path: str | Path, device: str = "cpu"):
         raise ValidationError(f"{path}: no such model (expected the weights and {card_path.name} beside them)")
     try:
         card = json.loads(card_path.read_text())
+        if not isinstance(card, dict):
+            raise ValueError(f"a JSON {type(card).__name__}, not an object")
         if card.get("format") != MODEL_FORMAT:
             raise ValueError(f"format {card.get('format')!r}")
+        if not isinstance(card.get("architecture"), dict):
+            raise ValueError("no architecture object")
         cfg = UNetConfig(**card["architecture"])
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
         raise ValidationError(f"{card_path}: not a metadesign model card ({exc})") from None
     if hashlib.sha256(path.read_bytes()).hexdigest() != card.get("weights_sha256"):
         raise ValidationError(f"{path}: weights do not match the card's sha256 (truncated or replaced)")
@@ -155,9 +159,34 @@ def load_model(path: str | Path, device: str = "cpu"):
         state = load_file(str(path), device=device)
     except (SafetensorError, OSError, ValueError) as exc:
         raise ValidationError(f"{path}: unreadable safetensors ({exc})") from None
-    model = build_unet(cfg)
-    missing, unexpected = model.load_state_dict(state, strict=False)
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(v.isfinite().all())]
+    if bad:
+        raise ValidationError(f"{path}: non-finite weights (NaN or infinity in {len(bad)} tensor(s), e.g. {bad[0]}): "
+                              "a diverged or damaged model")
+    try:
+        model = build_unet(cfg)
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except (RuntimeError, ValueError) as exc:
+        raise ValidationError(f"{path}: weights do not fit the card's architecture "
+                              f"({str(exc).strip().splitlines()[-1].strip()[:160]})") from None
     if missing or unexpected:
         raise ValidationError(f"{path}: weights do not fit the card's architecture (missing {missing[:3]}, "
                               f"unexpected {unexpected[:3]})")
     return model.to(device).eval(), card
+
+
+def check_fits(model, info, what: str = "model") -> None:
+    """Refuse a model whose input is not the dataset's tensor or whose output is not its received crop
+    (``info``: a :class:`~metadesign.reconstruction.dataset.DatasetInfo`), in one line."""
+    check_sizes(model.config, info.tensor_size, info.crop()[1], what)
+
+
+def check_sizes(c: "UNetConfig", tensor_size: int, a: int, what: str = "model") -> None:
+    """Refuse an architecture whose input is not ``tensor_size``^2 or whose output is not the ``a``^2 crop."""
+    if c.input_size != tensor_size:
+        raise ValidationError(f"{what}: model input {c.input_size}^2 does not match the dataset's tensors "
+                              f"({tensor_size}^2)")
+    if c.aperture_size != a:
+        raise ValidationError(f"{what}: model output {c.aperture_size}^2 does not match the dataset's received "
+                              f"crop ({a}^2: another turbulence grid or receiver aperture)")
+

@@ -25,28 +25,20 @@ from typing import Callable
 
 import numpy as np
 
-from ..io import atomic_write_text
+from ..io import atomic_write_text, output_lock
 from ..validation import ValidationError, check_memory
+from .data import PSFDataset
+from .dataset import OPERATOR_ARRAY as ARRAY
+from .dataset import _run, has_operators, open_dataset, operator_info
+from .losses import PiB
 
-__all__ = ["OperatorContext", "build_operators", "operator_info"]
+__all__ = ["OperatorContext", "build_operators", "operator_info", "has_operators"]
 
-ARRAY = "pib_operator"
 SPLITS = ("train", "val", "test")
 
 
 def _marker(out: Path, shard: int) -> Path:
     return Path(out) / ".operators" / f"{shard:06d}"
-
-
-def operator_info(attrs: dict) -> dict | None:
-    """The store's ``pib_operator`` attribute block, or None."""
-    return attrs.get(ARRAY)
-
-
-def has_operators(attrs: dict, split: str) -> bool:
-    """Whether every sample of ``split`` has a stored operator (a finished ``dataset operators`` run)."""
-    info = operator_info(attrs)
-    return bool(info and info.get("complete") and split in info.get("splits", ()))
 
 
 @dataclass
@@ -63,9 +55,6 @@ class OperatorContext:
     def dataset_and_pib(self):
         """The dataset (screens regenerated from its seeds) and the loss geometry, built once per worker."""
         if self._ds is None:
-            from .data import PSFDataset
-            from .losses import PiB
-
             ds = PSFDataset(self.out, "all")
             self._ds = (ds, PiB(ds.scenario(), *ds.crop()))
         return self._ds
@@ -103,9 +92,13 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
                     overwrite: bool = False, progress: Callable[[int, int], None] | None = None,
                     log: Callable[[str], None] = lambda s: None, client=None) -> dict:
     """Compute (or resume) the stored bucket operators of ``splits`` of the dataset at ``path``."""
-    import zarr
+    open_dataset(path)  # a missing or damaged dataset: one line, before the lock
+    with output_lock(path, "dataset"):
+        return _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client)
 
-    from .dataset import _run, open_dataset
+
+def _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client) -> dict:
+    import zarr
 
     splits = tuple(dict.fromkeys(splits))
     bad = [s for s in splits if s not in SPLITS]

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..plotting import pyplot, save_figure
+from .data import PSFDataset
 from .dataset import DatasetInfo
 
 __all__ = ["plot_dataset"]
@@ -15,17 +16,15 @@ _NAMES = [f"{p}-pol Q{q}" for p in "xy" for q in ("I", "II", "III", "IV")]
 
 
 def plot_dataset(info: DatasetInfo, out: str | Path, n_samples: int = 3) -> Path:
-    import zarr
-
     plt = pyplot()
-    g = zarr.open_group(str(info.path), mode="r")
+    ds = PSFDataset(info.path, "all")  # its reads check each sample (a damaged one is one line)
     test = info.indices("test")
     pick = (test if len(test) else np.arange(info.n))[:n_samples]
     fig = plt.figure(figsize=(17, 3.1 * len(pick) + 3.2), constrained_layout=True)
     gs = fig.add_gridspec(len(pick) + 1, 10)
     for row, i in enumerate(pick):
-        psf = np.asarray(g["psf"][i])
-        rec = np.asarray(g["received"][i])
+        s = ds.get(int(i))
+        psf, rec = s["psf"], s["received"]
         for c in range(8):
             ax = fig.add_subplot(gs[row, c])
             ax.imshow(np.clip(psf[c], 0, None) ** 0.5, cmap="inferno", origin="upper")  # captures: < 0 after darks
@@ -48,7 +47,8 @@ def plot_dataset(info: DatasetInfo, out: str | Path, n_samples: int = 3) -> Path
         ax.set_yticks([])
         fig.colorbar(h, ax=ax, shrink=0.7)
     ax = fig.add_subplot(gs[-1, :5])
-    bins = np.linspace(0, max(float(info.rytov.max()), float(info.rytov_measured.max())) * 1.05, 30)
+    top = np.nanmax(np.r_[info.rytov, info.rytov_measured, 0.0])  # NaN: unknown (imported captures)
+    bins = np.linspace(0, max(float(top), 1e-3) * 1.05, 30)
     ax.hist(info.rytov, bins=bins, alpha=0.6, label="nominal (path model)")
     ax.hist(info.rytov_measured, bins=bins, alpha=0.6, label="measured (log-amplitude variance)")
     ax.set(xlabel="Rytov number", ylabel="samples", title=f"{info.n} samples")

@@ -11,6 +11,7 @@ restarted with ``--resume`` reproduces the loss curve of an uninterrupted run on
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -24,11 +25,17 @@ from typing import Callable
 import numpy as np
 
 from ..config import ConfigError, Param, Section, load_toml, parse
+from ..io import atomic_path, atomic_write_text, check_not_input, output_lock
+from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
+from .data import PSFDataset
+from .losses import LOSSES, PiB, mse_loss, phase_loss
+from .metrics import captured_fraction, npib_rows
+from .model import UNetConfig, build_unet, load_model, save_model
+from .operators import has_operators
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
 
-LOSSES = ("pib", "phase", "mse")
 
 SECTIONS = (
     Section("data", (
@@ -138,8 +145,6 @@ def _dist():
 def _save_checkpoint(path: Path, state: dict) -> None:
     import torch
 
-    from ..io import atomic_path
-
     buf = io.BytesIO()
     torch.save(state, buf)
     with atomic_path(path) as tmp:
@@ -162,11 +167,10 @@ def evaluate_split(model, ds, pib, device, batch: int = 16, progress=None) -> di
     with torch.no_grad():
         for b in loader:
             scr = b["screens"].to(device)
-            phi = model(b["psf"].to(device))
-            rec = b["received"].to(device)
-            out["unet"].append(pib.npib_phase(phi, scr).cpu())
-            out["none"].append(pib.npib_phase(torch.zeros_like(phi), scr).cpu())
-            out["phase_conjugate"].append(pib.npib_phase(torch.angle(rec) * pib.ap, scr).cpu())
+            r = npib_rows(pib, model(b["psf"].to(device)), scr, b["received"].to(device))
+            out["unet"].append(r["estimate"].cpu())
+            out["none"].append(r["none"].cpu())
+            out["phase_conjugate"].append(r["phase_conjugate"].cpu())
             out["index"].append(b["index"])
             if progress:
                 progress(sum(len(x) for x in out["index"]), len(ds))
@@ -176,12 +180,19 @@ def evaluate_split(model, ds, pib, device, batch: int = 16, progress=None) -> di
 def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: bool = False,
           init: Path | None = None, log: Callable[[str], None] = print, progress: bool = True,
           max_steps: int | None = None) -> dict:
-    """Train ``recipe`` into the run folder ``run``; returns the final report (rank 0)."""
-    import torch
+    """Train ``recipe`` into the run folder ``run``; returns the final report (rank 0).  Rank 0 holds the
+    run folder's lock while it trains: a second run into the same folder is refused."""
+    run = Path(run)
+    rank = int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
+    if dataset is not None or recipe.dataset:
+        check_not_input(run, {"the dataset": dataset or recipe.dataset, "--init": init})
+    with output_lock(run, "training run") if rank == 0 else contextlib.nullcontext():
+        return _train(recipe, run, dataset, resume, init, log, progress, max_steps)
 
-    from .data import PSFDataset
-    from .losses import PiB, mse_loss, phase_loss
-    from .model import UNetConfig, build_unet, load_model, save_model
+
+def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, init: Path | None,
+           log: Callable[[str], None], progress: bool, max_steps: int | None) -> dict:
+    import torch
 
     rank, world, local = _dist()
     device = pick_device(local)
@@ -196,7 +207,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     ckpt = run / "checkpoint.pt"
     if run.exists() and (run / "checkpoint.pt").exists() and not resume:
         raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
-    if resume and not ckpt.exists():
+    if resume and not ckpt.is_file():
         raise ValidationError(f"{run}: no checkpoint.pt to resume from")
     # How the end-to-end loss meets a sample's screens (train.pib_operator):
     # * "stored": the bucket operators A stored in the dataset (`metadesign dataset operators`): the loader
@@ -206,7 +217,6 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     # * "auto" (default): "stored" when the dataset's training split has operators, else "split_step".
     # All three give the same loss (tests); they differ in cost only.
     # The loader's screens / operators flags are set per epoch below.
-    from .operators import has_operators
 
     tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
                     limit=recipe.train_limit or None)
@@ -223,6 +233,9 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         quadratic and len(ops) >= len(tr))
     va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
+    if len(va) == 0:
+        raise ValidationError(f"{dataset}: the validation split is empty (training keeps the model with the best "
+                              "validation NPiB): give the dataset a validation fraction or more samples")
     if len(tr) < recipe.batch:
         raise ValidationError(f"{dataset}: {len(tr)} training samples, fewer than one batch ({recipe.batch})")
     c0, a = tr.crop()
@@ -248,15 +261,19 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     best = -math.inf
     start = 0
     if resume:
-        st = torch.load(ckpt, map_location=device, weights_only=True)
-        model.load_state_dict(st["model"])
-        opt.load_state_dict(st["optimizer"])
-        sched.load_state_dict(st["scheduler"])
+        st = _load_checkpoint(ckpt, device)
+        try:
+            model.load_state_dict(st["model"])
+            opt.load_state_dict(st["optimizer"])
+            sched.load_state_dict(st["scheduler"])
+            torch.set_rng_state(st["rng"]["torch"])
+            history = json.loads(st["history"])
+            best = float(st["best"])
+            start = int(st["epoch"]) + 1
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise ValidationError(f"{ckpt}: does not fit this recipe's model and optimiser (another architecture? "
+                                  f"{str(exc).strip().splitlines()[-1].strip()[:120]})") from None
         sched.step_size = recipe.lr_halve_every  # the recipe's schedule wins over the checkpoint's
-        torch.set_rng_state(st["rng"]["torch"])
-        history = json.loads(st["history"])
-        best = float(st["best"])
-        start = int(st["epoch"]) + 1
         log(f"resumed {run} at epoch {start}")
     ddp_model = model
     if world > 1:
@@ -312,10 +329,14 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
                 loss = phase_loss(phi, rec, pib.ap)
             else:
                 loss = mse_loss(phi, rec, pib.ap)
+            lv = float(loss.detach())
+            if not math.isfinite(lv):
+                raise ValidationError(f"train: the {loss_name} loss is {lv} at epoch {epoch + 1}, step {nb + 1} (the "
+                                      "run diverged): lower train.lr, or --resume from the last checkpoint")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            tot += float(loss.detach())
+            tot += lv
             nb += 1
             steps += 1
             if bar is not None:
@@ -334,11 +355,14 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
         if rank == 0:
             va.set_epoch(0)  # the same validation noise every epoch: comparable numbers
             ev = evaluate_split(model, va, pib, device)
-            gain = (ev["unet"] - ev["none"]).mean() / max((ev["phase_conjugate"] - ev["none"]).mean(), 1e-12)
+            gain = captured_fraction(ev["none"], ev["unet"], ev["phase_conjugate"])
             rec_row |= {"val_npib": float(ev["unet"].mean()), "val_npib_none": float(ev["none"].mean()),
                         "val_npib_phase_conjugate": float(ev["phase_conjugate"].mean()),
                         "val_captured_fraction": float(gain), "val_loss": float(-np.log(np.maximum(ev["unet"], 1e-12)).mean()),
                         "epoch_seconds": time.perf_counter() - t0}
+            if not math.isfinite(rec_row["val_npib"]):
+                raise ValidationError(f"train: validation NPiB is {rec_row['val_npib']} at epoch {epoch + 1} (non-finite "
+                                      "model output): lower train.lr, or --resume from the last checkpoint")
             history.append(rec_row)
             is_best = rec_row["val_npib"] > best
             if is_best:
@@ -375,9 +399,25 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     return report
 
 
-def _write_metrics(run: Path, history: list[dict]) -> None:
-    from ..io import atomic_path, atomic_write_text
+def _load_checkpoint(ckpt: Path, device) -> dict:
+    """A checkpoint written by :func:`_save_checkpoint` (``weights_only``: nothing is unpickled); a truncated,
+    foreign or empty file is one line."""
+    import pickle
+    import zipfile
 
+    import torch
+
+    try:
+        st = torch.load(ckpt, map_location=device, weights_only=True)
+    except (OSError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
+        why = (str(exc).strip().splitlines() or [exc.__class__.__name__])[0][:100]
+        raise ValidationError(f"{ckpt}: not a readable checkpoint (truncated or foreign: {why})") from None
+    if not isinstance(st, dict) or not {"model", "optimizer", "scheduler", "rng", "history", "best", "epoch"} <= set(st):
+        raise ValidationError(f"{ckpt}: not a metadesign training checkpoint")
+    return st
+
+
+def _write_metrics(run: Path, history: list[dict]) -> None:
     atomic_write_text(run / "metrics.json", json.dumps(history, indent=1, default=float))
     cols = sorted({k for h in history for k in h})
     with atomic_path(run / "metrics.csv") as tmp:
@@ -392,8 +432,6 @@ def _write_metrics(run: Path, history: list[dict]) -> None:
 
 
 def _plot_curves(run: Path, history: list[dict]) -> None:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     ep = [h["epoch"] for h in history]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)

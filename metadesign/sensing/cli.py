@@ -45,7 +45,7 @@ def _cmd_psf(a: argparse.Namespace) -> int:
     sr = _sensing_recipe(a)
     if len(a.bias_nm) > 2:
         raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
-    pert = Perturbation(a.bias_nm[0] * 1e-9, a.bias_nm[-1] * 1e-9, a.jitter_nm * 1e-9, a.corner_nm * 1e-9, a.seed)
+    pert = Perturbation.from_nm(a.bias_nm[0], a.bias_nm[-1], a.jitter_nm, a.corner_nm, a.seed)
     if a.full_resolution is not None:
         qmax = min(sr.sensor.width_px, sr.sensor.height_px) // 2
         if not 1 <= a.full_resolution <= qmax:
@@ -129,7 +129,7 @@ def _cmd_phasemap(a: argparse.Namespace) -> int:
 
     if len(a.bias_nm) > 2:
         raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
-    pert = Perturbation(a.bias_nm[0] * 1e-9, a.bias_nm[-1] * 1e-9, a.jitter_nm * 1e-9, a.corner_nm * 1e-9, a.seed)
+    pert = Perturbation.from_nm(a.bias_nm[0], a.bias_nm[-1], a.jitter_nm, a.corner_nm, a.seed)
     out = out_dir(a.output if a.output else Path(a.layout).with_name("phasemap"))
     fab = AsFabricated.from_files(a.layout, a.library)
     maps = phase_maps(fab, pert, tuple(a.window) if a.window else None, a.bin,

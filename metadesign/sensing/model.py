@@ -9,8 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ConfigError, InputError, Param, Section, load_toml, parse
-from ..design.phase import LensChannel
+from ..design.phase import LensChannel, cell_coordinates, polygon_mask
+from ..design.recipe import design_recipe_from_dict
+from ..design.store import design_library, load_design
 from ..layouts.reader import LayoutContents, read_layout
+from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
+from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
@@ -86,8 +90,6 @@ class AsFabricated:
     def from_files(cls, layout_path: str | Path, lib_path: str | Path | None = None) -> "AsFabricated":
         """Read a layout written by ``metadesign layout`` and find its library: ``lib_path`` if given, else
         the path recorded in the layout (relative to it), else any library with the recorded sha256."""
-        from ..library.locate import find_library
-
         layout_path = Path(layout_path)
         lc = read_layout(layout_path)
         prov = lc.provenance
@@ -96,7 +98,6 @@ class AsFabricated:
         else:
             recorded = prov.get("library_path")
             if recorded is None and (layout_path.parent / "design.npz").exists():  # layouts before provenance v2
-                from ..design.store import load_design
 
                 recorded = str(Path(load_design(layout_path.parent / "design.npz").meta["library"]["path"]))
             path = find_library(prov.get("library_sha256"), recorded, layout_path.parent)
@@ -117,10 +118,6 @@ class AsFabricated:
         """The device straight from a design (no layout file): the pillars the layout writer would place
         (widths snapped to 1 nm as it does), with the design's library.  For quick studies and the demo;
         a fab study of a real device reads its layout (:meth:`from_files`)."""
-        from ..design.store import design_library
-        from ..layouts.reader import LayoutContents
-        from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
-
         lib = design_library(design, lib_path)
         im = design.index_map.astype(np.int32)
         if design.empty is not None:
@@ -137,7 +134,6 @@ class AsFabricated:
         ap = self.aperture or {}
         if ap.get("kind") not in ("circle", "polygon"):
             return None
-        from ..design.phase import cell_coordinates, polygon_mask
 
         x = cell_coordinates(self.n_cells, self.period)
         y = x[r0:r1]
@@ -183,14 +179,38 @@ def channels_from_provenance(prov: dict):
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"layout provenance: unreadable channel table ({exc})") from None
         return chans, int(prov.get("supercell", 2))
-    from ..design.recipe import design_recipe_from_dict
 
     try:
         r = design_recipe_from_dict(prov.get("recipe") or {})
-    except (InputError, KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:  # ValidationError is a ValueError
         raise InputError(f"layout provenance has neither a channel table nor a readable design recipe ({exc})") \
             from None
     return (r.spec.channels_x, r.spec.channels_y), r.spec.supercell
+
+
+def _best_focus(cp: CoarsePupil, pol: int, xo, yo, target, ch, zs) -> tuple[float, float]:
+    """(peak intensity, its distance): the window's maximum through focus, refined by a parabola."""
+    peaks = np.array([quadrant_fields(cp, pol, xo, yo, target, channels=ch, z=z).max() for z in zs])
+    i = int(np.argmax(peaks))
+    if 0 < i < len(zs) - 1:  # parabolic refinement
+        a, b, c_ = peaks[i - 1], peaks[i], peaks[i + 1]
+        d = 0.5 * (a - c_) / (a - 2 * b + c_)
+        return float(b - 0.25 * (a - c_) * d), float(zs[i] + d * (zs[1] - zs[0]))
+    return float(peaks[i]), float(zs[i])
+
+
+def _perfect_lens_pupil(cp: CoarsePupil, target, f: float, support: np.ndarray, q: int = 4):
+    """The coarse pupil (one channel) of a perfect lens focusing on ``(target, f)`` with unit amplitude on
+    ``support`` (blocks), demodulated and block-averaged (q x q samples per block) as the device's; and
+    its power measure ``sum |G|^2``."""
+    k0 = 2 * np.pi / cp.wavelength
+    n = cp.G.shape[-1]
+    xf = (cp.X[:, None] + (np.arange(q) - (q - 1) / 2) * cp.pitch / q).ravel()
+    xx, yy = xf[None, :], xf[:, None]
+    ph = -k0 * (np.sqrt(f * f + (xx - target[0]) ** 2 + (yy - target[1]) ** 2) - f) + k0 * (xx**2 + yy**2) / (2 * cp.z)
+    g = (np.cos(ph) + 1j * np.sin(ph)).reshape(n, q, n, q).mean(axis=(1, 3)) * support
+    G = g[None, None].astype(np.complex64)
+    return CoarsePupil(G, cp.X, cp.block, cp.period, cp.wavelength, cp.z, 0), float(np.sum(np.abs(G) ** 2))
 
 
 def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_span: float = 0.3e-3,
@@ -224,17 +244,14 @@ def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focu
             win = 6 * 1.22 * cp.wavelength * f_k / (fab.n_cells * fab.period)  # a few Airy radii
             xo = target[0] + np.linspace(-win, win, 41)
             yo = target[1] + np.linspace(-win, win, 41)
-            peaks = np.array([quadrant_fields(cp, p, xo, yo, target, channels=ch, z=z).max() for z in zs])
-            i = int(np.argmax(peaks))
-            if 0 < i < n_focus - 1:  # parabolic refinement
-                a, b, c_ = peaks[i - 1], peaks[i], peaks[i + 1]
-                d = 0.5 * (a - c_) / (a - 2 * b + c_)
-                z_best = float(zs[i] + d * (zs[1] - zs[0]))
-                peak = float(b - 0.25 * (a - c_) * d)
-            else:
-                z_best, peak = float(zs[i]), float(peaks[i])
-            p_channel = float(np.sum(np.abs(cp.G[p, k - 1]) ** 2) * cp.pitch**2)  # propagating power
-            strehl = peak * (cp.wavelength * z_best) ** 2 / (p_channel * aperture)
+            peak, z_best = _best_focus(cp, p, xo, yo, target, ch, zs)
+            # Strehl: the peak over that of a perfect lens (a converging spherical wave to the same point,
+            # the same power on the same aperture), found the same way: 1 for a perfect lens, whatever the
+            # Fresnel number (at low ones the best focus moves toward the lens) and the block sampling.
+            ref, ref_power = _perfect_lens_pupil(cp, target, f_k, np.abs(cp.G[p, k - 1]) > 0)
+            peak_ref, _ = _best_focus(ref, 0, xo, yo, target, [0], zs)
+            power = float(np.sum(np.abs(cp.G[p, k - 1]) ** 2))
+            strehl = peak / (peak_ref * power / ref_power) if peak_ref > 0 and ref_power > 0 else 0.0
             out.append({
                 "pol": "xy"[p], "k": k, "quadrant": ["QI", "QII", "QIII", "QIV"][k - 1],
                 "design_focal_length_mm": f_k * 1e3,

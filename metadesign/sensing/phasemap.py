@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from ..design.phase import cell_coordinates, lens_phase, wrap
+from ..io import json_array, write_npz
+from ..plotting import pyplot, save_figure
+from ..validation import ValidationError
 from .transmission import Perturbation, pillar_transmission
 
 __all__ = ["phase_maps", "save_phase_maps", "plot_phase_maps", "PHASEMAP_FORMAT"]
@@ -49,8 +52,6 @@ def _design_rows(fab, r0: int, r1: int) -> np.ndarray:
 def phase_maps(fab, pert: Perturbation = Perturbation(), window: tuple[int, int, int] | None = None,
                bin_supercells: int | None = None, max_bins: int = 512, tile_rows: int = 512, progress=None) -> dict:
     """The maps (see the module docstring); ``window = (ix0, iy0, cells)`` (default: the central 64 x 64)."""
-    from ..validation import ValidationError
-
     n, m = fab.n_cells, fab.supercell
     if window is None:
         c = min(64, n)
@@ -123,8 +124,6 @@ def save_phase_maps(path: str | Path, maps: dict, meta: dict) -> Path:
     """``.npz`` readable with ``np.load(allow_pickle=False)``: ``window_phase``, ``window_amplitude``,
     ``window_design_phase``, ``window_residual`` (2, cells, cells); ``binned_residual``, ``binned_amplitude``
     (2, 4, nb, nb); ``meta`` (JSON)."""
-    from ..io import json_array, write_npz
-
     w, b = maps["window"], maps["binned"]
     meta = {"format": PHASEMAP_FORMAT, "window": {k: w[k] for k in ("ix0", "iy0", "cells")},
             "supercells_per_bin": b["supercells_per_bin"], "offset_rad": maps["offset_rad"], "stats": maps["stats"],
@@ -137,8 +136,6 @@ def save_phase_maps(path: str | Path, maps: dict, meta: dict) -> Path:
 
 
 def plot_phase_maps(maps: dict, out: str | Path, title: str = "") -> Path:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     w, b = maps["window"], maps["binned"]
     fig, axs = plt.subplots(3, 4, figsize=(15, 11), constrained_layout=True)

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..io import json_array, read_product, write_npz
+from ..io import atomic_path, atomic_write_text, json_array, read_product, write_npz
+from ..library.locate import file_sha256
 from ..validation import ValidationError, check_finite_array
 from .forward import CoarsePupil, full_resolution_frames, sensor_frames
 from .model import AsFabricated, SensingRecipe, channel_metrics
+from .plot import plot_fab_study
 from .sensor import NoiseSpec, add_noise, psf_tensor, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
@@ -63,8 +65,6 @@ def save_psf(path: str | Path, res: PSFResult, fab: AsFabricated, sensing: Sensi
              extra: dict | None = None) -> Path:
     """Write the PSF product (``.npz``: ``frames``, ``tensor`` and a JSON ``meta`` with format tag,
     provenance, the channel table and the conventions)."""
-    from ..library.locate import file_sha256
-
     prov = fab.layout.provenance
     meta = {
         "format": PSF_FORMAT, "version": __version__,
@@ -136,8 +136,7 @@ def fab_study(fab: AsFabricated, sensing: SensingRecipe, bias_nm, jitter_nm, cor
     cases = list(itertools.product(bias_nm, jitter_nm, corner_nm, height_nm, sidewall_deg, range(seeds)))
     rows = []
     for i, (b, j, c, h, a, s) in enumerate(cases):
-        pert = Perturbation(b * 1e-9, b * 1e-9, j * 1e-9, c * 1e-9, seed + s, h * 1e-9, a,
-                            height_gradient_nm * 1e-9, sidewall_gradient_deg)
+        pert = Perturbation.from_nm(b, b, j, c, seed + s, h, a, height_gradient_nm, sidewall_gradient_deg)
         cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert)
         label = f"bias {b:+g} jit {j:g} cr {c:g}" + (f" h {h:+g} sw {a:g}" if (h or a != 90) else "")
         for r in channel_metrics(cp, sensing.sensor, fab):
@@ -155,9 +154,6 @@ def write_fab_study(rows: list[dict], out: Path) -> list[Path]:
     """CSV, JSON and the figure of a fab study in folder ``out``."""
     import csv
     import json
-
-    from ..io import atomic_path, atomic_write_text
-    from .plot import plot_fab_study
 
     out.mkdir(exist_ok=True)
     fmt = {"design_focal_length_mm": ".4f", "focusing_efficiency": ".6f", "strehl": ".5f", "focal_shift_mm": ".5f",

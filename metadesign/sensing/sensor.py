@@ -22,7 +22,7 @@ import numpy as np
 from ..conventions import centered
 from ..validation import ConfigError, check_int, check_number
 
-__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "area_weights"]
+__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "area_weights", "area_resample"]
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def area_weights(n_in: int, n_out: int) -> np.ndarray:
     return np.clip(np.minimum(hi, j + 1) - np.maximum(lo, j), 0.0, None)
 
 
-def _resample(img: np.ndarray, size: int) -> np.ndarray:
+def area_resample(img: np.ndarray, size: int) -> np.ndarray:
     """Area-weighted resampling of a 2D image of power per pixel to ``size x size`` pixels: each output
     pixel holds the power falling on it (the total is conserved)."""
     ry = area_weights(img.shape[0], size)
@@ -98,7 +98,7 @@ def psf_tensor(frames: np.ndarray, sensor: SensorSpec) -> np.ndarray:
     for p in range(2):
         for k in range(1, 5):
             r, c = quadrant_slices(sensor, k)
-            out[4 * p + k - 1] = _resample(frames[p][r, c], sensor.tensor_size)
+            out[4 * p + k - 1] = area_resample(frames[p][r, c], sensor.tensor_size)
     return out
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..library.store import UnitCellLibrary
-from ..validation import check_int, check_number
+from ..validation import ValidationError, check_int, check_number
 
 __all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission"]
 
@@ -55,13 +55,34 @@ class Perturbation:
         check_number("perturbation.height_gradient", self.height_gradient, -500e-9, 500e-9, unit="m")
         check_number("perturbation.sidewall_gradient_deg", self.sidewall_gradient_deg, -30, 30)
 
+    #: the perturbation kinds, by their one spelling (recipes, CLI options, records: lengths in nm)
+    KINDS = ("bias_x_nm", "bias_y_nm", "jitter_nm", "corner_nm", "seed", "height_nm", "sidewall_deg",
+             "height_gradient_nm", "sidewall_gradient_deg")
+
+    @classmethod
+    def from_nm(cls, bias_x_nm: float = 0.0, bias_y_nm: float | None = None, jitter_nm: float = 0.0,
+                corner_nm: float = 0.0, seed: int = 0, height_nm: float = 0.0, sidewall_deg: float = 90.0,
+                height_gradient_nm: float = 0.0, sidewall_gradient_deg: float = 0.0) -> "Perturbation":
+        """From the recorded units (nm, degrees); ``bias_y_nm`` defaults to ``bias_x_nm`` (isotropic)."""
+        return cls(bias_x_nm * 1e-9, (bias_x_nm if bias_y_nm is None else bias_y_nm) * 1e-9, jitter_nm * 1e-9,
+                   corner_nm * 1e-9, int(seed), height_nm * 1e-9, sidewall_deg, height_gradient_nm * 1e-9,
+                   sidewall_gradient_deg)
+
+    @classmethod
+    def from_config(cls, section: dict) -> "Perturbation":
+        """From a parsed recipe section keyed by :attr:`KINDS` (lengths already in metres: the config layer
+        converts ``*_nm`` keys once at load)."""
+        f = section
+        return cls(f["bias_x_nm"], f["bias_y_nm"], f["jitter_nm"], f["corner_nm"], f["seed"], f["height_nm"],
+                   f["sidewall_deg"], f["height_gradient_nm"], f["sidewall_gradient_deg"])
+
     @property
     def has_fab_axes(self) -> bool:
         return bool(self.height or self.sidewall_deg != 90.0 or self.height_gradient or self.sidewall_gradient_deg)
 
     def to_dict(self) -> dict:
         d = {"bias_x_nm": self.bias_x * 1e9, "bias_y_nm": self.bias_y * 1e9, "jitter_nm": self.jitter * 1e9,
-             "corner_radius_nm": self.corner_radius * 1e9, "seed": self.seed}
+             "corner_nm": self.corner_radius * 1e9, "seed": self.seed}
         if self.has_fab_axes:  # absent when unused: records (and the hashes made of them) are unchanged
             d.update({"height_nm": self.height * 1e9, "sidewall_deg": self.sidewall_deg,
                       "height_gradient_nm": self.height_gradient * 1e9,
@@ -114,8 +135,6 @@ def _interp_fab(lib: UnitCellLibrary, wx, wy, height, angle):
     """``(t (..., 2) complex, clamped (...) bool)``: multilinear in the four axes of ``lib.fab``."""
     fab = lib.fab
     if fab is None:
-        from ..validation import ValidationError
-
         raise ValidationError("height / sidewall perturbations need a library with fab axes (build one with a "
                               "[fab_axes] section: heights_um, sidewall_deg; pass it as --fab-library)")
     vals = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (wx, wy, height, angle)))
@@ -220,8 +239,6 @@ def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=N
     F = fab_lib if fab_lib is not None else lib
     for key in ("wavelength_m", "period_m", "height_m"):
         if abs(F.meta["stack"][key] - lib.meta["stack"][key]) > 1e-12:
-            from ..validation import ValidationError
-
             raise ValidationError(f"the fab library's stack differs from the design's library ({key})")
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..optics.propagation import cexp
+from .device import Device
 from .forward import CoarsePupil, _nonparaxial
 from .sensor import SensorSpec, area_weights, quadrant_slices
 
@@ -154,6 +155,12 @@ def normalise(tensor):
 
 class TorchTwin:
     """The twin on a torch device: :meth:`tensor` of pupil fields, :meth:`from_crop` of received crops."""
+
+    @classmethod
+    def for_device(cls, dev: Device, rebin: int = 1, samples: int | None = None, device="cpu",
+                   double: bool = False) -> "TorchTwin":
+        """The twin of a :class:`~metadesign.sensing.device.Device` fed from its received-field crop."""
+        return cls(twin_operators(dev.pupil, dev.sensor, dev.geometry, rebin, samples), device, double)
 
     def __init__(self, ops: TwinOperators, device="cpu", double: bool = False):
         import torch

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from ..validation import available_memory, check_int, check_number, MEMORY_FRACTION
+from ..validation import MEMORY_FRACTION, available_memory, check_int, check_number
 
 __all__ = ["Scenario", "PathModel", "solve_path", "SamplingReport", "check_sampling"]
 

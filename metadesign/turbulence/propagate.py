@@ -17,7 +17,8 @@ import scipy.fft as sfft
 
 from ..conventions import fft_centered
 from ..optics.propagation import asm_transfer, cexp
-from .path import PathModel, Scenario, solve_path
+from ..validation import ValidationError
+from .path import PathModel, Scenario, check_sampling, solve_path
 from .screens import ScreenGrid, screens
 
 __all__ = ["Turbulence", "point_source", "split_step", "split_step_torch", "Sample"]
@@ -89,14 +90,10 @@ class Turbulence:
     """A scenario ready to draw samples: path model, screen templates, source, propagator."""
 
     def __init__(self, sc: Scenario, check: bool = True):
-        from .path import check_sampling
-
         self.sc = sc
         self.path: PathModel = solve_path(sc)
         self.sampling = check_sampling(sc, self.path)
         if check and not self.sampling.ok:
-            from ..validation import ValidationError
-
             raise ValidationError("infeasible turbulence sampling: " + "; ".join(self.sampling.failures))
         self.grid = ScreenGrid(sc.n_grid, sc.dx, sc.inner_scale, sc.outer_scale, sc.subharmonics)
         self.H = asm_transfer((sc.n_grid, sc.n_grid), sc.dx, sc.wavelength, sc.dz)
@@ -115,8 +112,6 @@ class Turbulence:
         import copy
         from dataclasses import replace
 
-        from .path import check_sampling
-
         if rytov == self.sc.rytov:
             return self
         tb = copy.copy(self)
@@ -124,8 +119,6 @@ class Turbulence:
         tb.path = solve_path(tb.sc)
         tb.sampling = check_sampling(tb.sc, tb.path)
         if check and not tb.sampling.ok:
-            from ..validation import ValidationError
-
             raise ValidationError(f"infeasible turbulence sampling at Rytov {rytov:g}: "
                                   + "; ".join(tb.sampling.failures))
         tb.active = np.isfinite(tb.path.r0_screens)

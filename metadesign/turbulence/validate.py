@@ -10,6 +10,7 @@ from typing import Callable
 import numpy as np
 
 from ..config import Param, Section, load_toml, parse
+from ..plotting import pyplot, save_figure
 from .path import Scenario
 from .propagate import Turbulence
 from .screens import ScreenGrid, log_amplitude_variance_theory, screens, structure_function_theory
@@ -168,8 +169,6 @@ def validate(sc: Scenario, rytovs=(0.1, 0.3, 0.5, 0.7), samples: int = 40, seed:
 
 
 def plot_validation(res: dict, out_dir: Path) -> list[Path]:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     out_dir = Path(out_dir)
     figs = []

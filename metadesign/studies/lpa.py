@@ -20,15 +20,26 @@ metrics (focusing efficiency, Strehl, crosstalk) and the NPiB of a model are com
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from .rcwa import SolverSettings, Stack, Truncation, solve_cell
-from .supercell import solve_supercell
+from ..library.rcwa import SolverSettings, Stack, solve_cell
+from ..library.supercell import solve_supercell
+from ..parallel import single_thread_env, spawn_pool
+from ..plotting import pyplot, save_figure
+from ..reconstruction.data import PSFDataset, apply_noise
+from ..reconstruction.dataset import load_device, normalise_psf
+from ..reconstruction.losses import PiB
+from ..reconstruction.model import check_fits, load_model
+from ..sensing.forward import CoarsePupil, sensor_frames
+from ..sensing.model import channel_metrics
+from ..sensing.sensor import psf_tensor
+from ..sensing.transmission import interpolate_t
+from ..sensing.twin import crop_to_pupil
 
-__all__ = ["lpa_check", "matched_unit_harmonics", "sample_supercells", "perturbed_pupil", "lpa_downstream"]
+__all__ = ["lpa_check", "matched_unit_harmonics", "sample_supercells", "perturbed_pupil", "lpa_downstream",
+           "plot_lpa"]
 
 
 def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
@@ -83,10 +94,6 @@ def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 3
               progress: Callable[[int, int], None] | None = None) -> dict:
     """Measured LPA error on ``n`` random supercells; ``check`` of them are re-solved at 1.5x the harmonics
     (the certification of the supercell truncation)."""
-    from ..parallel import spawn_pool
-    from ..sensing.transmission import interpolate_t
-    from .build import _init_worker
-
     st = lib.meta["stack"]
     stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
                   st["n_superstrate"])
@@ -96,7 +103,7 @@ def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 3
                        for I, J in cells])  # (n, 2, 2, 2): [r][c] = (wx, wy)
     jobs = [(w, stack, ns, nu) for w in widths]
     t0 = time.perf_counter()
-    pool = spawn_pool(workers, _init_worker) if workers > 1 else None
+    pool = spawn_pool(workers, single_thread_env) if workers > 1 else None
     try:
         it = pool.imap(_solve_one, jobs) if pool else map(_solve_one, jobs)
         res = []
@@ -169,8 +176,6 @@ def perturbed_pupil(cp, eps: np.ndarray, model: str, seed: int = 0, supercells_p
     """A copy of the coarse pupil with a factor ``1 + e`` per block and polarisation (all four channels of a
     block share it), ``e`` drawn from the measured ``eps`` (n, 2): ``correlated``: one measured error per
     block; ``independent``: the mean of ``supercells_per_block`` draws per block."""
-    from .. sensing.forward import CoarsePupil
-
     rng = np.random.default_rng(seed)
     N = cp.G.shape[-1]
     if model == "correlated":
@@ -195,19 +200,9 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
     fields through each pupil (same path, same noise draws) and corrected through their own screens."""
     import torch
 
-    from ..baselines.compare import device_of
-    from ..reconstruction.data import PSFDataset, apply_noise
-    from ..reconstruction.dataset import normalise_psf
-    from ..reconstruction.losses import PiB
-    from ..reconstruction.model import load_model
-    from ..sensing.forward import sensor_frames
-    from ..sensing.model import channel_metrics
-    from ..sensing.sensor import psf_tensor
-    from ..sensing.twin import crop_to_pupil
-
-    dev = device_of(dataset)
-    cp, sensor, geom = dev["pupil"], dev["sensor"], dev["geometry"]
-    c0, a, ng, dx, d2 = geom
+    dev = load_device(dataset)
+    cp, sensor = dev.pupil, dev.sensor
+    c0, a, ng, dx, d2 = dev.geometry
     per_block = max(1, (cp.block // 2) ** 2)
     pupils = {"nominal": cp,
               "independent": perturbed_pupil(cp, eps, "independent", seed, per_block),
@@ -215,6 +210,7 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
     model, _ = load_model(model_path)
     model.eval()
     ds = PSFDataset(dataset, "test", limit=samples, screens=True)
+    check_fits(model, ds.info, str(model_path))
     if len(ds) == 0:  # a dataset without a test split (tiny ones): every sample
         ds = PSFDataset(dataset, "all", limit=samples, screens=True)
     pib = PiB(ds.scenario(), c0, a)
@@ -241,3 +237,37 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
         rec = torch.from_numpy(np.stack([s["received"] for s in items]))
         out["npib_phase_conjugate"] = float(pib.npib_phase(torch.angle(rec) * pib.ap, scr).mean())
     return out
+
+
+def plot_lpa(rep: dict, out):
+    """LPA error: |eps| and phase histograms per polarisation, |eps| vs width contrast, downstream bars."""
+    plt = pyplot()
+    rows = rep["rows"]
+    eps = np.array([[complex(*e) for e in r["eps"]] for r in rows])
+    con = np.array([r["width_contrast_nm"] for r in rows])
+    d = rep.get("downstream")
+    fig, axs = plt.subplots(1, 4 if d else 3, figsize=(17 if d else 13, 3.8), constrained_layout=True)
+    for p, c in enumerate(("C0", "C1")):
+        axs[0].hist(np.abs(eps[:, p]), bins=20, alpha=0.6, color=c, label=f"{'xy'[p]}-pol")
+        axs[1].hist(np.angle(1 + eps[:, p]), bins=20, alpha=0.6, color=c, label=f"{'xy'[p]}-pol")
+        axs[2].plot(con[:, p], np.abs(eps[:, p]), "o", ms=4, color=c, label=f"{'xy'[p]}-pol")
+    axs[0].set(xlabel="|t_supercell / t_LPA - 1|", ylabel="supercells",
+               title=f"LPA error, {len(rows)} supercells (nG {rep['n_harmonics_supercell']})")
+    axs[1].set(xlabel="arg(t_supercell / t_LPA) [rad]", title="phase error")
+    axs[2].set(xlabel="width contrast in the supercell (RMS, nm)", ylabel="|eps|", title="error vs contrast")
+    for ax in axs[:3]:
+        ax.legend(fontsize=8)
+    if d:
+        names = ("nominal", "independent", "correlated")
+        keys = ("focusing_efficiency", "strehl", "npib_unet")
+        vals = np.array([[np.mean([c[k] for c in d[m]["channels"]]) if k != "npib_unet" else d[m][k]
+                          for k in keys] for m in names])
+        x = np.arange(len(keys))
+        for i, m in enumerate(names):
+            axs[3].bar(x + (i - 1) * 0.27, vals[i] / vals[0], 0.27, label=m)
+        axs[3].set_xticks(x, ["focusing eff.", "Strehl", "U-Net NPiB"])
+        rel = vals / vals[0]
+        axs[3].set(ylabel="relative to the nominal LPA device", ylim=(0, max(1.1, rel.max() * 1.08)),
+                   title="downstream (measured error on the pupil)")
+        axs[3].legend(fontsize=8)
+    return save_figure(fig, out)

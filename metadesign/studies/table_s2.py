@@ -11,6 +11,10 @@ import numpy as np
 
 from ..config import Param, Section, load_toml, parse
 from ..io import atomic_write_text
+from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict
+from ..reconstruction.evaluate import evaluate_model
+from ..reconstruction.model import UNetConfig, build_unet, save_model
+from ..reconstruction.train import train, train_recipe_from_dict
 
 __all__ = ["run_table_s2"]
 
@@ -26,10 +30,6 @@ SECTIONS = (
 
 
 def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Callable[[str], None] = print) -> dict:
-    from .dataset import build_dataset, dataset_recipe_from_dict
-    from .evaluate import evaluate_model
-    from .train import train, train_recipe_from_dict
-
     recipe_path = Path(recipe_path)
     raw = load_toml(recipe_path)
     ds_raw = {"dataset": raw.get("dataset", {})}
@@ -55,8 +55,6 @@ def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Call
             rep = train(train_recipe_from_dict(tr_raw, name), run, dataset=out / "dataset", log=log, progress=False)
         # the last epoch's weights: Table S2 compares train and test of the trained model, not a val-selected one
         import torch
-
-        from .model import UNetConfig, build_unet, save_model
 
         st = torch.load(run / "checkpoint.pt", weights_only=True)
         m = build_unet(UNetConfig(**json.loads((run / "model.safetensors.json").read_text())["architecture"]))

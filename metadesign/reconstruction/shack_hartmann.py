@@ -35,7 +35,9 @@ import numpy as np
 
 from ..optics.propagation import cexp
 from ..optics.zernike import zernike
+from ..sensing.device import Device, ReceiverCrop
 from ..validation import ConfigError, check_int, check_number
+from .data import apply_noise
 
 __all__ = ["SHConfig", "ShackHartmann"]
 
@@ -69,6 +71,16 @@ class SHConfig:
 class ShackHartmann:
     """The sensor for one crop geometry: :meth:`frames` of received crops, :meth:`centroids`,
     :meth:`reconstruct` (phase on the crop), :meth:`__call__` = all three."""
+
+    @classmethod
+    def for_crop(cls, cfg: SHConfig, crop: ReceiverCrop, wavelength: float) -> "ShackHartmann":
+        """The sensor on a received-field crop (:class:`~metadesign.sensing.device.ReceiverCrop`)."""
+        return cls(cfg, crop.size, crop.start, crop.n_grid, crop.dx, crop.aperture, wavelength)
+
+    @classmethod
+    def for_device(cls, cfg: SHConfig, dev: Device) -> "ShackHartmann":
+        """The sensor in place of ``dev``: same received-field crop, same wavelength."""
+        return cls.for_crop(cfg, dev.crop, dev.wavelength)
 
     def __init__(self, cfg: SHConfig, crop_size: int, crop_start: int, n_grid: int, dx: float,
                  receiver_aperture: float, wavelength: float):
@@ -117,8 +129,6 @@ class ShackHartmann:
 
     def add_noise(self, spots: np.ndarray, gaussian_percent: float, rng: np.random.Generator) -> np.ndarray:
         """The metasurface sensor's noise model on the whole frame (scaled by the frame's peak)."""
-        from ..reconstruction.data import apply_noise
-
         if not gaussian_percent:
             return spots
         B, L, _, K, _ = spots.shape

@@ -1,4 +1,4 @@
-"""``metadesign demo``: the embedded demo through every stage built so far.
+"""``metadesign demo``: the embedded demo through every stage (library to reconstruction).
 
 Each stage returns a dict with ``line`` (one summary line), ``figures`` and
 its numbers; the demo writes ``summary.json`` and the figures to one folder.
@@ -13,17 +13,31 @@ from typing import Callable
 
 import numpy as np
 
-from .io import atomic_write_text
-from .paths import default_library_path, repo_root
+from ..design.plot import plot_design
+from ..design.recipe import load_design_recipe
+from ..design.store import load_design, run_design
+from ..io import atomic_write_text
+from ..layouts import drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout
+from ..layouts.preview import preview_layout
+from ..library.plot import plot_library
+from ..library.rcwa import SolverSettings, Stack, solve_cell
+from ..library.store import load_library
+from ..paths import default_library_path, repo_root
+from ..plotting import pyplot, save_figure
+from ..reconstruction.dataset import normalise_psf, received_crop, sample_rytov
+from ..reconstruction.losses import PiB
+from ..reconstruction.metrics import captured_fraction, gain, npib_rows
+from ..reconstruction.model import load_model
+from ..sensing.model import AsFabricated, load_sensing_recipe
+from ..sensing.plot import plot_fab_study, plot_frames
+from ..sensing.render import fab_study, render_psf, save_psf
+from ..turbulence.chain import BeaconChain
+from ..turbulence.validate import load_scenario, plot_validation, validate
 
 __all__ = ["run_demo"]
 
 
 def _stage_library(out: Path, log) -> dict:
-    from .library.plot import plot_library
-    from .library.rcwa import SolverSettings, Stack, solve_cell
-    from .library.store import load_library
-
     lib = load_library(default_library_path())
     s = lib.summary()
     fig = plot_library(lib, out / "library-fig-s1.png")
@@ -43,11 +57,6 @@ def _stage_library(out: Path, log) -> dict:
 
 
 def _stage_design(out: Path, log) -> dict:
-    from .design.plot import plot_design
-    from .design.recipe import load_design_recipe
-    from .design.store import run_design
-    from .library.store import load_library
-
     recipe = load_design_recipe(repo_root() / "layouts" / "demo.toml")
     d, path = run_design(recipe, out / "design")
     fig = plot_design(d, out / "design-fig-s2.png", load_library(recipe.library_path))
@@ -62,10 +71,6 @@ def _stage_design(out: Path, log) -> dict:
 
 
 def _stage_layout(out: Path, log) -> dict:
-    from .design.store import load_design
-    from .layouts import drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout
-    from .layouts.preview import preview_layout
-
     d = load_design(out / "design")
     rep = write_layout(d, out / "design" / "layout.oas", "oas")
     lc = read_layout(out / "design" / "layout.oas")
@@ -82,10 +87,6 @@ def _stage_layout(out: Path, log) -> dict:
 
 
 def _stage_sensing(out: Path, log) -> dict:
-    from .sensing.model import AsFabricated, load_sensing_recipe
-    from .sensing.plot import plot_fab_study, plot_frames
-    from .sensing.render import fab_study, render_psf, save_psf
-
     fab = AsFabricated.from_files(out / "design" / "layout.oas")
     sr = load_sensing_recipe(repo_root() / "sensing" / "demo.toml")
     res = render_psf(fab, sr)
@@ -109,11 +110,6 @@ def _stage_sensing(out: Path, log) -> dict:
 
 
 def _stage_turbulence(out: Path, log) -> dict:
-    from .sensing.chain import BeaconChain
-    from .sensing.model import AsFabricated, load_sensing_recipe
-    from .sensing.plot import plot_frames
-    from .turbulence.validate import load_scenario, plot_validation, validate
-
     sc = load_scenario(repo_root() / "sensing" / "turbulence.toml")
     res = validate(sc, rytovs=(0.1, 0.3, 0.5), samples=10, pib_samples=5)
     figs = plot_validation(res, out)
@@ -145,16 +141,6 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
 
     import torch
 
-    from .design.recipe import load_design_recipe
-    from .design.store import run_design
-    from .plotting import pyplot, save_figure
-    from .reconstruction.dataset import normalise_psf, received_crop, sample_rytov
-    from .reconstruction.losses import PiB
-    from .reconstruction.model import load_model
-    from .sensing.chain import BeaconChain
-    from .sensing.model import AsFabricated, load_sensing_recipe
-    from .turbulence.validate import load_scenario
-
     model, card = load_model(repo_root() / DEMO_MODEL)
     d, _ = run_design(load_design_recipe(repo_root() / "layouts" / "paper-5mm.toml"), out / "paper-design")
     fab = AsFabricated.from_design(d)
@@ -177,13 +163,13 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
             psf, _ = normalise_psf(s.tensor)
             phi = model(torch.from_numpy(psf)[None])
             rows["rytov"].append(float(np.var(np.log(np.maximum(np.abs(rec[0][pib.ap.bool()].numpy()), 1e-30)))))
-            rows["unet"].append(float(pib.npib_phase(phi, scr)))
-            rows["none"].append(float(pib.npib_phase(torch.zeros_like(phi), scr)))
-            rows["phase_conjugate"].append(float(pib.npib_phase(torch.angle(rec) * pib.ap, scr)))
-            rows["complex_conjugate"].append(float(pib.npib_complex(rec, scr)))
+            r = npib_rows(pib, phi, scr, rec, complex_conjugate=True)
+            for k in ("none", "phase_conjugate", "complex_conjugate"):
+                rows[k].append(float(r[k]))
+            rows["unet"].append(float(r["estimate"]))
     m = {k: float(np.mean(v)) for k, v in rows.items()}
-    gain = np.array(rows["unet"]) / np.maximum(np.array(rows["none"]), 1e-12)
-    captured = (m["unet"] - m["none"]) / max(m["phase_conjugate"] - m["none"], 1e-12)
+    g = gain(rows["none"], rows["unet"])
+    captured = captured_fraction(rows["none"], rows["unet"], rows["phase_conjugate"])
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     for k, lab, mk in (("complex_conjugate", "complex conjugate", "^"), ("phase_conjugate", "phase conjugate", "s"),
@@ -195,10 +181,10 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
     fig_path = save_figure(fig, out / "fig-3b-demo.png")
     line = (f"{n_samples} fresh beacons through the paper design: mean NPiB uncorrected {m['none']:.3f}, U-Net "
             f"{m['unet']:.3f}, phase conjugate {m['phase_conjugate']:.3f}, complex conjugate "
-            f"{m['complex_conjugate']:.3f}; captured fraction {captured:.2f}; gain median {np.median(gain):.1f}x, "
+            f"{m['complex_conjugate']:.3f}; captured fraction {captured:.2f}; gain median {np.median(g):.1f}x, "
             f"ratio of means {m['unet'] / max(m['none'], 1e-12):.1f}x")
     log(f"reconstruction: {line}")
-    return {"line": line, "npib": m, "captured_fraction": captured, "gain_median": float(np.median(gain)),
+    return {"line": line, "npib": m, "captured_fraction": captured, "gain_median": float(np.median(g)),
             "gain_ratio_of_means": m["unet"] / max(m["none"], 1e-12), "model_card": card.get("metrics"),
             "figures": [str(fig_path)], "passed": bool(m["unet"] > m["none"])}
 

@@ -12,7 +12,7 @@ counter-clockwise in (col, row) coordinates, ``s``: relay magnification over its
 pixels (a fixed seeded set, present in dark frames too), quantised to unsigned ``bit_depth``-bit
 integers (clipped at full scale, as a camera does).
 
-**Synthetic captures** (:func:`synth_captures`): the SLM shows the received *phase* of samples of an
+**Synthetic captures** (:func:`metadesign.studies.captures.synth_captures`): the SLM shows the received *phase* of samples of an
 existing dataset (a phase-only screen conjugate to the receiver aperture, as in the paper's lab,
 Fig. 4); each frame is rendered through a device (its coarse pupil) onto an extended nominal frame and
 sampled on the misaligned camera (cubic interpolation; the focal-plane image is ~20 pixels per
@@ -21,17 +21,21 @@ calibration; a manifest ties them together.  The importer never sees the truth (
 
 from __future__ import annotations
 
-import csv
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..conventions import centered
+from ..determinism import single_thread_blas
+from ..io import atomic_path
+from ..optics.propagation import cexp
 from ..validation import check_int, check_number
+from .forward import quadrant_fields
+from .twin import crop_to_pupil
 
 __all__ = ["Alignment", "CameraSpec", "extended_frames", "misaligned_frames", "expose", "slm_pupil_field",
-           "write_frame", "synth_captures"]
+           "write_frame"]
 
 
 @dataclass(frozen=True)
@@ -123,10 +127,6 @@ class CameraSpec:
 def extended_frames(cp, sensor, e_in: np.ndarray | None, margin: int) -> np.ndarray:
     """(2, H + 2m, W + 2m) power per pixel of the nominal sensor model on a frame extended by ``margin``
     pixels on every side (each quadrant, extended outward, with its own non-paraxial centre)."""
-    from ..conventions import centered
-    from ..determinism import single_thread_blas
-    from .forward import quadrant_fields
-
     H, W, m = sensor.height_px, sensor.width_px, int(margin)
     p = sensor.focal_pitch
     X, Y = centered(W + 2 * m, p), centered(H + 2 * m, p)
@@ -183,9 +183,6 @@ def slm_pupil_field(phase_crop: np.ndarray, geometry: tuple, n_out: int, pad: in
     """The metasurface pupil field of a phase-only SLM screen ``phase_crop`` (A x A, on the receiver crop of
     the turbulence grid): the phase is extended by edge replication (the SLM is larger than the aperture),
     demagnified onto the metasurface as the turbulence stage does (cubic), cut to the pupil."""
-    from ..optics.propagation import cexp
-    from .twin import crop_to_pupil
-
     c0, a, ng, dx, d2 = geometry
     ph = np.pad(np.asarray(phase_crop, np.float64), pad, mode="edge")
     return crop_to_pupil(cexp(ph).astype(np.complex128), ng, dx, d2, c0 - pad, n_out)
@@ -193,8 +190,6 @@ def slm_pupil_field(phase_crop: np.ndarray, geometry: tuple, n_out: int, pad: in
 
 def write_frame(path: Path, counts: np.ndarray) -> None:
     """A uint16 frame as 16-bit PNG or TIFF (Pillow) or .npy, by the suffix."""
-    from ..io import atomic_path
-
     path = Path(path)
     with atomic_path(path) as tmp:
         if path.suffix == ".npy":
@@ -205,112 +200,3 @@ def write_frame(path: Path, counts: np.ndarray) -> None:
 
             Image.fromarray(np.ascontiguousarray(counts, np.uint16)).save(
                 tmp, format="PNG" if path.suffix == ".png" else "TIFF")
-
-
-def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alignment: Alignment = Alignment(),
-                   camera: CameraSpec = CameraSpec(), samples: int | None = None, split: str = "all",
-                   fmt: str = "png", flats: int = 4, darks: int = 4, saturate: int = 0, seed: int = 0,
-                   progress=None) -> dict:
-    """Write synthetic captures into ``out``: ``frames/NNNNNN-{x,y}.EXT``, ``slm/NNNNNN.npy`` (phase, rad),
-    ``manifest.csv`` (sample, frame_x, frame_y, slm_phase, rytov, split), ``flat/``+``flat.csv`` (flat-
-    wavefront captures), ``dark/`` (dark frames), ``truth.json`` (alignment, camera, device; for tests).
-
-    ``phases``: the dataset whose received phases the SLM shows (``split`` of it, first ``samples``);
-    ``device``: the dataset (or its ``device-pupil.npz``) whose device renders the frames; the sensor
-    and geometry come from ``phases``.  The last ``saturate`` samples are over-exposed 2x (clipped)."""
-    from ..baselines.compare import device_of
-    from ..reconstruction.data import PSFDataset
-    from ..validation import ValidationError
-
-    final = Path(out)
-    if final.exists() and (not final.is_dir() or any(final.iterdir())):
-        raise ValidationError(f"-o/--output {final}: exists and is not empty (captures are written into a new folder)")
-    dev_path = Path(device)
-    dev = device_of(dev_path.parent if dev_path.suffix == ".npz" else dev_path)
-    geo_src = device_of(phases)
-    cp, sensor, geom = dev["pupil"], geo_src["sensor"], geo_src["geometry"]
-    ds = PSFDataset(phases, split, limit=samples)
-    n = len(ds)
-    ext = {"png": ".png", "tiff": ".tif", "npy": ".npy"}[fmt]
-    out = final.with_name(final.name + ".partial")  # renamed when complete: a failure leaves no capture folder
-    import shutil
-
-    shutil.rmtree(out, ignore_errors=True)
-    try:
-        rep = _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed,
-                     phases, device, progress)
-        if final.exists():
-            final.rmdir()
-        out.rename(final)
-    except BaseException:
-        shutil.rmtree(out, ignore_errors=True)
-        raise
-    return {**rep, "output": str(final)}
-
-
-def _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed, phases, device,
-           progress) -> dict:
-    from ..io import atomic_write_text
-
-    for sub in ("frames", "slm", "flat", "dark"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    shape = (sensor.height_px, sensor.width_px)
-    hot = camera.hot_map(shape)
-    root = np.random.SeedSequence(seed)
-    rows = []
-    labels = {0: "train", 1: "val", 2: "test"}
-    split_of = ds.info.split
-    for j in range(n):
-        s = ds.get(j)
-        i = s["index"]
-        ap = np.abs(s["received"]) > 0
-        phi = np.where(ap, np.angle(s["received"]), 0.0).astype(np.float32)
-        e_in = slm_pupil_field(phi, geom, cp.G.shape[-1])
-        fr = misaligned_frames(cp, sensor, e_in, alignment)
-        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1, j)))
-        counts = expose(fr, camera, rng, hot, overexpose=2.0 if j >= n - saturate else 1.0)
-        name = f"{j:06d}"
-        write_frame(out / "frames" / f"{name}-x{ext}", counts[0])
-        write_frame(out / "frames" / f"{name}-y{ext}", counts[1])
-        with open(out / "slm" / f"{name}.npy", "wb") as fh:
-            np.save(fh, phi, allow_pickle=False)
-        rows.append({"sample": name, "frame_x": f"frames/{name}-x{ext}", "frame_y": f"frames/{name}-y{ext}",
-                     "slm_phase": f"slm/{name}.npy", "rytov": f"{s['rytov']:.6g}",
-                     "split": labels[int(split_of[i])]})
-        if progress:
-            progress(j + 1, n + flats + darks)
-    flat_rows = []
-    fr0 = misaligned_frames(cp, sensor, None, alignment)
-    for j in range(flats):
-        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2, j)))
-        counts = expose(fr0, camera, rng, hot)
-        for p, pol in enumerate("xy"):
-            write_frame(out / "flat" / f"flat{j:02d}-{pol}{ext}", counts[p])
-        flat_rows.append({"frame_x": f"flat/flat{j:02d}-x{ext}", "frame_y": f"flat/flat{j:02d}-y{ext}"})
-        if progress:
-            progress(n + j + 1, n + flats + darks)
-    for j in range(darks):
-        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(3, j)))
-        write_frame(out / "dark" / f"dark{j:02d}{ext}", expose(np.zeros(shape), camera, rng, hot))
-        if progress:
-            progress(n + flats + j + 1, n + flats + darks)
-    _write_csv(out / "manifest.csv", rows)
-    _write_csv(out / "flat.csv", flat_rows)
-    truth = {"alignment": alignment.to_dict(), "camera": camera.to_dict(), "phases": str(phases),
-             "device": str(device), "samples": n, "saturated": [r["sample"] for r in rows[n - saturate:]] if saturate else [],
-             "hot_pixels": int(hot.sum()), "format": fmt, "seed": int(root.entropy)}
-    atomic_write_text(out / "truth.json", json.dumps(truth, indent=1))
-    return {"samples": n, "flats": flats, "darks": darks, "format": fmt,
-            "alignment": alignment.to_dict(), "saturated": len(truth["saturated"])}
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    import io
-
-    from ..io import atomic_write_text
-
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["sample"])
-    w.writeheader()
-    w.writerows(rows)
-    atomic_write_text(path, buf.getvalue())

@@ -20,12 +20,14 @@ of samples is exactly as many independent retrievals (same result whatever the b
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
 
 from ..optics.zernike import modes_up_to_order, zernike
+from ..sensing.device import Device
+from ..sensing.twin import TorchTwin, normalise
 from ..validation import ConfigError, check_int, check_number
 
 __all__ = ["RetrievalConfig", "RetrievalContext", "retrieve", "misfit"]
@@ -87,16 +89,15 @@ class RetrievalContext:
     device: object = None
 
     @classmethod
-    def build(cls, cp, sensor, crop_geometry, cfg: RetrievalConfig, device="cpu") -> "RetrievalContext":
+    def build(cls, dev: Device, cfg: RetrievalConfig, device="cpu") -> "RetrievalContext":
+        """The context for ``dev`` (:class:`~metadesign.sensing.device.Device`) on torch ``device``."""
         import torch
         from scipy.ndimage import binary_dilation
 
-        from ..sensing.twin import TorchTwin, twin_operators
-
-        c0, a, n_grid, dx, d2 = crop_geometry
-        coarse = TorchTwin(twin_operators(cp, sensor, crop_geometry, *cfg.coarse), device)
-        fine = TorchTwin(twin_operators(cp, sensor, crop_geometry, *cfg.fine), device)
-        x = (np.arange(a) + c0 - n_grid / 2) * dx
+        coarse = TorchTwin.for_device(dev, *cfg.coarse, device=device)
+        fine = TorchTwin.for_device(dev, *cfg.fine, device=device)
+        d2 = dev.crop.aperture
+        x = dev.crop.coords()
         r = np.hypot(x[None, :], x[:, None])
         ap = r <= d2 / 2
         support = binary_dilation(ap, iterations=cfg.dilate) if cfg.dilate else ap
@@ -120,8 +121,6 @@ def misfit(model, data, kind: str, sigma_frac: float):
 
 def _render(twin, support, phi, chi):
     import torch
-
-    from ..sensing.twin import normalise
 
     amp = support if chi is None else support * torch.exp(chi)
     return normalise(twin.from_crop(torch.polar(amp, phi)))

@@ -22,7 +22,15 @@ from typing import Callable
 import numpy as np
 
 from ..config import ConfigError, Param, Section, load_toml, parse
-from ..io import atomic_write_text
+from ..io import atomic_path, atomic_write_text
+from ..plotting import pyplot, save_figure
+from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, expected_sizes, open_dataset
+from ..reconstruction.evaluate import evaluate_model
+from ..reconstruction.losses import LOSSES
+from ..reconstruction.metrics import captured_fraction, gain
+from ..reconstruction.model import check_sizes, load_model
+from ..reconstruction.train import load_train_recipe, train, train_recipe_from_dict
+from ..validation import ValidationError
 
 __all__ = ["run_tolerance", "load_tolerance_recipe", "TOLERANCE_SECTIONS"]
 
@@ -48,7 +56,7 @@ TOLERANCE_SECTIONS = (
         Param("train", str, None, help="training recipe whose [model] matches the model and whose [train] is used"),
         Param("epochs", int, 3, lo=0, hi=100000),
         Param("lr", float, 3e-4, lo=0, open_lo=True, hi=1),
-        Param("loss", str, "pib", choices=["pib", "phase", "mse"]),
+        Param("loss", str, "pib", choices=list(LOSSES)),
         Param("bias_nm", list, None, lo=-200, hi=200, help="cases to fine-tune (default: every non-nominal one)"),
     )),
 )
@@ -106,18 +114,26 @@ def _metrics(res: dict, key: str) -> dict:
     none, unet, pc = r["none"], r["unet"], r["phase_conjugate"]
     return {"n": int(len(unet)), "npib_none": float(np.mean(none)), "npib_unet": float(np.mean(unet)),
             "npib_phase_conjugate": float(np.mean(pc)),
-            "captured_fraction": float((np.mean(unet) - np.mean(none)) / max(np.mean(pc) - np.mean(none), 1e-12)),
-            "gain_median": float(np.median(unet / np.maximum(none, 1e-12)))}
+            "captured_fraction": captured_fraction(none, unet, pc), "gain_median": float(np.median(gain(none, unet)))}
+
+
+def check_architecture(cfg, train_recipe, model_path, train_path) -> None:
+    """The fine-tuning recipe must build the model's architecture (``train --init`` refuses otherwise)."""
+    want = (train_recipe.base, train_recipe.depth, train_recipe.norm)
+    have = (cfg.base, cfg.depth, cfg.norm)
+    if want != have:
+        raise ValidationError(f"{train_path}: [model] base/depth/norm {want} differ from the model {model_path}'s {have}")
 
 
 def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Callable[[str], None] = print) -> dict:
-    from .dataset import build_dataset, dataset_recipe_from_dict
-    from .evaluate import evaluate_model
-    from .train import load_train_recipe, train, train_recipe_from_dict
-
     out = Path(out)
-    out.mkdir(exist_ok=True)
     base_train = load_train_recipe(recipe.train)
+    # every input checked before the first dataset is built (minutes each)
+    model, _ = load_model(recipe.model)
+    ds0 = dataset_recipe_from_dict(json.loads(json.dumps(recipe.dataset)), "tolerance-check", recipe.source)
+    check_sizes(model.config, *expected_sizes(ds0), f"model {recipe.model}")
+    check_architecture(model.config, base_train, recipe.model, recipe.train)
+    out.mkdir(exist_ok=True)
     rows = []
     for label, b, j, c, hh, sw, hg, sg in recipe.cases:
         case = out / f"case-{label}"
@@ -154,7 +170,6 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
                         resume=resume, init=None if resume else recipe.model, log=log, progress=False)
             res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
             row["after"] = _metrics(res2, next(iter(res2["rows"])))
-            from .dataset import open_dataset
 
             row["finetune"] = {"epochs": rep["epochs_done"], "loss": recipe.loss, "lr": recipe.lr,
                                "train_samples": int(len(open_dataset(case / "dataset").indices("train")))}
@@ -171,8 +186,6 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
 def _write_csv(rows, path: Path) -> None:
     import csv
 
-    from ..io import atomic_path
-
     cols = ["npib_none", "npib_unet", "npib_phase_conjugate", "captured_fraction", "gain_median"]
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as fh:
@@ -185,8 +198,6 @@ def _write_csv(rows, path: Path) -> None:
 
 
 def plot_tolerance(rows, out: Path, noise: float) -> Path:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
                                  gridspec_kw={"width_ratios": [3, 2]})

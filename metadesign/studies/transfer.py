@@ -4,7 +4,7 @@
 
 1. **device + SLM screens**: a dataset recipe with a ``[fabrication]`` section renders the 'lab' device (the
    design as made: bias, jitter, corner rounding); its received phases are the screens the SLM shows;
-2. **captures**: :func:`metadesign.sensing.captures.synth_captures` through that device onto a misaligned
+2. **captures**: :func:`metadesign.studies.captures.synth_captures` through that device onto a misaligned
    camera (shift, rotation, magnification), with shot and read noise, dark offset and hot pixels, 16-bit;
    flat and dark frames; a manifest;
 3. **import** against the nominal synthetic dataset the model was trained on (the user's reference):
@@ -27,6 +27,17 @@ import numpy as np
 
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..io import atomic_write_text
+from ..plotting import pyplot, save_figure
+from ..reconstruction.captures import import_captures
+from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, open_dataset
+from ..reconstruction.evaluate import evaluate_model
+from ..reconstruction.losses import LOSSES
+from ..reconstruction.metrics import captured_fraction
+from ..reconstruction.model import check_fits, load_model
+from ..reconstruction.train import load_train_recipe, train, train_recipe_from_dict
+from ..sensing.camera import Alignment, CameraSpec
+from .captures import synth_captures
+from .tolerance import check_architecture
 
 __all__ = ["run_transfer", "load_transfer_recipe"]
 
@@ -51,7 +62,7 @@ SECTIONS = (
         Param("train", str, None, help="training recipe whose [model] matches the model"),
         Param("epochs", int, 6, lo=1, hi=100000),
         Param("lr", float, 3e-4, lo=0, open_lo=True, hi=1),
-        Param("loss", str, "pib", choices=["pib", "phase", "mse"]),
+        Param("loss", str, "pib", choices=list(LOSSES)),
         Param("noise_percent", float, 0.0, lo=0, hi=100),
     )),
     Section("scratch", (
@@ -102,19 +113,17 @@ def _metrics(res: dict) -> dict:
     none, unet, pc = (np.asarray(r[k]) for k in ("none", "unet", "phase_conjugate"))
     return {"n": int(len(unet)), "npib_none": float(none.mean()), "npib_unet": float(unet.mean()),
             "npib_unet_median": float(np.median(unet)), "npib_phase_conjugate": float(pc.mean()),
-            "captured_fraction": float((unet.mean() - none.mean()) / max(pc.mean() - none.mean(), 1e-12)),
+            "captured_fraction": captured_fraction(none, unet, pc),
             "npib_per_sample": [float(x) for x in unet]}
 
 
 def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Callable[[str], None] = print,
                  progress=None) -> dict:
-    from ..sensing.captures import Alignment, CameraSpec, synth_captures
-    from .captures import import_captures
-    from .dataset import build_dataset, dataset_recipe_from_dict, open_dataset
-    from .evaluate import evaluate_model
-    from .train import load_train_recipe, train, train_recipe_from_dict
-
     out = Path(out)
+    # every input checked before the device dataset is built (minutes)
+    model, _ = load_model(recipe.model)
+    check_fits(model, open_dataset(recipe.reference), f"model {recipe.model}")
+    check_architecture(model.config, load_train_recipe(recipe.train), recipe.model, recipe.train)
     out.mkdir(exist_ok=True)
     rec_ds = dataset_recipe_from_dict(json.loads(json.dumps(recipe.raw)), "transfer-device", recipe.source)
     dev = out / "device-dataset"
@@ -181,8 +190,6 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
 
 
 def plot_transfer(rows: dict, curves: dict, path: Path, rep: dict) -> Path:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     names = [("unadapted", "synthetic model,\nunadapted"), ("scratch", "from scratch\n(same captures)"),

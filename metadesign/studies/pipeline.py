@@ -18,9 +18,27 @@ from typing import Callable
 
 import numpy as np
 
-from .config import Param, Section, load_toml, parse
-from .io import atomic_write_text
-from .validation import ValidationError
+from .. import __version__
+from ..config import Param, Section, load_toml, parse
+from ..design.plot import plot_design
+from ..design.recipe import load_design_recipe
+from ..design.store import load_design, run_design
+from ..io import atomic_write_text
+from ..layouts import drc_check, read_layout, verify_against_design, write_layout
+from ..layouts.preview import preview_layout
+from ..library.build import build_library
+from ..library.plot import plot_library
+from ..library.recipe import load_recipe
+from ..library.store import load_library
+from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, received_crop
+from ..reconstruction.evaluate import evaluate_model, plot_fig3, summarise, write_results
+from ..reconstruction.model import check_sizes, load_model
+from ..reconstruction.train import load_train_recipe, train
+from ..sensing.model import AsFabricated, load_sensing_recipe
+from ..sensing.plot import plot_fab_study, plot_frames
+from ..sensing.render import fab_study, render_psf
+from ..turbulence.validate import load_scenario, plot_validation, validate
+from ..validation import ValidationError
 
 __all__ = ["run_pipeline", "load_pipeline_recipe"]
 
@@ -88,19 +106,12 @@ def _h(*parts) -> str:
 
 
 def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] = print) -> dict:
-    from .design.recipe import load_design_recipe
-    from .design.store import load_design, run_design
-    from .layouts import drc_check, read_layout, verify_against_design, write_layout
-    from .layouts.preview import preview_layout
-    from .library.plot import plot_library
-    from .library.store import load_library
-    from .sensing.model import AsFabricated, load_sensing_recipe
-    from .sensing.plot import plot_fab_study, plot_frames
-    from .sensing.render import fab_study, render_psf
-    from .turbulence.validate import load_scenario, plot_validation, validate
-
     rec = load_pipeline_recipe(recipe_path)
     out = Path(out)
+    if rec["train"]["model"] is not None:  # a given model must fit the dataset it will be evaluated on: check now
+        model, _ = load_model(rec["train"]["model"])
+        check_sizes(model.config, rec["dataset"]["tensor_size"],
+                    received_crop(load_scenario(rec["pipeline"]["turbulence"]))[1], f"[train] model {rec['train']['model']}")
     out.mkdir(exist_ok=True)
     state_path = out / "pipeline-state.json"
     state = json.loads(state_path.read_text()) if state_path.exists() else {}
@@ -126,9 +137,6 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     # 1. library
     lib_path = p["library"]
     if p["library_recipe"] is not None:
-        from .library.build import build_library
-        from .library.recipe import load_recipe
-
         lib_path = out / "library.npz"
         k_lib = _h(p["library_recipe"])
         stage("library", k_lib, [lib_path],
@@ -151,8 +159,6 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     ddir = out / "design"
 
     def do_design():
-        from .design.plot import plot_design
-
         d, _ = run_design(dr, ddir)
         plot_design(d, out / "fig-s2.png", lib)
         return {"metrics": {k: d.metrics[k] for k in ("rmse_rad", "peak_error_rad", "mean_T0", "n_atoms",
@@ -223,7 +229,6 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     report["tables"]["Turbulence: Rytov nominal vs measured"] = tu["levels"]
 
     # 6. dataset
-    from .reconstruction.dataset import build_dataset, dataset_recipe_from_dict
 
     ds_sec = dict(rec["dataset"])
     workers = ds_sec.pop("workers")
@@ -245,8 +250,6 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
         model = t["model"]
         stage("train", _h(model), [model], lambda: {"model": str(model)})
     else:
-        from .reconstruction.train import load_train_recipe, train
-
         run = out / "run"
         k_tr = _h(k_ds, t["recipe"])
 
@@ -263,7 +266,6 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
             report["figures"]["Training curves"] = run / "curves.png"
 
     # 8. evaluation
-    from .reconstruction.evaluate import evaluate_model, plot_fig3, summarise, write_results
 
     ev_dir = out / "evaluation"
     ev_opts = rec["evaluate"]
@@ -313,8 +315,6 @@ def _table(obj) -> str:
 
 
 def _html(name: str, rep: dict) -> str:
-    from . import __version__
-
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>metadesign report: {html.escape(name)}</title>",
              "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}"
              "table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #bbb;padding:3px 8px;"

@@ -25,20 +25,50 @@ from typing import Callable
 
 import numpy as np
 
-from .retrieval import RetrievalConfig
-from .shack_hartmann import SHConfig
+from ..cliutil import json_safe
+from ..io import atomic_path, atomic_write_text
+from ..parallel import spawn_pool
+from ..plotting import pyplot, save_figure
+from ..reconstruction.data import PSFDataset
+from ..reconstruction.estimators import ESTIMATORS as ESTIMATOR_CLASSES
+from ..reconstruction.estimators import HybridEstimator, checkpoints_for, estimator_names, make_estimator
+from ..reconstruction.evaluate import RYTOV_BINS
+from ..reconstruction.losses import PiB
+from ..reconstruction.metrics import EVAL_NOISE_SEED
+from ..reconstruction.model import check_fits, load_model
+from ..reconstruction.retrieval import RetrievalConfig
+from ..reconstruction.shack_hartmann import SHConfig
+from ..timing import repeat_seconds
+from ..validation import ConfigError, ValidationError
 
-__all__ = ["CompareSettings", "run_compare", "device_of", "tune", "summarise", "write_compare", "checkpoints_for",
-           "at_budget", "METHODS", "BUDGETS_MS"]
+__all__ = ["CompareSettings", "run_compare", "tune", "summarise", "write_compare", "checkpoints_for",
+           "at_budget", "METHODS", "BUDGETS_MS", "methods", "label", "style"]
 
-METHODS = ("none", "shack_hartmann", "retrieval", "unet", "hybrid", "phase_conjugate", "complex_conjugate")
-ESTIMATORS = ("shack_hartmann", "retrieval", "unet", "hybrid")
+#: the registered estimators (metadesign.reconstruction.estimators), in registration order, at import; the
+#: functions below read the registry live, so an estimator registered later takes part too
+ESTIMATORS = estimator_names()
 BUDGETS_MS = (1.0, 10.0, 100.0)
-LABELS = {"none": "uncorrected", "shack_hartmann": "Shack-Hartmann", "retrieval": "PD retrieval",
-          "unet": "U-Net", "hybrid": "U-Net + retrieval", "phase_conjugate": "phase conjugate (oracle)",
-          "complex_conjugate": "complex conjugate (oracle)"}
+_FIXED = {"none": ("uncorrected", ("k", "x")), "phase_conjugate": ("phase conjugate (oracle)", ("tab:green", "s")),
+          "complex_conjugate": ("complex conjugate (oracle)", ("tab:olive", "^"))}
 
-HYBRID_DEFAULT = RetrievalConfig(modal_iterations=0, zonal_iterations=50, lr_zonal=0.03, misfit="gaussian")  # from the U-Net
+
+def methods() -> tuple[str, ...]:
+    """Every row of a comparison: the uncorrected beam, the estimators, the oracle bounds."""
+    return ("none", *estimator_names(), "phase_conjugate", "complex_conjugate")
+
+
+def label(m: str) -> str:
+    return _FIXED[m][0] if m in _FIXED else ESTIMATOR_CLASSES[m].label
+
+
+def style(m: str) -> tuple[str, str]:
+    return _FIXED[m][1] if m in _FIXED else ESTIMATOR_CLASSES[m].style
+
+
+METHODS = methods()
+LABELS = {m: label(m) for m in METHODS}
+
+HYBRID_DEFAULT = HybridEstimator.DEFAULT  # from the U-Net
 
 
 @dataclass(frozen=True)
@@ -46,7 +76,7 @@ class CompareSettings:
     split: str = "test"
     limit: int | None = None
     noise_percent: float = 5.0
-    noise_seed: int = 12345
+    noise_seed: int = EVAL_NOISE_SEED
     batch: int = 8
     methods: tuple[str, ...] = ESTIMATORS
     retrieval: RetrievalConfig = field(default_factory=lambda: RetrievalConfig(misfit="gaussian"))
@@ -55,11 +85,9 @@ class CompareSettings:
     latency_samples: int = 2
 
     def __post_init__(self):
-        from ..validation import ConfigError
-
-        bad = [m for m in self.methods if m not in ESTIMATORS]
+        bad = [m for m in self.methods if m not in estimator_names()]
         if bad:
-            raise ConfigError("methods", f"expected some of {', '.join(ESTIMATORS)}, got {', '.join(bad)}")
+            raise ConfigError("methods", f"expected some of {', '.join(estimator_names())}, got {', '.join(bad)}")
         # the retrieval's Gaussian likelihood uses the noise level of the data
         for k in ("retrieval", "hybrid"):
             object.__setattr__(self, k, replace(getattr(self, k), noise_percent=self.noise_percent))
@@ -70,97 +98,37 @@ class CompareSettings:
         return d
 
 
-def checkpoints_for(total: int) -> list[int]:
-    """0, 1, 2, 5, 10, 20, 50, ... up to ``total`` (and ``total``)."""
-    out, base = [0], 1
-    while base <= total:
-        out += [c for c in (base, 2 * base, 5 * base) if c <= total]
-        base *= 10
-    return sorted(set(out + [total]))
-
-
-def device_of(dataset: str | Path) -> dict:
-    """The device a dataset was made with: its coarse pupil (cached in the store), sensor and crop geometry."""
-    from ..io import read_npz
-    from ..reconstruction.data import PSFDataset
-    from ..sensing.forward import CoarsePupil
-    from ..sensing.sensor import SensorSpec
-    from ..validation import ValidationError
-
-    ds = PSFDataset(dataset, "all", limit=1)
-    prov = ds.info.attrs["provenance"]
-    path = Path(dataset) / "device-pupil.npz"
-    if not path.is_file():
-        if ds.info.attrs.get("propagation") == "slm":
-            raise ValidationError(f"{dataset}: imported captures carry no device model (the forward model of "
-                                  "compare / retrieve / synth-captures needs a synthetic dataset)")
-        raise ValidationError(f"{path}: missing (the device's coarse pupil, written by `metadesign dataset build`)")
-    z = read_npz(path, "device pupil")
-    cp = CoarsePupil(z["G"], z["X"], int(z["block"]), float(z["period"]), float(z["wavelength"]), float(z["z"]),
-                     int(z["n_clamped"]))
-    s = prov["sensor"]
-    sensor = SensorSpec(int(s["width_px"]), int(s["height_px"]), float(s["pixel_um"]) * 1e-6,
-                        float(s["magnification"]), float(s["distance_mm"]) * 1e-3, int(ds.info.tensor_size))
-    sc = ds.scenario()
-    c0, a = ds.crop()
-    return {"pupil": cp, "sensor": sensor, "scenario": sc, "crop": (c0, a),
-            "geometry": (c0, a, sc.n_grid, sc.dx, sc.receiver_aperture)}
+def _batch_of(items: list[dict]) -> dict:
+    return {"psf": np.stack([s["psf"] for s in items]), "received": np.stack([s["received"] for s in items]),
+            "index": np.array([s["index"] for s in items])}
 
 
 class _Runner:
-    """Everything one process needs (built lazily in each worker)."""
+    """Everything one process needs (built lazily in each worker): the dataset split with its sensor noise,
+    the bucket, and the estimators (:mod:`metadesign.reconstruction.estimators`) of the settings."""
 
     def __init__(self, model, dataset, st: CompareSettings):
         import torch
 
-        from ..reconstruction.data import PSFDataset
-        from ..reconstruction.losses import PiB
-        from .retrieval import RetrievalContext
-        from .shack_hartmann import ShackHartmann
-
         torch.set_num_threads(1)
         self.st = st
-        dev = device_of(dataset)
-        self.dev = dev
-        sc = dev["scenario"]
-        c0, a = dev["crop"]
         self.ds = PSFDataset(dataset, st.split, gaussian_percent=st.noise_percent, noise_seed=st.noise_seed,
                              limit=st.limit, screens=True)
-        self.pib = PiB(sc, c0, a)
+        self.dev = dev = self.ds.device()
+        self.pib = PiB(self.ds.scenario(), dev.crop.start, dev.crop.size)
         self.model = None
         if model is not None:
-            from ..reconstruction.model import load_model
-
             self.model, self.card = load_model(model)
-        self.ctx = RetrievalContext.build(dev["pupil"], dev["sensor"], dev["geometry"], st.retrieval) \
-            if "retrieval" in st.methods else None
-        self.hctx = RetrievalContext.build(dev["pupil"], dev["sensor"], dev["geometry"], st.hybrid) \
-            if "hybrid" in st.methods else None
-        self.sh = ShackHartmann(st.sh, a, c0, sc.n_grid, sc.dx, sc.receiver_aperture, sc.wavelength) \
-            if "shack_hartmann" in st.methods else None
+        self.est = {name: make_estimator(name, dev, st, self.model, st.noise_percent, st.noise_seed)
+                    for name in _run_order(st.methods, self.model is not None)}
 
     def items(self, js):
         return [self.ds.get(j) for j in js]
 
-    def sh_rng(self, index: int) -> np.random.Generator:
-        return np.random.default_rng(np.random.SeedSequence(self.st.noise_seed, spawn_key=(7, int(index))))
-
-    def sh_phase(self, items) -> np.ndarray:
-        out = []
-        for s in items:
-            spots = self.sh.add_noise(self.sh.frames(s["received"][None]), self.st.noise_percent,
-                                      self.sh_rng(s["index"]))
-            out.append(self.sh.reconstruct(*self.sh.centroids(spots, self.st.noise_percent))[0])
-        return np.stack(out)
-
     def batch(self, js) -> dict:
         import torch
 
-        from .retrieval import retrieve
-
-        st = self.st
         items = self.items(js)
-        psf = torch.from_numpy(np.stack([s["psf"] for s in items]))
         scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
         rec = torch.from_numpy(np.stack([s["received"] for s in items]))
         pib = self.pib
@@ -169,74 +137,55 @@ class _Runner:
 
         def npib(phi):
             with torch.no_grad():
-                return pib.npib_phase(phi, scr).numpy()
+                return pib.npib_phase(torch.as_tensor(phi), scr).numpy()
 
         with torch.no_grad():
             r["none"] = npib(torch.zeros(rec.shape, dtype=torch.float32))
             r["phase_conjugate"] = npib(torch.angle(rec) * pib.ap)
             r["complex_conjugate"] = pib.npib_complex(rec, scr).numpy()
-        phi_u = None
-        if self.model is not None and ("unet" in st.methods or "hybrid" in st.methods):
-            with torch.no_grad():
-                phi_u = self.model(psf)
-            r["unet"] = npib(phi_u)
-        if self.sh is not None:
-            r["shack_hartmann"] = npib(torch.from_numpy(self.sh_phase(items)))
-        for name, ctx, cfg, init in (("retrieval", self.ctx, st.retrieval, None),
-                                     ("hybrid", self.hctx, st.hybrid, phi_u)):
-            if ctx is None or (name == "hybrid" and phi_u is None):
+        batch = _batch_of(items)
+        done: dict = {}
+        for name, est in self.est.items():
+            if est.iterations is None:
+                done[name] = est.estimate(batch, done)
+                r[name] = npib(done[name])
                 continue
-            cks = checkpoints_for(cfg.iterations)
-            curve = {}
-            out = retrieve(psf, ctx, cfg, init=init, checkpoints=cks,
-                           on_checkpoint=lambda it, phi: curve.__setitem__(it, npib(phi)))
+            cks, curve = est.checkpoints(), {}
+            done[name] = est.estimate(batch, done, on_checkpoint=lambda it, phi: curve.__setitem__(it, npib(phi)))
             r[f"{name}_curve"] = np.stack([curve[c] for c in cks])  # (n_checkpoints, B)
             r[name] = r[f"{name}_curve"][-1]
-            r[f"{name}_misfit"] = out["misfit"]  # (iterations, B)
+            r[f"{name}_misfit"] = est.misfit()  # (iterations, B)
         return r
 
     def latency(self) -> dict:
-        """Single-sample latency (ms) of each method; for the iterative ones, at each checkpoint."""
-        import torch
-
-        from ..timing import repeat_seconds
-        from .retrieval import retrieve
-
-        st = self.st
-        items = self.items(range(min(st.latency_samples, len(self.ds))))
-        out = {}
-
-        def median_ms(fn):
-            return 1e3 * repeat_seconds(fn, 15)
-
-        psf1 = torch.from_numpy(items[0]["psf"][None])
-        if self.model is not None:
-            with torch.no_grad():
-                out["unet"] = median_ms(lambda: self.model(psf1))
-        if self.sh is not None:
-            spots = self.sh.add_noise(self.sh.frames(items[0]["received"][None]), st.noise_percent, self.sh_rng(0))
-            out["shack_hartmann"] = median_ms(lambda: self.sh.reconstruct(*self.sh.centroids(spots, st.noise_percent)))
-        for name, ctx, cfg in (("retrieval", self.ctx, st.retrieval), ("hybrid", self.hctx, st.hybrid)):
-            if ctx is None or (name == "hybrid" and self.model is None):
+        """Single-sample latency (ms) of each estimator, from the input it sees to its phase estimate; for
+        the iterative ones, at each checkpoint (plus the latency of the estimator they start from)."""
+        items = self.items(range(min(self.st.latency_samples, len(self.ds))))
+        out: dict = {}
+        for name, est in self.est.items():
+            base = out.get(getattr(est, "starts_from", None) or "", 0.0)
+            if est.iterations is None:
+                out[name] = 1e3 * repeat_seconds(est.latency_fn(_batch_of(items[:1])), 15)
                 continue
-            cks = checkpoints_for(cfg.iterations)
-            runs = []
+            cks, runs = est.checkpoints(), []
             for s in items:
-                p = torch.from_numpy(s["psf"][None])
-                init = None
-                base = 0.0
-                if name == "hybrid":
-                    with torch.no_grad():
-                        init = self.model(p)
-                    base = out["unet"]
+                one = _batch_of([s])
+                done = {k: v.estimate(one) for k, v in self.est.items() if k == getattr(est, "starts_from", None)}
+                stamps: dict = {}
                 t0 = time.perf_counter()
-                stamps = {}
-                retrieve(p, ctx, cfg, init=init, checkpoints=cks,
-                         on_checkpoint=lambda it, phi: stamps.__setitem__(it, time.perf_counter()))
+                est.estimate(one, done, on_checkpoint=lambda it, phi: stamps.__setitem__(it, time.perf_counter()))
                 runs.append([base + 1e3 * (stamps[c] - t0) for c in cks])
             out[f"{name}_curve"] = np.median(np.array(runs), axis=0)
             out[name] = float(out[f"{name}_curve"][-1])
         return out
+
+
+def _run_order(methods, have_model: bool) -> list[str]:
+    """The estimators to run, in registry order: the asked ones a model allows, and those they start from
+    (the hybrid's U-Net: recorded too)."""
+    want = {m for m in methods if have_model or not ESTIMATOR_CLASSES[m].needs_model}
+    want |= {getattr(ESTIMATOR_CLASSES[m], "starts_from", None) for m in list(want)} - {None}
+    return [m for m in ESTIMATOR_CLASSES if m in want]
 
 
 _RUNNER = None
@@ -253,18 +202,17 @@ def _worker_batch(args):
 def run_compare(model, dataset, st: CompareSettings, workers: int = 1,
                 progress: Callable[[int, int], None] | None = None) -> dict:
     """Per-sample NPiB of every method, curves and latency (see the module docstring)."""
-    from ..parallel import spawn_pool
-    from ..validation import ValidationError
-
     if model is None:
-        st = replace(st, methods=tuple(m for m in st.methods if m not in ("unet", "hybrid")))
+        dropped = [m for m in st.methods if ESTIMATOR_CLASSES[m].needs_model]
+        st = replace(st, methods=tuple(m for m in st.methods if m not in dropped))
+        if dropped and not st.methods:
+            raise ValidationError(f"--methods: {' and '.join(dropped)} need a model, and MODEL is NONE: nothing to run")
     runner = _Runner(model, dataset, st)
     n = len(runner.ds)
     if n == 0:
         raise ValidationError(f"{dataset}: the {st.split} split is empty")
-    if runner.model is not None and runner.model.config.input_size != runner.ds.info.tensor_size:
-        raise ValidationError(f"model input {runner.model.config.input_size}^2 does not match the dataset's "
-                              f"tensors ({runner.ds.info.tensor_size}^2)")
+    if runner.model is not None:
+        check_fits(runner.model, runner.ds.info, str(model))
     chunks = [list(range(i, min(n, i + st.batch))) for i in range(0, n, st.batch)]
     t0 = time.perf_counter()
     parts = []
@@ -286,15 +234,14 @@ def run_compare(model, dataset, st: CompareSettings, workers: int = 1,
         rows[key] = np.concatenate([p[key] for p in parts], axis=ax)
     lat = runner.latency()
     return {"rows": rows, "latency_ms": lat, "n": n, "wall_seconds": wall, "settings": st,
-            "checkpoints": {m: checkpoints_for(getattr(st, m).iterations) for m in ("retrieval", "hybrid")
-                            if f"{m}_curve" in rows},
+            "checkpoints": {m: e.checkpoints() for m, e in runner.est.items() if f"{m}_curve" in rows},
             "card": getattr(runner, "card", None)}
 
 
 # -- summaries --------------------------------------------------------------------------------------
 
 def methods_present(rows: dict) -> list[str]:
-    return [m for m in METHODS if m in rows]
+    return [m for m in methods() if m in rows]
 
 
 def at_budget(res: dict, method: str, budget_ms: float) -> np.ndarray:
@@ -310,8 +257,6 @@ def at_budget(res: dict, method: str, budget_ms: float) -> np.ndarray:
 
 
 def summarise(res: dict) -> dict:
-    from ..reconstruction.evaluate import RYTOV_BINS
-
     rows = res["rows"]
     ms = methods_present(rows)
     x = rows["rytov_measured"]
@@ -334,9 +279,6 @@ def summarise(res: dict) -> dict:
 
 def write_compare(res: dict, out: Path, tuning: dict | None = None) -> list[Path]:
     """compare.csv (per sample), compare-curves.csv, compare.json, and the figures."""
-    from ..cliutil import json_safe
-    from ..io import atomic_path, atomic_write_text
-
     out.mkdir(parents=True, exist_ok=True)
     rows = res["rows"]
     ms = methods_present(rows)
@@ -372,14 +314,9 @@ def write_compare(res: dict, out: Path, tuning: dict | None = None) -> list[Path
 
 
 def plot_compare(res: dict, summ: dict, out: Path) -> list[Path]:
-    from ..plotting import pyplot, save_figure
-
     plt = pyplot()
     rows = res["rows"]
     ms = methods_present(rows)
-    style = {"none": ("k", "x"), "shack_hartmann": ("tab:orange", "v"), "retrieval": ("tab:purple", "D"),
-             "unet": ("tab:blue", "o"), "hybrid": ("tab:red", "*"), "phase_conjugate": ("tab:green", "s"),
-             "complex_conjugate": ("tab:olive", "^")}
     figs = []
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
     x = rows["rytov_measured"]
@@ -387,7 +324,7 @@ def plot_compare(res: dict, summ: dict, out: Path) -> list[Path]:
         np.array([x.min(), x.max() + 1e-9])
     edges[-1] += 1e-9
     for m in ms:
-        c, mk = style[m]
+        c, mk = style(m)
         a1.scatter(x, rows[m], s=6, color=c, alpha=0.25, marker=mk)
         mids, means, sems = [], [], []
         for lo, hi in zip(edges[:-1], edges[1:]):
@@ -396,21 +333,21 @@ def plot_compare(res: dict, summ: dict, out: Path) -> list[Path]:
                 mids.append(np.mean(x[sel]))
                 means.append(np.mean(rows[m][sel]))
                 sems.append(np.std(rows[m][sel]) / np.sqrt(sel.sum()))
-        a1.errorbar(mids, means, sems, color=c, marker=mk, label=f"{LABELS[m]} ({np.mean(rows[m]):.3f})", capsize=2)
+        a1.errorbar(mids, means, sems, color=c, marker=mk, label=f"{label(m)} ({np.mean(rows[m]):.3f})", capsize=2)
     a1.set(xlabel="Rytov number of the sample (measured)", ylabel="NPiB",
            title=f"{res['n']} {res['settings'].split} samples, noise {res['settings'].noise_percent:g} %")
     a1.legend(fontsize=7)
     lat = res["latency_ms"]
     for m in ms:
-        c, mk = style[m]
+        c, mk = style(m)
         if m in summ["curves"]:
             cv = summ["curves"][m]
             a2.semilogx([max(p["latency_ms"], 1e-2) for p in cv], [p["npib"] for p in cv], "-", color=c, marker=mk,
-                        ms=4, label=LABELS[m])
+                        ms=4, label=label(m))
         elif m in lat:
-            a2.semilogx([lat[m]], [summ["npib"][m]], mk, color=c, ms=9, label=f"{LABELS[m]} ({lat[m]:.2g} ms)")
+            a2.semilogx([lat[m]], [summ["npib"][m]], mk, color=c, ms=9, label=f"{label(m)} ({lat[m]:.2g} ms)")
         else:
-            a2.axhline(summ["npib"][m], color=c, ls=":" if m == "none" else "--", lw=1, label=LABELS[m])
+            a2.axhline(summ["npib"][m], color=c, ls=":" if m == "none" else "--", lw=1, label=label(m))
     for b in BUDGETS_MS:
         a2.axvline(b, color="0.7", lw=0.8)
     a2.set(xlabel="latency per sample [ms] (one CPU thread)", ylabel="mean NPiB", title="NPiB vs latency")
@@ -425,6 +362,8 @@ SH_GRID = {"lenslets": (4, 5, 8, 10), "reconstructor": ("zonal", "modal"), "thre
            "noise_sigmas": (0.0, 3.0)}
 RETRIEVAL_GRID = {"misfit": ("gaussian", "amplitude"), "lr_zonal": (0.03, 0.1)}
 HYBRID_GRID = {"misfit": ("gaussian", "amplitude"), "lr_zonal": (0.01, 0.03, 0.1)}
+#: what ``--tune`` searches, by estimator (an estimator without a grid is used as configured)
+TUNING_GRIDS = {"shack_hartmann": SH_GRID, "retrieval": RETRIEVAL_GRID, "hybrid": HYBRID_GRID}
 
 
 def _grid(base, grid: dict):
@@ -441,55 +380,39 @@ def tune(model, dataset, st: CompareSettings, n: int, split: str = "val", log=pr
     hybrid's misfit and step (each at its own iteration count); returns the settings with the winners."""
     import torch
 
-    methods = st.methods if model is not None else tuple(m for m in st.methods if m not in ("unet", "hybrid"))
+    methods = st.methods if model is not None else tuple(m for m in st.methods if not ESTIMATOR_CLASSES[m].needs_model)
     probe = replace(st, split=split, limit=n, methods=())
     base = _Runner(None, dataset, probe)
     items = base.items(range(min(n, len(base.ds))))
     if not items:
         return st, {}
     scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
-    psf = torch.from_numpy(np.stack([s["psf"] for s in items]))
 
     def npib(phi):
         with torch.no_grad():
             return float(base.pib.npib_phase(torch.as_tensor(phi), scr).mean())
 
     report: dict = {"split": split, "samples": len(items)}
-    if "shack_hartmann" in methods:
-        from .shack_hartmann import ShackHartmann
-
-        sc = base.dev["scenario"]
-        c0, a = base.dev["crop"]
-        table = []
-        for cfg in _grid(st.sh, SH_GRID):
-            r = _Runner.__new__(_Runner)
-            r.st, r.sh = st, ShackHartmann(cfg, a, c0, sc.n_grid, sc.dx, sc.receiver_aperture, sc.wavelength)
-            table.append((npib(r.sh_phase(items)), cfg))
-        best = max(table, key=lambda t: t[0])
-        st = replace(st, sh=best[1])
-        report["shack_hartmann"] = {"best": best[1].to_dict(), "npib": best[0],
-                                    "table": [{**c.to_dict(), "npib": v} for v, c in table]}
-        log(f"tuned Shack-Hartmann: {best[0]:.3f} with {best[1]}")
-    from .retrieval import RetrievalContext, retrieve
-
-    phi_u = None
-    if model is not None and "hybrid" in methods:
-        from ..reconstruction.model import load_model
-
-        m, _ = load_model(model)
-        with torch.no_grad():
-            phi_u = m(psf)
-    for name, grid in (("retrieval", RETRIEVAL_GRID), ("hybrid", HYBRID_GRID)):
-        if name not in methods or (name == "hybrid" and phi_u is None):
+    batch = _batch_of(items)
+    done: dict = {}
+    mdl = None
+    if model is not None and any(getattr(ESTIMATOR_CLASSES[m], "starts_from", None) for m in methods):
+        mdl, _ = load_model(model)
+        done["unet"] = make_estimator("unet", base.dev, model=mdl).estimate(batch)
+    for name in _run_order(methods, model is not None):
+        cls = ESTIMATOR_CLASSES[name]
+        grid = TUNING_GRIDS.get(name)
+        if not grid or (getattr(cls, "starts_from", None) and cls.starts_from not in done):
             continue
         table = []
-        for cfg in _grid(getattr(st, name), grid):
-            ctx = RetrievalContext.build(base.dev["pupil"], base.dev["sensor"], base.dev["geometry"], cfg)
-            res = retrieve(psf, ctx, cfg, init=phi_u if name == "hybrid" else None)
-            table.append((npib(res["phi"]), cfg))
+        for cfg in _grid(getattr(st, cls.config_key), grid):
+            est = cls(base.dev, cfg, mdl, st.noise_percent, st.noise_seed)
+            table.append((npib(est.estimate(batch, done)), cfg))
         best = max(table, key=lambda t: t[0])
-        st = replace(st, **{name: best[1]})
+        st = replace(st, **{cls.config_key: best[1]})
         report[name] = {"best": best[1].to_dict(), "npib": best[0],
-                        "table": [{**{k: getattr(c, k) for k in grid}, "npib": v} for v, c in table]}
-        log(f"tuned {name}: {best[0]:.3f} with " + ", ".join(f"{k}={getattr(best[1], k)}" for k in grid))
+                        "table": [{**({k: getattr(c, k) for k in grid} if name != "shack_hartmann" else c.to_dict()),
+                                   "npib": v} for v, c in table]}
+        log(f"tuned {cls.label if name == 'shack_hartmann' else name}: {best[0]:.3f} with "
+            + (str(best[1]) if name == "shack_hartmann" else ", ".join(f"{k}={getattr(best[1], k)}" for k in grid)))
     return st, report

@@ -10,12 +10,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..turbulence.path import Scenario
-from ..turbulence.propagate import Turbulence, split_step
-from .forward import CoarsePupil, sensor_frames
-from .model import AsFabricated, SensingRecipe
-from .sensor import psf_tensor
-from .transmission import Perturbation
+from ..sensing.forward import CoarsePupil, sensor_frames
+from ..sensing.model import AsFabricated, SensingRecipe
+from ..sensing.sensor import psf_tensor
+from ..sensing.transmission import Perturbation
+from .path import Scenario
+from .propagate import Turbulence, split_step
 
 __all__ = ["BeaconChain", "BeaconSample"]
 

@@ -1,0 +1,208 @@
+"""Wavefront estimators: one interface, one registry (hcipy's ``WavefrontSensorEstimator`` in spirit).
+
+An estimator turns what its sensor sees into a phase estimate on the received-field crop ``(B, A, A)``
+(rad; the correction applied is its conjugate).  Construction is the latency-irrelevant ``prepare`` step
+(operators, contexts, calibration); :meth:`Estimator.estimate` is the batch path; :meth:`Estimator.
+latency_fn` is the single-sample call a latency figure times.  Iterative estimators also report their
+estimate at checkpoints along the iterations (``on_checkpoint(iteration, phi)``), so a study can draw
+NPiB against latency.
+
+A new estimator is one class with :func:`register`::
+
+    @register
+    class MyEstimator(Estimator):
+        name, label = "mine", "my method"
+        def estimate(self, batch, done=None, on_checkpoint=None): ...
+
+Studies (``metadesign compare``) build every registered estimator from a :class:`~metadesign.sensing.
+device.Device` and the estimator's own settings (``config_key``: the attribute of the study's settings
+that holds them) and run them on the same samples and the same sensor noise.
+
+A batch is a dict of numpy arrays of one dataset split: ``psf`` (B, 8, S, S) with the sensor noise,
+``received`` (B, A, A) complex (the true field: what a Shack-Hartmann sensor in the same plane would see),
+``index`` (B,) sample indices (seeds for per-sample noise)."""
+
+from __future__ import annotations
+
+from typing import Callable, ClassVar
+
+import numpy as np
+
+from ..sensing.device import Device
+from ..validation import ValidationError
+from .retrieval import RetrievalConfig, RetrievalContext, retrieve
+from .shack_hartmann import ShackHartmann, SHConfig
+
+__all__ = ["Estimator", "register", "ESTIMATORS", "estimator_names", "make_estimator", "checkpoints_for",
+           "UNetEstimator", "RetrievalEstimator", "HybridEstimator", "ShackHartmannEstimator"]
+
+#: name -> estimator class, in registration order (the order studies run and list them)
+ESTIMATORS: dict[str, type["Estimator"]] = {}
+
+
+def register(cls: type["Estimator"]) -> type["Estimator"]:
+    """Class decorator: add an estimator to the registry under ``cls.name``."""
+    if not cls.name or cls.name in ESTIMATORS:
+        raise ValueError(f"estimator name {cls.name!r} is empty or taken")
+    ESTIMATORS[cls.name] = cls
+    return cls
+
+
+def estimator_names() -> tuple[str, ...]:
+    return tuple(ESTIMATORS)
+
+
+def checkpoints_for(total: int) -> list[int]:
+    """0, 1, 2, 5, 10, 20, 50, ... up to ``total`` (and ``total``)."""
+    out, base = [0], 1
+    while base <= total:
+        out += [c for c in (base, 2 * base, 5 * base) if c <= total]
+        base *= 10
+    return sorted(set(out + [total]))
+
+
+class Estimator:
+    """The interface; subclasses set the class attributes and implement :meth:`estimate`."""
+
+    name: ClassVar[str] = ""
+    label: ClassVar[str] = ""
+    style: ClassVar[tuple[str, str]] = ("k", "o")  # matplotlib colour and marker in study figures
+    needs_model: ClassVar[bool] = False  # takes the U-Net (the model argument of a study)
+    config_key: ClassVar[str | None] = None  # attribute of a study's settings holding this estimator's config
+
+    def __init__(self, device: Device, config=None, model=None, noise_percent: float = 0.0, noise_seed: int = 0):
+        """The ``prepare`` step: everything that does not depend on the sample (not timed)."""
+        self.device, self.config, self.model = device, config, model
+        self.noise_percent, self.noise_seed = float(noise_percent), int(noise_seed)
+        if self.needs_model and model is None:
+            raise ValidationError(f"estimator {self.name}: needs a model")
+
+    @property
+    def iterations(self) -> int | None:
+        """Iterations of an iterative estimator (None: one shot)."""
+        return None
+
+    def checkpoints(self) -> list[int]:
+        return checkpoints_for(self.iterations) if self.iterations is not None else []
+
+    def estimate(self, batch: dict, done: dict | None = None,
+                 on_checkpoint: Callable[[int, object], None] | None = None):
+        """Phase estimates (B, A, A) for a batch (a torch tensor or a numpy array).  ``done``: estimates of
+        the estimators run before on the same batch, by name (the hybrid starts from the U-Net's)."""
+        raise NotImplementedError
+
+    def latency_fn(self, item: dict, done: dict | None = None) -> Callable[[], object]:
+        """A zero-argument call estimating one sample (``item``: a batch of one), for timing."""
+        return lambda: self.estimate(item, done)
+
+    def misfit(self):
+        """Per-iteration data misfit of the last :meth:`estimate` (iterative estimators), or None."""
+        return None
+
+
+def _torch(a):
+    import torch
+
+    return a if isinstance(a, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(a))
+
+
+@register
+class ShackHartmannEstimator(Estimator):
+    """A simulated Shack-Hartmann sensor in the received-field plane (its own spots, its own noise:
+    Gaussian, ``noise_percent`` of each frame's peak, seeded per sample)."""
+
+    name, label, style, config_key = "shack_hartmann", "Shack-Hartmann", ("tab:orange", "v"), "sh"
+
+    def __init__(self, device: Device, config: SHConfig | None = None, model=None, noise_percent: float = 0.0,
+                 noise_seed: int = 0):
+        super().__init__(device, config or SHConfig(), model, noise_percent, noise_seed)
+        self.sh = ShackHartmann.for_device(self.config, device)
+
+    def rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence(self.noise_seed, spawn_key=(7, int(index))))
+
+    def spots(self, received: np.ndarray, index: int) -> np.ndarray:
+        return self.sh.add_noise(self.sh.frames(received[None]), self.noise_percent, self.rng(index))
+
+    def estimate(self, batch, done=None, on_checkpoint=None):
+        out = [self.sh.reconstruct(*self.sh.centroids(self.spots(r, i), self.noise_percent))[0]
+               for r, i in zip(batch["received"], batch["index"])]
+        return _torch(np.stack(out))
+
+    def latency_fn(self, item, done=None):
+        spots = self.spots(item["received"][0], 0)  # the sensor's exposure is not the estimator's latency
+        return lambda: self.sh.reconstruct(*self.sh.centroids(spots, self.noise_percent))
+
+
+@register
+class RetrievalEstimator(Estimator):
+    """Model-based phase-diversity retrieval through the differentiable twin (Zernike coarse-to-fine from
+    several starts, then per-pixel phase and amplitude)."""
+
+    name, label, style, config_key = "retrieval", "PD retrieval", ("tab:purple", "D"), "retrieval"
+
+    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None,
+                 noise_percent: float = 0.0, noise_seed: int = 0):
+        super().__init__(device, config or RetrievalConfig(misfit="gaussian"), model, noise_percent, noise_seed)
+        self.ctx = RetrievalContext.build(device, self.config)
+        self._misfit = None
+
+    @property
+    def iterations(self) -> int:
+        return self.config.iterations
+
+    def start(self, batch, done):
+        return None
+
+    def estimate(self, batch, done=None, on_checkpoint=None):
+        out = retrieve(_torch(batch["psf"]), self.ctx, self.config, init=self.start(batch, done),
+                       checkpoints=self.checkpoints() if on_checkpoint else (), on_checkpoint=on_checkpoint)
+        self._misfit = out["misfit"]
+        return out["phi"]
+
+    def misfit(self):
+        return self._misfit
+
+
+@register
+class UNetEstimator(Estimator):
+    """The U-Net: one forward pass on the 8 PSFs."""
+
+    name, label, style, needs_model = "unet", "U-Net", ("tab:blue", "o"), True
+
+    def estimate(self, batch, done=None, on_checkpoint=None):
+        import torch
+
+        with torch.no_grad():
+            return self.model(_torch(batch["psf"]))
+
+
+@register
+class HybridEstimator(RetrievalEstimator):
+    """The retrieval started from the U-Net's estimate (fewer, finer iterations)."""
+
+    name, label, style, config_key, needs_model = "hybrid", "U-Net + retrieval", ("tab:red", "*"), "hybrid", True
+    starts_from = "unet"  # its latency includes that estimator's
+    DEFAULT = RetrievalConfig(modal_iterations=0, zonal_iterations=50, lr_zonal=0.03, misfit="gaussian")
+
+    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None,
+                 noise_percent: float = 0.0, noise_seed: int = 0):
+        super().__init__(device, config or self.DEFAULT, model, noise_percent, noise_seed)
+
+    def start(self, batch, done):
+        import torch
+
+        if done and "unet" in done:
+            return done["unet"]
+        with torch.no_grad():
+            return self.model(_torch(batch["psf"]))
+
+
+def make_estimator(name: str, device: Device, settings=None, model=None, noise_percent: float = 0.0,
+                   noise_seed: int = 0) -> Estimator:
+    """The registered estimator ``name`` for ``device``; its config is ``getattr(settings, config_key)``."""
+    if name not in ESTIMATORS:
+        raise ValidationError(f"estimator: expected one of {', '.join(ESTIMATORS)}, got {name!r}")
+    cls = ESTIMATORS[name]
+    cfg = getattr(settings, cls.config_key) if settings is not None and cls.config_key else None
+    return cls(device, cfg, model, noise_percent, noise_seed)

@@ -1,0 +1,43 @@
+"""The evaluation's figures of merit, defined once.
+
+NPiB is the power in the turbulence stage's bucket (the beacon-plane Airy core) of the corrected beam,
+normalised by that of the ideal beam through vacuum (:class:`~.losses.PiB`): 1 is a perfect correction
+of a beam that kept its power; the complex conjugate (which also restores the amplitude the turbulence
+scattered) can exceed the phase conjugate.  The **captured fraction** is how much of the gain the phase
+conjugate makes over no correction an estimate makes, ``(<est> - <none>) / (<pc> - <none>)`` of the means;
+the **gain** is per sample, ``est / none``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["EVAL_NOISE_SEED", "captured_fraction", "gain", "npib_rows"]
+
+#: the seed of the sensor noise of every evaluation (evaluate, compare): the same draws for every estimator
+EVAL_NOISE_SEED = 12345
+
+_EPS = 1e-12
+
+
+def captured_fraction(none, est, pc) -> float:
+    """``(mean(est) - mean(none)) / (mean(pc) - mean(none))``: the share of the phase conjugate's gain an
+    estimate captures (1: all of it; 0: none)."""
+    return float((np.mean(est) - np.mean(none)) / max(np.mean(pc) - np.mean(none), _EPS))
+
+
+def gain(none, est) -> np.ndarray:
+    """Per-sample NPiB gain of an estimate over no correction."""
+    return np.asarray(est) / np.maximum(np.asarray(none), _EPS)
+
+
+def npib_rows(pib, phi, screens, received, complex_conjugate: bool = False) -> dict:
+    """Per-sample NPiB (torch tensors on the PiB's device) of an estimate ``phi``, of no correction and of
+    the phase (and optionally the complex) conjugate of the true received field, through ``screens``."""
+    import torch
+
+    with torch.no_grad():
+        out = {"estimate": pib.npib_phase(phi, screens), "none": pib.npib_phase(torch.zeros_like(phi), screens),
+               "phase_conjugate": pib.npib_phase(torch.angle(received) * pib.ap, screens)}
+        if complex_conjugate:
+            out["complex_conjugate"] = pib.npib_complex(received, screens)
+    return out

@@ -1,0 +1,435 @@
+"""The commands of the studies that combine stages: ``demo``, ``run`` (pipeline), ``compare``, ``retrieve``,
+``tolerance``, ``transfer``, ``table-s2``, ``library lpa-check`` and ``dataset synth-captures``."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+from pathlib import Path
+
+from ..cliutil import emit, integer, log_to, num, out_dir, progress_bar, workers_arg
+
+__all__ = ["register"]
+
+
+def _settings(a: argparse.Namespace, methods):
+    from .compare import CompareSettings
+
+    st = CompareSettings(split=a.split, limit=a.limit, noise_percent=a.noise, batch=a.batch, methods=tuple(methods))
+    if a.iterations is not None:
+        st = replace(st, retrieval=replace(st.retrieval, zonal_iterations=a.iterations))
+    if getattr(a, "hybrid_iterations", None) is not None:
+        st = replace(st, hybrid=replace(st.hybrid, zonal_iterations=a.hybrid_iterations))
+    if a.starts is not None:
+        st = replace(st, retrieval=replace(st.retrieval, starts=a.starts))
+    return st
+
+
+def _model_arg(model: str):
+    if model.lower() == "none":
+        return None
+    from ..validation import ValidationError
+
+    p = Path(model)
+    if not p.is_file() and not p.with_name(p.name + ".json").is_file():
+        raise ValidationError(f"{model}: no such model (give .safetensors with its .json card, or NONE)")
+    return str(p)
+
+
+def _lines(res, summ, out, tuning) -> list[str]:
+    from .compare import BUDGETS_MS, label, methods_present
+
+    ms = methods_present(res["rows"])
+    lat = summ["latency_ms"]
+    lines = [f"{res['n']} {res['settings'].split} samples, noise {res['settings'].noise_percent:g} % "
+             f"({res['wall_seconds']:.0f} s) -> {out}",
+             f"  {'method':<27} {'NPiB':>6} {'median':>7} {'latency':>11}   " + "   ".join(
+                 f"@{b:g} ms" for b in BUDGETS_MS)]
+    for m in ms:
+        bud = "   ".join(f"{summ['budgets_ms'][f'{b:g}'][m]:6.3f}" if m in summ["budgets_ms"][f"{b:g}"] else "     -"
+                         for b in BUDGETS_MS)
+        lines.append(f"  {label(m):<27} {summ['npib'][m]:6.3f} {summ['npib_median'][m]:7.3f} "
+                     f"{(f'{lat[m]:.3g} ms' if m in lat else '-'):>11}   {bud}")
+    for k, b in summ["by_rytov"].items():
+        lines.append(f"  Rytov {k:>8} (n {b['n']:3d}): " + ", ".join(f"{m} {b[m]:.3f}" for m in ms))
+    if tuning:
+        lines.append(f"  tuned on {tuning['samples']} {tuning['split']} samples: "
+                     + "; ".join(f"{k} {v['npib']:.3f}" for k, v in tuning.items() if isinstance(v, dict)))
+    return lines
+
+
+def _cmd_compare(a: argparse.Namespace) -> int:
+    from .compare import run_compare, tune, write_compare
+
+    model = _model_arg(a.model)
+    out = out_dir(a.output)
+    st = _settings(a, a.methods)
+    log = log_to(a.json)
+    tuning = None
+    if a.tune:
+        st, tuning = tune(model, a.dataset, st, a.tune, log=log)
+    res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("compare", unit="sample"))
+    files = write_compare(res, out, tuning)
+    from .compare import summarise
+
+    summ = summarise(res)
+    emit({"summary": summ, "settings": res["settings"].to_dict(), "tuning": tuning, "files": [str(f) for f in files],
+          "wall_seconds": res["wall_seconds"]}, a.json, "\n".join(_lines(res, summ, out, tuning)))
+    return 0
+
+
+def _cmd_retrieve(a: argparse.Namespace) -> int:
+    from .compare import run_compare, summarise, write_compare
+
+    model = _model_arg(a.model)
+    methods = ("retrieval",) if model is None else ("unet", "hybrid")
+    st = _settings(a, methods)
+    if model is not None and a.iterations is not None:
+        st = replace(st, hybrid=replace(st.hybrid, zonal_iterations=a.iterations))
+    out = out_dir(a.output) if a.output else None
+    res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("retrieve", unit="sample"))
+    summ = summarise(res)
+    files = write_compare(res, out) if out else []
+    if out:
+        files.append(_plot_convergence(res, out))
+    name = methods[-1]
+    mis = res["rows"][f"{name}_misfit"].mean(axis=1)
+    doc = {"summary": summ, "settings": res["settings"].to_dict(), "files": [str(f) for f in files],
+           "convergence": {"misfit_mean": mis.tolist(), "npib": summ["curves"].get(name)},
+           "seconds_per_sample": res["wall_seconds"] / res["n"]}
+    lines = _lines(res, summ, out or "(no output folder)", None)
+    lines.append(f"  {name}: {res['wall_seconds'] / res['n'] * 1e3:.0f} ms per sample in batches of {st.batch}; "
+                 "NPiB along the iterations: " + ", ".join(f"{c['iterations']}: {c['npib']:.3f}"
+                                                        for c in summ["curves"].get(name, [])))
+    emit(doc, a.json, "\n".join(lines))
+    return 0
+
+
+def _plot_convergence(res, out: Path) -> Path:
+    import numpy as np
+
+    from ..plotting import pyplot, save_figure
+    from .compare import summarise
+
+    plt = pyplot()
+    summ = summarise(res)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for name in ("retrieval", "hybrid"):
+        if f"{name}_misfit" in res["rows"]:
+            m = res["rows"][f"{name}_misfit"]
+            a1.semilogy(np.arange(1, len(m) + 1), m.mean(axis=1), label=name)
+            cv = summ["curves"][name]
+            a2.plot([c["iterations"] for c in cv], [c["npib"] for c in cv], "o-", label=name)
+    a2.axhline(summ["npib"]["phase_conjugate"], ls="--", c="g", label="phase conjugate")
+    a2.axhline(summ["npib"]["none"], ls=":", c="k", label="uncorrected")
+    a1.set(xlabel="iteration", ylabel="mean misfit", title="convergence")
+    a2.set(xlabel="iteration", ylabel="mean NPiB", title="NPiB along the iterations")
+    a1.legend(fontsize=8)
+    a2.legend(fontsize=8)
+    return save_figure(fig, out / "convergence.png")
+
+
+def _common(p, iterations_help: str) -> None:
+    p.add_argument("dataset", help="dataset folder (its device pupil and provenance define the forward model)")
+    p.add_argument("--split", default="test", choices=["test", "val", "train", "all"])
+    p.add_argument("--limit", type=integer(1, 10**8), help="at most this many samples of the split")
+    p.add_argument("--noise", type=num(0, 100, unit="%"), default=5.0,
+                   help="sensor noise for every method, %% of each frame's peak (default 5, the demo model's)")
+    p.add_argument("--iterations", type=integer(0, 100000), help=iterations_help)
+    p.add_argument("--starts", type=integer(1, 64), help="retrieval: starts per sample in the modal stage (default 3)")
+    p.add_argument("--batch", type=integer(1, 4096), default=8, help="samples per batch (default 8)")
+    workers_arg(p)
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _cmd_demo(a: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    summary = run_demo(out_dir(a.output), log=log_to(a.json))
+    emit(summary, a.json, summary["text"])
+    return 0 if summary["passed"] else 1
+
+
+def _cmd_run(a: argparse.Namespace) -> int:
+    from .pipeline import run_pipeline
+
+    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
+    rep = run_pipeline(a.recipe, out, log=log_to(a.json))
+    lines = [f"pipeline {a.recipe} -> {out}"]
+    for k, v in rep["stages"].items():
+        lines.append(f"  {k:<11} {'up to date' if v.get('skipped') else '%.1f s' % v['seconds']}")
+    for row in rep["tables"].get("NPiB summary", []):
+        lines.append(f"  NPiB (noise {row['noise']}): none {row['npib_none']:.3f}, U-Net {row['npib_unet']:.3f}, "
+                     f"phase conjugate {row['npib_phase_conjugate']:.3f}; captured {row['captured_fraction']:.2f}")
+    lines.append(f"  report     {rep['report']}")
+    emit({"stages": rep["stages"], "tables": rep["tables"], "report": rep["report"]}, a.json, "\n".join(lines))
+    return 0
+
+
+def _cmd_table_s2(a: argparse.Namespace) -> int:
+    from .table_s2 import run_table_s2
+
+    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
+    rep = run_table_s2(a.recipe, out, workers=a.workers, log=log_to(a.json))
+    lines = [f"Table S2 ({rep['samples']} samples at Rytov {rep['rytov']}, {rep['epochs']} epochs) -> {out}",
+             "  model split  PiB ratio (mean of NPiB_unet / NPiB_pc)  ratio of means   NPiB U-Net / none / conjugate"]
+    for r in rep["rows"]:
+        lines.append(f"  {r['model']:<5} {r['split']:<5}  {100 * r['pib_ratio']:6.1f} %                        "
+                     f"{100 * r['pib_ratio_of_means']:6.1f} %          {r['npib_unet']:.3f} / {r['npib_none']:.3f} / "
+                     f"{r['npib_phase_conjugate']:.3f}")
+    lines.append("  paper: E2E 96.3 % / 96.0 %, MSE 94.6 % / 71.5 % (train / test)")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
+def _cmd_tolerance(a: argparse.Namespace) -> int:
+    from .tolerance import load_tolerance_recipe, run_tolerance
+
+    rec = load_tolerance_recipe(a.recipe)
+    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
+    rep = run_tolerance(rec, out, workers=a.workers, log=log_to(a.json))
+    lines = [f"fab tolerance of {rec.model.name} at {rep['noise_percent']:g} % noise -> {out} ({Path(rep['figure']).name})",
+             "  case              NPiB U-Net  captured  gain(median) | fine-tuned U-Net  captured | conjugate  none"]
+    for r in rep["rows"]:
+        b, f = r["before"], r.get("after")
+        lines.append(f"  {r['case']:<16}  {b['npib_unet']:.3f}       {b['captured_fraction']:5.2f}     "
+                     f"{b['gain_median']:6.1f}     | " + (f"{f['npib_unet']:.3f}             {f['captured_fraction']:5.2f}"
+                                                           if f else "  -                  -  ")
+                     + f"     | {b['npib_phase_conjugate']:.3f}      {b['npib_none']:.3f}")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
+def _cmd_synth(a: argparse.Namespace) -> int:
+    from ..sensing.camera import Alignment, CameraSpec
+    from .captures import synth_captures
+
+    out = out_dir(a.output)
+    al = Alignment(a.shift[0], a.shift[1], a.rotation_deg, a.scale)
+    cam = CameraSpec(peak_counts=a.peak_counts, photons_at_peak=a.photons, read_noise_e=a.read_noise_e,
+                     dark_counts=a.dark_counts, hot_pixels=a.hot_pixels, seed=a.seed)
+    rep = synth_captures(a.phases, a.device, out, al, cam, samples=a.samples, split=a.split, fmt=a.format,
+                         saturate=a.saturate, seed=a.seed, progress=progress_bar("captures", unit="frame"))
+    emit(rep, a.json, f"wrote {out}: {rep['samples']} samples ({rep['format']}), {rep['flats']} flat and "
+         f"{rep['darks']} dark captures, {rep['saturated']} over-exposed; manifest {out / 'manifest.csv'}")
+    return 0
+
+
+def _cmd_transfer(a: argparse.Namespace) -> int:
+    from .transfer import load_transfer_recipe, run_transfer
+
+    rec = load_transfer_recipe(a.recipe)
+    out = out_dir(a.output or Path(a.recipe).with_name(Path(a.recipe).stem + "-out"))
+    rep = run_transfer(rec, out, workers=a.workers, log=log_to(a.json),
+                       progress=None if a.json else progress_bar("captures", unit="frame"))
+    r = rep["rows"]
+    tr, fi = rep["truth_alignment"], rep["fitted_alignment"]
+    lines = [f"transfer to captured frames -> {out} ({Path(rep['figure']).name}); relay true "
+             f"({tr['shift_x_px']:+.2f}, {tr['shift_y_px']:+.2f}) px {tr['rotation_deg']:+.3f} deg x{tr['scale']:.4f}, "
+             f"fitted ({fi['shift_x_px']:+.2f}, {fi['shift_y_px']:+.2f}) px {fi['rotation_deg']:+.3f} deg x{fi['scale']:.4f}",
+             "  model                 NPiB mean  median  captured"]
+    for k in ("unadapted", "scratch", "finetuned"):
+        if k in r:
+            lines.append(f"  {k:<20}  {r[k]['npib_unet']:.3f}      {r[k]['npib_unet_median']:.3f}   "
+                         f"{r[k]['captured_fraction']:.2f}")
+    lines.append(f"  uncorrected {r['unadapted']['npib_none']:.3f}, phase conjugate "
+                 f"{r['unadapted']['npib_phase_conjugate']:.3f} ({r['unadapted']['n']} test captures)")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
+def _cmd_lpa(a: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from ..io import atomic_write_text
+    from ..sensing.model import AsFabricated
+    from .lpa import lpa_check, lpa_downstream, plot_lpa
+
+    src = Path(a.design)
+    out = out_dir(a.output or (src.parent if src.is_file() else src) / "lpa-check")
+    if (a.dataset is None) != (a.model is None):
+        from ..validation import ValidationError
+
+        raise ValidationError("--dataset and --model go together (the downstream NPiB needs both)")
+    log = log_to(a.json)
+    if src.is_dir():
+        from ..design.store import load_design
+
+        fab = AsFabricated.from_design(load_design(src))
+    else:
+        fab = AsFabricated.from_files(src)
+    im, w = fab.layout.index_map, fab.layout.atom_widths_nm
+    mask = None
+    if (fab.aperture or {}).get("kind") == "circle":
+        n2 = im.shape[0] // 2
+        x = (np.arange(n2) - (n2 - 1) / 2) * 2 * fab.period
+        mask = x[None, :] ** 2 + x[:, None] ** 2 <= (im.shape[0] * fab.period / 2) ** 2 * 0.98
+    log(f"lpa-check: {a.supercells} supercells of {src} (period {fab.period * 1e6:.3f} um, 2 x 2) ...")
+    rep = lpa_check(im, w, fab.lib, a.supercells, a.harmonics, a.seed, a.workers, a.check, mask,
+                    progress=None if a.json else progress_bar("supercells", unit="cell"))
+    eps = rep.pop("_eps")
+    rep.pop("_contrast"), rep.pop("_spread")
+    if a.dataset is not None:
+        log("downstream: channel metrics and NPiB with the measured error ...")
+        rep["downstream"] = lpa_downstream(eps, a.dataset, a.model, fab, a.samples, a.noise, a.seed, log)
+    out.mkdir(exist_ok=True)
+    atomic_write_text(out / "lpa.json", json.dumps(rep, indent=1))
+    rep["figure"] = str(plot_lpa(rep, out / "lpa.png"))
+    L, Ll = rep["lpa"], rep["lpa_library"]
+    lines = [f"LPA error on {rep['supercells']} supercells (RCWA nG {rep['n_harmonics_supercell']}, unit cells nG "
+             f"{rep['n_harmonics_unit']}; 1.5x harmonics change <= "
+             + ("/".join(f"{v:.1e}" for v in rep["convergence_rel_change_max"]) if rep["convergence_rel_change_max"]
+                else "-") + f") -> {out}",
+             "                       x-pol        y-pol",
+             f"  |eps| mean          {L['rel_magnitude_mean'][0]:.4f}       {L['rel_magnitude_mean'][1]:.4f}",
+             f"  |eps| median / p90  {L['rel_magnitude_median'][0]:.3f}/{L['rel_magnitude_p90'][0]:.3f}  "
+             f"{L['rel_magnitude_median'][1]:.3f}/{L['rel_magnitude_p90'][1]:.3f}",
+             f"  phase RMS [rad]     {L['phase_rms_rad'][0]:.4f}       {L['phase_rms_rad'][1]:.4f}",
+             f"  |dt| / rms|t_i|     {L['abs_error_over_unit_rms_mean'][0]:.4f}       "
+             f"{L['abs_error_over_unit_rms_mean'][1]:.4f}",
+             f"  |1+eps| mean        {L['amplitude_ratio_mean'][0]:.4f}       {L['amplitude_ratio_mean'][1]:.4f}",
+             f"  vs library |eps|    {Ll['rel_magnitude_mean'][0]:.4f}       {Ll['rel_magnitude_mean'][1]:.4f}",
+             "  corr(|eps|, width contrast) "
+             + " / ".join("-" if v is None else f"{v:+.2f}" for v in rep["corr_error_vs_width_contrast"])]
+    d = rep.get("downstream")
+    if d:
+        lines.append(f"  NPiB ({d['samples']} test samples, {d['noise_percent']:g} % noise): nominal "
+                     f"{d['nominal']['npib_unet']:.4f}, independent {d['independent']['npib_unet']:.4f}, correlated "
+                     f"{d['correlated']['npib_unet']:.4f} (none {d['npib_none']:.3f}, conjugate "
+                     f"{d['npib_phase_conjugate']:.3f})")
+        for k in ("focusing_efficiency", "strehl", "crosstalk"):
+            v = [np.mean([c[k] for c in d[m]["channels"]]) for m in ("nominal", "independent", "correlated")]
+            lines.append(f"  mean {k:<20} {v[0]:.4f} -> {v[1]:.4f} (independent), {v[2]:.4f} (correlated)")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
+def register(sub, groups: dict) -> None:
+    """Add the study commands: top-level ones to ``sub``, ``library lpa-check`` and ``dataset synth-captures``
+    to the stage groups in ``groups``."""
+    from .compare import ESTIMATORS
+
+    c = sub.add_parser(
+        "compare", help="baselines: NPiB and latency of Shack-Hartmann, retrieval, U-Net and hybrid on the same samples",
+        description="Every wavefront sensor on the same samples and the same sensor noise: uncorrected, a "
+        "simulated Shack-Hartmann, model-based phase-diversity retrieval on the 8 PSFs, the U-Net, the "
+        "U-Net + retrieval hybrid, and the phase/complex conjugate bounds. NPiB per sample vs Rytov number, "
+        "NPiB vs single-sample latency, NPiB at 1/10/100 ms budgets; CSV, JSON and figures in -o.")
+    c.add_argument("model", help="U-Net weights (.safetensors with its .json card), or NONE")
+    _common(c, "zonal iterations of the retrieval (default 100)")
+    c.add_argument("--hybrid-iterations", type=integer(0, 100000), help="iterations of the hybrid (default 50)")
+    c.add_argument("--methods", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS),
+                   help="estimators to run (default: all)")
+    c.add_argument("--tune", type=integer(0, 10000), default=0, metavar="N",
+                   help="first tune every baseline on N validation samples (grids in metadesign.studies.compare)")
+    c.add_argument("-o", "--output", required=True, help="output folder")
+    c.set_defaults(func=_cmd_compare)
+
+    r = sub.add_parser(
+        "retrieve", help="baselines: model-based phase-diversity retrieval (or the hybrid) on a dataset split",
+        description="Estimate the received phase from the 8 PSFs by fitting the differentiable as-fabricated "
+        "model (Zernike start coarse to fine, then per pixel phase and amplitude; Adam). MODEL: start from "
+        "the U-Net's prediction (the hybrid); NONE: retrieval alone. Reports NPiB, wall time per sample and "
+        "the convergence curve.")
+    r.add_argument("model", help="U-Net weights to start from (the hybrid), or NONE")
+    _common(r, "zonal iterations (default 100 alone, 50 from the U-Net)")
+    r.add_argument("-o", "--output", help="output folder for CSV, JSON and figures (default: print only)")
+    r.set_defaults(func=_cmd_retrieve)
+    tf = sub.add_parser(
+        "transfer", help="stage 6: fab-to-lab transfer learning on (synthetic) captured frames",
+        description="Render the lab device (the design as made) and SLM screens, synthesise camera captures "
+        "through a misaligned relay, import them against the nominal dataset, and compare the synthetic model "
+        "unadapted, fine-tuned from it (--init) and trained from scratch on the same captures.")
+    tf.add_argument("recipe", help="transfer recipe (TOML), e.g. sensing/transfer-demo.toml")
+    tf.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    workers_arg(tf)
+    tf.add_argument("--json", action="store_true", help="print the summary as JSON")
+    tf.set_defaults(func=_cmd_transfer)
+    tol = sub.add_parser(
+        "tolerance", help="stage 6: reconstruction-level fab tolerance (NPiB vs bias/jitter/corner, fine-tune recovery)",
+        description="For each fabrication case of the recipe (one-at-a-time sweeps of width bias, jitter and "
+        "corner rounding around the nominal device): render a dataset through the perturbed layout (same "
+        "turbulence samples in every case), evaluate the nominal model on its test split, fine-tune it on the "
+        "case's small training split (train --init) and evaluate again. Resumable; writes OUT/tolerance.csv, "
+        ".json and .png.")
+    tol.add_argument("recipe", help="tolerance recipe (TOML), e.g. sensing/tolerance-demo.toml")
+    tol.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    workers_arg(tol)
+    tol.add_argument("--json", action="store_true", help="print the table as JSON")
+    tol.set_defaults(func=_cmd_tolerance)
+    t2 = sub.add_parser("table-s2", help="stage 6: reproduce Table S2 (E2E vs MSE loss: train and test PiB ratio)",
+                        description="Build the recipe's dataset, train the same U-Net with the end-to-end PiB loss "
+                        "and with the MSE phase loss, and evaluate both on their train and test splits.")
+    t2.add_argument("recipe", help="Table S2 recipe (TOML), e.g. sensing/table-s2.toml")
+    t2.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    workers_arg(t2)
+    t2.add_argument("--json", action="store_true", help="print the table as JSON")
+    t2.set_defaults(func=_cmd_table_s2)
+    lsub, dsub = groups["library"], groups["dataset"]
+    lp = lsub.add_parser(
+        "lpa-check", help="measure the local-periodic approximation's error with supercell RCWA",
+        description="Solve random 2 x 2 supercells of a design with RCWA (four different pillars, both "
+        "polarisations) and compare their 0th-order transmission with the LPA (the mean of the four unit-cell "
+        "values); with --dataset and --model, apply the measured error to the device pupil and report the "
+        "channel metrics and the model's NPiB.")
+    lp.add_argument("design", help="layout (.oas/.gds) or design folder")
+    lp.add_argument("--supercells", type=integer(1, 100000), default=32, help="supercells to solve (default 32)")
+    lp.add_argument("--harmonics", type=integer(50, 5000), default=800,
+                    help="supercell harmonics requested (default 800: the library's resolution at period 2p)")
+    lp.add_argument("--check", type=integer(0, 100), default=2,
+                    help="supercells re-solved at 1.5x the harmonics (convergence; default 2)")
+    lp.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
+    lp.add_argument("--dataset", help="dataset whose device pupil and test samples serve the downstream study")
+    lp.add_argument("--model", help="U-Net weights for the downstream NPiB")
+    lp.add_argument("--samples", type=integer(1, 100000), default=64, help="test samples downstream (64)")
+    lp.add_argument("--noise", type=num(0, 100), default=5.0, help="sensor noise downstream, %% of peak (5)")
+    lp.add_argument("-o", "--output", help="output folder (default: lpa-check/ beside the design)")
+    workers_arg(lp)
+    lp.add_argument("--json", action="store_true", help="print the report as JSON")
+    lp.set_defaults(func=_cmd_lpa)
+    sy = dsub.add_parser(
+        "synth-captures", help="synthetic camera captures from a dataset's phases through a (perturbed) device",
+        description="The SLM shows the received phases of PHASES' samples; frames are rendered through DEVICE's "
+        "coarse pupil onto a misaligned camera with shot and read noise, dark offset and hot pixels (16-bit PNG, "
+        "TIFF or .npy), with flat and dark captures and a manifest: input for `dataset import`.")
+    sy.add_argument("phases", help="dataset whose received phases the SLM shows (also the sensor geometry)")
+    sy.add_argument("--device", required=True, help="dataset (or its device-pupil.npz) of the device to render")
+    sy.add_argument("-o", "--output", required=True, help="capture folder to write")
+    sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
+    sy.add_argument("--samples", type=integer(1, 10_000_000), help="at most this many samples")
+    sy.add_argument("--shift", nargs=2, type=num(-200, 200), default=(0.0, 0.0), metavar=("DX", "DY"),
+                    help="relay shift, camera pixels")
+    sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)
+    sy.add_argument("--scale", type=num(0.8, 1.25), default=1.0, help="relay magnification / nominal")
+    sy.add_argument("--format", choices=("png", "tiff", "npy"), default="png")
+    sy.add_argument("--peak-counts", type=num(1, 65535), default=40000.0)
+    sy.add_argument("--photons", type=num(0, 1e9), default=20000.0, help="photo-electrons at the peak (0: none)")
+    sy.add_argument("--read-noise-e", type=num(0, 1e4), default=5.0)
+    sy.add_argument("--dark-counts", type=num(0, 65535), default=100.0)
+    sy.add_argument("--hot-pixels", type=integer(0, 100000), default=20)
+    sy.add_argument("--saturate", type=integer(0, 10_000_000), default=0,
+                    help="over-expose the last N samples (2x: clipped at full scale)")
+    sy.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
+    sy.add_argument("--json", action="store_true", help="print the report as JSON")
+    sy.set_defaults(func=_cmd_synth)
+
+
+def register_main(sub) -> None:
+    """``demo`` and ``run``: the commands a new user starts with."""
+    demo = sub.add_parser("demo", help="run the embedded demo through every stage",
+                          description="Run the small embedded demo through every stage (from the committed "
+                          "unit-cell library) and write a summary and figures.")
+    demo.add_argument("-o", "--output", default="demo-out", help="output folder (default: ./demo-out)")
+    demo.add_argument("--json", action="store_true", help="print the summary as JSON")
+    demo.set_defaults(func=_cmd_demo)
+    run = sub.add_parser("run", help="every stage from a pipeline recipe, with an HTML report",
+                         description="Run a pipeline recipe: library, design, layout (verified), as-fabricated "
+                         "PSFs and fab study, turbulence validation, dataset, training (or a given model), "
+                         "evaluation; stages whose inputs did not change are skipped; writes OUT/report.html "
+                         "(self-contained: every figure and table).")
+    run.add_argument("recipe", help="pipeline recipe (TOML), e.g. sensing/pipeline-demo.toml")
+    run.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    run.add_argument("--json", action="store_true", help="print the summary as JSON")
+    run.set_defaults(func=_cmd_run)
