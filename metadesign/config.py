@@ -28,7 +28,7 @@ UNIT_SCALE = {
     "m": 1.0,
     "km": 1e3,
     "rad": 1.0,
-    "percent": 1e-2,
+    "percent": 1.0,  # a percentage stays one: every noise level in the code is % of the peak, as named
 }
 
 _REQUIRED = object()

@@ -1,5 +1,12 @@
 """Worker processes the way every stage starts them: spawned (no fork of a process holding BLAS or torch
-threads), one BLAS/OpenMP thread each, set in the environment before the child imports numpy."""
+threads), one BLAS/OpenMP thread each, set in the environment before the child imports numpy.
+
+One engine for every parallel build (library sweep, dataset shards, bucket operators, supercells,
+comparisons): :class:`WorkerPool` (local spawned workers, or in-process for one) and :func:`run_tasks`
+(the pool, or a Dask client), both calling ``fn(task)`` or, with a ``shared`` object (a device pupil, a
+shard context: sent to each worker once, scattered on Dask), ``fn(shared, task)``.  Results come back as
+they finish; callers that write them key them by the task, so the bytes never depend on the order,
+the worker count or the scheduler."""
 
 from __future__ import annotations
 
@@ -8,7 +15,8 @@ import os
 
 from .validation import ValidationError
 
-__all__ = ["THREAD_ENV", "spawn_pool", "single_thread_env", "keep_freed_memory"]
+__all__ = ["THREAD_ENV", "spawn_pool", "single_thread_env", "keep_freed_memory", "WorkerPool", "run_tasks",
+           "dask_client"]
 
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -65,3 +73,86 @@ def dask_client(scheduler: str):
     except (OSError, TimeoutError, ValueError) as exc:
         raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
                               f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+
+
+_NONE = object()
+_SHARED = _NONE  # a worker's shared object (set once by the pool's initializer)
+
+
+def _init_shared(shared) -> None:
+    global _SHARED
+    single_thread_env()
+    _SHARED = shared
+
+
+class _Call:
+    """``fn(task)`` or ``fn(shared, task)`` in a pool worker (picklable: ``fn`` is a module-level function)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, task):
+        return self.fn(task) if _SHARED is _NONE or _SHARED is None else self.fn(_SHARED, task)
+
+
+class WorkerPool:
+    """Spawned single-threaded worker processes, or in-process for ``workers <= 1``; keep one open to
+    reuse its workers across several maps (the library's convergence check and sweep)."""
+
+    def __init__(self, workers: int = 1, shared=None):
+        self.workers, self.shared = int(workers), shared
+        self.pool = spawn_pool(self.workers, _init_shared, (shared,)) if self.workers > 1 else None
+
+    def map(self, fn, tasks, ordered: bool = False):
+        """Results of ``fn`` over ``tasks``, as they finish (``ordered``: in task order)."""
+        if self.pool is None:
+            return (fn(t) if self.shared is None else fn(self.shared, t) for t in tasks)
+        return (self.pool.imap if ordered else self.pool.imap_unordered)(_Call(fn), tasks)
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+            self.pool = None
+
+    def __enter__(self) -> "WorkerPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _dask_call(fn, shared, task):
+    single_thread_env()
+    keep_freed_memory()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubles a sample's cost otherwise
+    return fn(task) if shared is None else fn(shared, task)
+
+
+def run_tasks(fn, tasks, workers: int = 1, shared=None, client=None, scheduler: str | None = None,
+              key: str | None = None):
+    """Results of ``fn`` over ``tasks`` as they finish: on a Dask ``client`` (or a ``scheduler`` address,
+    connected and closed here), else on a local :class:`WorkerPool` of ``workers``.  ``key``: a prefix of
+    the Dask task keys (task i gets ``key-i``)."""
+    tasks = list(tasks)
+    if not tasks:
+        return
+    if client is not None or scheduler is not None:
+        from dask.distributed import as_completed
+
+        own = client is None
+        if own:
+            client = dask_client(scheduler)
+        try:
+            sf = client.scatter(shared, broadcast=True) if shared is not None else None
+            futures = [client.submit(_dask_call, fn, sf, t, pure=False,
+                                     **({"key": f"{key}-{t if isinstance(t, int) else i}"} if key else {}))
+                       for i, t in enumerate(tasks)]
+            for fut in as_completed(futures):
+                yield fut.result()
+        finally:
+            if own:
+                client.close()
+        return
+    with WorkerPool(min(workers, len(tasks)), shared) as pool:
+        yield from pool.map(fn, tasks)
+

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -23,16 +22,14 @@ import numpy as np
 from .. import __version__
 from ..config import InputError
 from ..io import atomic_write_text, read_npz, write_npz
-from ..parallel import dask_client, single_thread_env, spawn_pool
+from ..parallel import WorkerPool, run_tasks
 from ..validation import ValidationError
 from .rcwa import SolverSettings, Stack, solve_cell
 from .recipe import LibraryRecipe
 from .store import UnitCellLibrary, save_library
 from .supercell import solve_tapered
 
-__all__ = ["build_library", "certify_convergence", "ConvergenceReport", "solve_cells", "THREAD_ENV"]
-
-THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+__all__ = ["build_library", "certify_convergence", "ConvergenceReport", "solve_cells"]
 
 
 def _wrap(a):
@@ -103,7 +100,7 @@ def certify_slices(recipe: LibraryRecipe, pool=None) -> dict:
     cells = [(wx, wy, h, a) for wx, wy in recipe.check_cells]
     jobs = [(0, cells, recipe.stack, recipe.settings, fa.slices), (1, cells, recipe.stack, recipe.settings,
                                                                    fa.reference_slices)]
-    out = dict((pool.imap if pool is not None else map)(_solve_chunk_axes, jobs))
+    out = dict((pool.map if pool is not None else map)(_solve_chunk_axes, jobs))
     ja, jb = out[0]["jones"], out[1]["jones"]
     d = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
     return {"slices": fa.slices, "reference_slices": fa.reference_slices, "max_phase_change_rad": float(d.max()),
@@ -111,50 +108,25 @@ def certify_slices(recipe: LibraryRecipe, pool=None) -> dict:
             "tolerance_rad": recipe.tolerance, "passed": bool(d.max() <= recipe.tolerance)}
 
 
-def _init_worker() -> None:  # spawned workers: one thread each (set before numpy loads in the child)
-    for k in THREAD_ENV:
-        os.environ[k] = "1"
-
-
-class _Pool:
-    """Spawned single-threaded worker pool, or in-process for workers <= 1."""
-
-    def __init__(self, workers: int):
-        self.workers = workers
-        self.pool = None
-        if workers > 1:
-            self.pool = spawn_pool(workers, _init_worker)
-
-    def imap(self, fn, jobs):
-        if self.pool is None:
-            return map(fn, jobs)
-        return self.pool.imap_unordered(fn, jobs)
-
-    def close(self):
-        if self.pool is not None:
-            self.pool.terminate()
-            self.pool.join()
-
-
 def solve_cells(cells: Sequence[tuple[float, float]], stack: Stack, settings,
-                workers: int = 1, pool: "_Pool | None" = None) -> dict:
+                workers: int = 1, pool: "WorkerPool | None" = None) -> dict:
     """Solve a list of (wx, wy) cells; returns stacked result arrays in order.
 
     ``settings`` is one :class:`SolverSettings` or one per cell; ``pool`` (kept
     open) reuses a caller's workers instead of starting new ones."""
     per_cell = settings if isinstance(settings, (list, tuple)) else [settings] * len(cells)
     own = pool is None
-    pool = _Pool(workers) if own else pool
+    pool = WorkerPool(workers) if own else pool
     try:
         jobs = [(i, [c], stack, s) for i, (c, s) in enumerate(zip(cells, per_cell))]
-        out = dict(pool.imap(_solve_chunk, jobs))
+        out = dict(pool.map(_solve_chunk, jobs))
     finally:
         if own:
             pool.close()
     return {k: np.concatenate([out[i][k] for i in range(len(cells))]) for k in out[0]}
 
 
-def certify_convergence(recipe: LibraryRecipe, workers: int = 1, pool: "_Pool | None" = None) -> ConvergenceReport:
+def certify_convergence(recipe: LibraryRecipe, workers: int = 1, pool: "WorkerPool | None" = None) -> ConvergenceReport:
     """Solve the check cells at the recipe's setting and at the reference one (one batch)."""
     cells = list(recipe.check_cells)
     ref_settings = SolverSettings(recipe.reference_n_harmonics, recipe.settings.truncation,
@@ -213,30 +185,12 @@ def build_library(
     t_start = time.perf_counter()
     log(f"convergence check on {len(recipe.check_cells)} cells "
         f"(nG {recipe.settings.n_harmonics} vs {recipe.reference_n_harmonics}) ...")
-    pool = _Pool(workers)  # one set of workers for the check and the sweep
+    pool = WorkerPool(workers)  # one set of workers for the check and the sweep
     try:
         return _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log,
                       _stop_after_chunks, t_start, scheduler)
     finally:
         pool.close()
-
-
-def _dask_map(fn, jobs, scheduler: str):
-    """Chunks on a Dask distributed scheduler (results as they finish, like the pool's imap_unordered)."""
-    from dask.distributed import as_completed
-
-    client = dask_client(scheduler)
-    try:
-        futures = [client.submit(_dask_chunk, fn, job, pure=False) for job in jobs]
-        for fut in as_completed(futures):
-            yield fut.result()
-    finally:
-        client.close()
-
-
-def _dask_chunk(fn, job):
-    single_thread_env()
-    return fn(job)
 
 
 def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log, _stop_after_chunks,
@@ -309,7 +263,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
         jobs = [(k, [(widths[i], widths[j], fa.heights[ih], fa.sidewalls[ia]) for i, j, ih, ia in chunks[k]],
                  recipe.stack, recipe.settings, fa.slices) for k in todo]
         fn = _solve_chunk_axes
-    results = pool.imap(fn, jobs) if scheduler is None else _dask_map(fn, jobs, scheduler)
+    results = pool.map(fn, jobs) if scheduler is None else run_tasks(fn, jobs, scheduler=scheduler)
     for count, (k, res) in enumerate(results, 1):
         write_npz(part_dir / f"chunk-{k:05d}.npz", res)
         done[k] = res

@@ -47,7 +47,7 @@ from ..io import atomic_write_text, check_not_input, output_lock, read_npz
 from ..layouts import read_layout, verify_against_design, write_layout
 from ..library.locate import file_sha256
 from ..library.store import load_library
-from ..parallel import dask_client, keep_freed_memory, single_thread_env, spawn_pool
+from ..parallel import dask_client, run_tasks
 from ..sensing.device import Device, ReceiverCrop, load_pupil, save_pupil
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.sensor import SensorSpec
@@ -64,6 +64,9 @@ __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "
 DATASET_FORMAT = "metadesign.dataset/1"
 _MAX_SEED = 2**63 - 1
 
+#: the network input's side S (8 x S x S), one definition for every recipe that sets it
+TENSOR_SIZE = Param("tensor_size", int, 256, lo=8, hi=1024, help="network input: 8 x S x S PSF tensors")
+
 SECTIONS = (
     Section("dataset", (
         Param("layout", str, None, help="OASIS/GDS layout (relative to the recipe)"),
@@ -76,7 +79,7 @@ SECTIONS = (
         Param("rytov_values", list, None, lo=0, open_lo=True, hi=5),
         Param("split", list, [0.9, 0.05, 0.05], lo=0, hi=1),
         Param("seed", int, 0, lo=0, hi=_MAX_SEED),
-        Param("tensor_size", int, 256, lo=8, hi=1024),
+        TENSOR_SIZE,
         Param("shard_size", int, 64, lo=1, hi=4096),
     )),
     Section("fabrication", (
@@ -380,42 +383,15 @@ def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, sp
     return g
 
 
-class _LocalPool:
-    """Spawned single-threaded worker processes (one BLAS/FFT/torch thread each), or in-process for 1."""
-
-    def __init__(self, workers: int, ctx: ShardContext):
-        self.ctx = ctx
-        self.pool = spawn_pool(workers, _init_worker, (ctx,)) if workers > 1 else None
-
-    def run(self, shards):
-        if self.pool is None:
-            return (self.ctx.make(i) for i in shards)
-        return self.pool.imap_unordered(_worker_shard, shards)
-
-    def close(self):
-        if self.pool is not None:
-            self.pool.terminate()
-            self.pool.join()
-
-
-_WORKER_CTX: ShardContext | None = None
-
-
-def _init_worker(ctx: ShardContext) -> None:
-    global _WORKER_CTX
-
-    single_thread_env()
-    _WORKER_CTX = ctx
-
-
-def _worker_shard(i: int) -> dict:
-    return _WORKER_CTX.make(i)
-
-
-def _dask_shard(ctx: ShardContext, i: int) -> dict:
-    single_thread_env()
-    keep_freed_memory()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubles a sample's cost otherwise
+def _make_shard(ctx, i: int) -> dict:
     return ctx.make(i)
+
+
+def run_shards(ctx, pending: list[int], workers: int, scheduler: str | None = None, client=None):
+    """``ctx.make(i)`` for every pending shard (a :class:`ShardContext` or the operators' context), on the
+    shared engine (:func:`metadesign.parallel.run_tasks`): the context goes to each worker once."""
+    return run_tasks(_make_shard, pending, workers, shared=ctx, client=client, scheduler=scheduler,
+                     key=f"metadesign-{ctx.kind}-{ctx.out}")
 
 
 def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int = 1, scheduler: str | None = None,
@@ -533,7 +509,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     if progress:
         progress(samples_done, n)
     t_sweep = time.perf_counter()
-    results = _run(ctx, pending, workers, None, client)
+    results = run_shards(ctx, pending, workers, client=client)
     for r in results:
         for k, v in r["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
@@ -552,32 +528,6 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
             "computed_samples": computed, "seconds": time.perf_counter() - t_start, "sweep_seconds": sweep,
             "per_sample_seconds": {k: v / max(computed, 1) for k, v in timings.items()},
             "workers": "dask" if dask else workers, **info.summary()}
-
-
-def _run(ctx: ShardContext, pending: list[int], workers: int, scheduler: str | None, client):
-    if not pending:
-        return
-    if scheduler is not None or client is not None:
-        from dask.distributed import as_completed
-
-        own = client is None
-        if own:
-            client = dask_client(scheduler)
-        try:
-            ctx_f = client.scatter(ctx, broadcast=True)
-            futures = [client.submit(_dask_shard, ctx_f, i, pure=False, key=f"metadesign-{ctx.kind}-{ctx.out}-{i}")
-                       for i in pending]
-            for fut in as_completed(futures):
-                yield fut.result()
-        finally:
-            if own:
-                client.close()
-        return
-    pool = _LocalPool(min(workers, len(pending)), ctx)
-    try:
-        yield from pool.run(pending)
-    finally:
-        pool.close()
 
 
 # ------------------------------------------------------------------ reading

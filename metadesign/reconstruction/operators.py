@@ -29,7 +29,7 @@ from ..io import atomic_write_text, output_lock
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .dataset import OPERATOR_ARRAY as ARRAY
-from .dataset import _run, has_operators, open_dataset, operator_info
+from .dataset import has_operators, open_dataset, operator_info, run_shards
 from .losses import PiB
 
 __all__ = ["OperatorContext", "build_operators", "operator_info", "has_operators"]
@@ -158,7 +158,7 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
     if progress:
         progress(got, total)
     tim = 0.0
-    for r in _run(ctx, pending, workers, scheduler, client):
+    for r in run_shards(ctx, pending, workers, scheduler, client):
         got += r["samples"]
         tim += r["timings"]["operator"]
         if progress:

@@ -103,7 +103,7 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
         ds = (source.parent if source else Path.cwd()) / ds
     return TrainRecipe(name=name, source=source, dataset=Path(ds) if ds else None,
                        # *_percent keys load as fractions (unit suffix converted at the edge); PSFDataset takes %
-                       noise_percent=100 * d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
+                       noise_percent=d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],

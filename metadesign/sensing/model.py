@@ -61,8 +61,8 @@ def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
                                                 "photo-electrons)")
     sensor = SensorSpec(s["width_px"], s["height_px"], s["pixel_um"], s["magnification"], s["distance_mm"],
                         s["tensor_size"])
-    # "gaussian_percent" is a fraction once loaded (unit suffix converted at the edge)
-    noise = NoiseSpec(nz["gaussian_percent"], nz["photons_at_peak"] or None, nz["read_noise_e"],
+    # NoiseSpec holds the Gaussian sigma as a fraction of the peak; the recipe gives it in percent
+    noise = NoiseSpec(nz["gaussian_percent"] / 100, nz["photons_at_peak"] or None, nz["read_noise_e"],
                       nz["bit_depth"] or None, nz["seed"])
     return SensingRecipe(sensor, v["pupil"]["grid"], noise)
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..cliutil import json_safe
 from ..io import atomic_path, atomic_write_text
-from ..parallel import spawn_pool
+from ..parallel import WorkerPool
 from ..plotting import pyplot, save_figure
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.estimators import ESTIMATORS as ESTIMATOR_CLASSES
@@ -217,8 +217,8 @@ def run_compare(model, dataset, st: CompareSettings, workers: int = 1,
     t0 = time.perf_counter()
     parts = []
     if workers > 1 and len(chunks) > 1:
-        with spawn_pool(min(workers, len(chunks))) as pool:
-            for k, r in enumerate(pool.imap(_worker_batch, [(model, dataset, st, js) for js in chunks])):
+        with WorkerPool(min(workers, len(chunks))) as pool:
+            for k, r in enumerate(pool.map(_worker_batch, [(model, dataset, st, js) for js in chunks], ordered=True)):
                 parts.append(r)
                 if progress:
                     progress(sum(len(c) for c in chunks[:k + 1]), n)

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..library.rcwa import SolverSettings, Stack, solve_cell
 from ..library.supercell import solve_supercell
-from ..parallel import single_thread_env, spawn_pool
+from ..parallel import WorkerPool
 from ..plotting import pyplot, save_figure
 from ..reconstruction.data import PSFDataset, apply_noise
 from ..reconstruction.dataset import load_device, normalise_psf
@@ -103,9 +103,9 @@ def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 3
                        for I, J in cells])  # (n, 2, 2, 2): [r][c] = (wx, wy)
     jobs = [(w, stack, ns, nu) for w in widths]
     t0 = time.perf_counter()
-    pool = spawn_pool(workers, single_thread_env) if workers > 1 else None
+    pool = WorkerPool(workers)
     try:
-        it = pool.imap(_solve_one, jobs) if pool else map(_solve_one, jobs)
+        it = pool.map(_solve_one, jobs, ordered=True)
         res = []
         for k, r in enumerate(it):
             res.append(r)
@@ -114,15 +114,13 @@ def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 3
         ns2, _ = matched_unit_harmonics(int(1.5 * n_super), stack)
         conv_jobs = [(w, stack, ns2, nu) for w in widths[:check]]
         conv = []
-        it2 = pool.imap(_solve_one, conv_jobs) if pool else map(_solve_one, conv_jobs)
+        it2 = pool.map(_solve_one, conv_jobs, ordered=True)
         for k, r in enumerate(it2):
             conv.append(r[0])
             if progress:
                 progress(n + k + 1, n + check)
     finally:
-        if pool is not None:
-            pool.terminate()
-            pool.join()
+        pool.close()
     seconds = time.perf_counter() - t0
     t_sc = np.array([r[0].jones[[0, 1], [0, 1]] for r in res])  # (n, 2)
     t_units = np.array([[u.jones[[0, 1], [0, 1]] for u in r[1]] for r in res])  # (n, 4, 2)

@@ -30,7 +30,7 @@ from ..library.build import build_library
 from ..library.plot import plot_library
 from ..library.recipe import load_recipe
 from ..library.store import load_library
-from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, received_crop
+from ..reconstruction.dataset import TENSOR_SIZE, build_dataset, dataset_recipe_from_dict, received_crop
 from ..reconstruction.evaluate import evaluate_model, plot_fig3, summarise, write_results
 from ..reconstruction.model import check_sizes, load_model
 from ..reconstruction.train import load_train_recipe, train
@@ -57,7 +57,7 @@ SECTIONS = (
         Param("rytov_max", float, 0.6, lo=0, open_lo=True, hi=5),
         Param("split", list, [0.9, 0.05, 0.05], lo=0, hi=1),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
-        Param("tensor_size", int, 64, lo=8, hi=1024),
+        TENSOR_SIZE,
         Param("shard_size", int, 64, lo=1, hi=4096),
         Param("workers", int, 2, lo=1, hi=256),
     )),
@@ -273,8 +273,8 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
 
     def do_eval():
         ev_dir.mkdir(exist_ok=True)
-        # noise_percent is a fraction once loaded (unit suffix converted at the edge)
-        res = evaluate_model(model, dsdir, ev_opts["split"], [100 * x for x in ev_opts["noise_percent"]])
+        # noise levels stay in percent of the peak (config: "percent" is not rescaled)
+        res = evaluate_model(model, dsdir, ev_opts["split"], list(ev_opts["noise_percent"]))
         write_results(res, ev_dir)
         figs = plot_fig3(res, ev_dir)
         keys = list(res["rows"])

@@ -46,7 +46,7 @@ def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Call
         tr_raw = {"model": {"base": v["model"]["base"], "depth": v["model"]["depth"]},
                   "train": {"epochs": t["epochs"], "batch": t["batch"], "lr": t["lr"], "weight_decay": t["weight_decay"],
                             "lr_halve_every": t["lr_halve_every"], "loss": loss, "pretrain_epochs": 0, "seed": 0},
-                  "data": {"noise_percent": t["noise_percent"] * 100}}
+                  "data": {"noise_percent": t["noise_percent"]}}
         run = out / f"run-{name.lower()}"
         if (run / "checkpoint.pt").exists():
             rep = train(train_recipe_from_dict(tr_raw, name), run, dataset=out / "dataset", resume=True, log=log,

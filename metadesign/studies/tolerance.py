@@ -86,7 +86,7 @@ def load_tolerance_recipe(path: str | Path) -> ToleranceRecipe:
     for key, sec in (("evaluate.model", e["model"]), ("finetune.train", f["train"])):
         if sec is None:
             raise ConfigError(key, "missing")
-    # lengths load in metres and percentages as fractions (config units); cases are kept in nm for the tables
+    # lengths load in metres (config units), percentages stay percent; cases are kept in nm for the tables
     nm = [round(float(b) * 1e9, 6) for b in c["bias_nm"]]
     z = (0.0, 90.0, 0.0, 0.0)  # no etch depth / sidewall perturbation
     cases = [("nominal", 0.0, 0.0, 0.0, *z)]
@@ -105,7 +105,7 @@ def load_tolerance_recipe(path: str | Path) -> ToleranceRecipe:
     base = path.parent
     ft = None if f["bias_nm"] is None else [round(float(b) * 1e9, 6) for b in f["bias_nm"]]
     return ToleranceRecipe(path, {"dataset": raw.get("dataset", {})}, cases, c["seed"], base / e["model"],
-                           100 * e["noise_percent"], base / f["train"], f["epochs"], f["lr"], f["loss"], ft,
+                           e["noise_percent"], base / f["train"], f["epochs"], f["lr"], f["loss"], ft,
                            c["fab_library"])
 
 

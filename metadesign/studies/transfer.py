@@ -103,7 +103,6 @@ def load_transfer_recipe(path: str | Path) -> TransferRecipe:
         raise ConfigError("scratch.pretrain_epochs", "must be < scratch.epochs (the last epochs use the PiB loss)")
     base = path.parent
     f = dict(f)
-    f["noise_percent"] = 100 * f["noise_percent"]  # *_percent loads as a fraction
     return TransferRecipe(path, {"dataset": raw["dataset"], "fabrication": raw["fabrication"]}, c,
                           base / c["reference"], base / e["model"], base / f["train"], f, v["scratch"])
 
