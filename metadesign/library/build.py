@@ -193,6 +193,31 @@ def build_library(
         pool.close()
 
 
+def _assemble(chunks, done: dict, n: int, extra: tuple):
+    """The (n, n[, heights, angles]) arrays from the solved chunks (cells with wx <= wy), mirrored across
+    the diagonal; and the set of harmonic counts the solver used."""
+    jones = np.zeros((n, n, *extra, 2, 2), complex)
+    T0 = np.zeros((n, n, *extra, 2))
+    Tt = np.zeros((n, n, *extra, 2))
+    Rt = np.zeros((n, n, *extra, 2))
+    nG_actual = set()
+    swap = [1, 0]
+    for k, cells in enumerate(chunks):
+        r = done[k]
+        nG_actual.update(int(v) for v in r["n_harmonics"])
+        for c, cell in enumerate(cells):
+            i, j = cell[:2]
+            ax = tuple(cell[2:])
+            jones[(i, j, *ax)] = r["jones"][c]
+            T0[(i, j, *ax)], Tt[(i, j, *ax)], Rt[(i, j, *ax)] = r["T0"][c], r["T_total"][c], r["R_total"][c]
+            # mirror across the diagonal: t_x(wx, wy) = t_y(wy, wx), t_xy <-> t_yx (a taper is the same on
+            # both axes, so this holds at every height and angle)
+            jones[(j, i, *ax)] = r["jones"][c][np.ix_(swap, swap)]
+            T0[(j, i, *ax)], Tt[(j, i, *ax)], Rt[(j, i, *ax)] = (r["T0"][c][swap], r["T_total"][c][swap],
+                                                               r["R_total"][c][swap])
+    return jones, T0, Tt, Rt, nG_actual
+
+
 def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progress, log, _stop_after_chunks,
            t_start, scheduler=None):
     conv = certify_convergence(recipe, workers, pool)
@@ -275,25 +300,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
     sweep_s = time.perf_counter() - t_sweep
 
     extra = () if recipe.fab_axes is None else (len(recipe.fab_axes.heights), len(recipe.fab_axes.sidewalls))
-    jones = np.zeros((n, n, *extra, 2, 2), complex)
-    T0 = np.zeros((n, n, *extra, 2))
-    Tt = np.zeros((n, n, *extra, 2))
-    Rt = np.zeros((n, n, *extra, 2))
-    nG_actual = set()
-    swap = [1, 0]
-    for k, cells in enumerate(chunks):
-        r = done[k]
-        nG_actual.update(int(v) for v in r["n_harmonics"])
-        for c, cell in enumerate(cells):
-            i, j = cell[:2]
-            ax = tuple(cell[2:])
-            jones[(i, j, *ax)] = r["jones"][c]
-            T0[(i, j, *ax)], Tt[(i, j, *ax)], Rt[(i, j, *ax)] = r["T0"][c], r["T_total"][c], r["R_total"][c]
-            # mirror across the diagonal: t_x(wx, wy) = t_y(wy, wx), t_xy <-> t_yx (a taper is the same on
-            # both axes, so this holds at every height and angle)
-            jones[(j, i, *ax)] = r["jones"][c][np.ix_(swap, swap)]
-            T0[(j, i, *ax)], Tt[(j, i, *ax)], Rt[(j, i, *ax)] = (r["T0"][c][swap], r["T_total"][c][swap],
-                                                               r["R_total"][c][swap])
+    jones, T0, Tt, Rt, nG_actual = _assemble(chunks, done, n, extra)
     fab = None
     if recipe.fab_axes is not None:
         fa = recipe.fab_axes

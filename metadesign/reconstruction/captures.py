@@ -329,6 +329,66 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         return _import(folder, out, calibration, reference, darks, options, progress, log, t0)
 
 
+def _split_column(rows: list[dict], manifest: Path, options: "ImportOptions") -> np.ndarray:
+    """Split labels from the manifest's split column (all rows), else a seeded permutation."""
+    labels = {"train": 0, "val": 1, "test": 2}
+    if "split" in rows[0] and all((r.get("split") or "").strip() for r in rows):
+        bad = next((r for r in rows if r["split"].strip() not in labels), None)
+        if bad is not None:
+            raise ValidationError(f"{manifest}: sample {bad['sample']}: split {bad['split']!r} is not train, val or test")
+        return np.array([labels[r["split"].strip()] for r in rows], np.uint8)
+    return split_labels(options.seed, len(rows), options.split)
+
+
+def _manifest_numbers(rows: list[dict], manifest: Path) -> tuple[list[float], list[float | None]]:
+    """Per row: the Rytov number (NaN: unknown) and the SLM map's side (m; None: on the receiver crop)."""
+    rytov_all = []
+    for r in rows:
+        try:
+            txt = (r.get("rytov") or "").strip()
+            v = float(txt) if txt else float("nan")  # empty: unknown
+        except ValueError:
+            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov {r.get('rytov')!r} is not a number") from None
+        if txt and not (np.isfinite(v) and 0 <= v <= RYTOV_MAX):
+            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov: expected a number in [0, {RYTOV_MAX:g}] "
+                                  f"or empty (unknown), got {txt}")
+        rytov_all.append(v)
+    slm_extent: list[float | None] = []  # side of each SLM phase map (m), when not on the receiver crop
+    for r in rows:
+        txt = (r.get("slm_extent_mm") or "").strip()
+        try:
+            v = float(txt) if txt else None
+        except ValueError:
+            v = float("nan")
+        if v is not None and not (np.isfinite(v) and 0 < v <= 1e5):
+            raise ValidationError(f"{manifest}: sample {r['sample']}: slm_extent_mm: expected a side length in "
+                                  f"(0, 100000] mm or empty, got {txt!r}")
+        slm_extent.append(None if v is None else v * 1e-3)
+    return rytov_all, slm_extent
+
+
+def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot) -> tuple[list[np.ndarray], bool]:
+    """A sample's two frames, checked, dark-subtracted and hot-pixel-fixed, and whether one saturated."""
+    fr, sat = [], False
+    for p in "xy":
+        f, full = read_frame(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}")
+        if f.shape != shape:
+            raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
+                                  f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
+        level = options.saturation if options.saturation is not None else full
+        if level is not None:
+            s = f >= level
+            if hot is not None:
+                s &= ~hot
+            sat |= bool(s.any())
+        if dark is not None:
+            f = f - dark
+        if hot is not None:
+            f = fix_hot_pixels(f, hot)
+        fr.append(f)
+    return fr, sat
+
+
 def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, progress, log,
             t0: float) -> dict:
     import zarr
@@ -362,59 +422,14 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         notes.append(f"warning: a spot is {res.max():.1f} px from the fitted transform (per-polarisation misalignment? "
             "a wrong reference?)")
 
-    # splits
-    labels = {"train": 0, "val": 1, "test": 2}
-    if "split" in rows[0] and all((r.get("split") or "").strip() for r in rows):
-        bad = next((r for r in rows if r["split"].strip() not in labels), None)
-        if bad is not None:
-            raise ValidationError(f"{manifest}: sample {bad['sample']}: split {bad['split']!r} is not train, val or test")
-        split_all = np.array([labels[r["split"].strip()] for r in rows], np.uint8)
-    else:
-        split_all = split_labels(options.seed, len(rows), options.split)
-    rytov_all = []
-    for r in rows:
-        try:
-            txt = (r.get("rytov") or "").strip()
-            v = float(txt) if txt else float("nan")  # empty: unknown
-        except ValueError:
-            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov {r.get('rytov')!r} is not a number") from None
-        if txt and not (np.isfinite(v) and 0 <= v <= RYTOV_MAX):
-            raise ValidationError(f"{manifest}: sample {r['sample']}: rytov: expected a number in [0, {RYTOV_MAX:g}] "
-                                  f"or empty (unknown), got {txt}")
-        rytov_all.append(v)
-    slm_extent: list[float | None] = []  # side of each SLM phase map (m), when not on the receiver crop
-    for r in rows:
-        txt = (r.get("slm_extent_mm") or "").strip()
-        try:
-            v = float(txt) if txt else None
-        except ValueError:
-            v = float("nan")
-        if v is not None and not (np.isfinite(v) and 0 < v <= 1e5):
-            raise ValidationError(f"{manifest}: sample {r['sample']}: slm_extent_mm: expected a side length in "
-                                  f"(0, 100000] mm or empty, got {txt!r}")
-        slm_extent.append(None if v is None else v * 1e-3)
+    split_all = _split_column(rows, manifest, options)
+    rytov_all, slm_extent = _manifest_numbers(rows, manifest)
 
     # pass 1: every frame read, checked, converted (a failure writes nothing)
     ap = ref.crop.aperture_mask()
     kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
     for j, r in enumerate(rows):
-        fr, sat = [], False
-        for p in "xy":
-            f, full = read_frame(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}")
-            if f.shape != shape:
-                raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
-                                      f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
-            level = options.saturation if options.saturation is not None else full
-            if level is not None:
-                s = f >= level
-                if hot is not None:
-                    s &= ~hot
-                sat |= bool(s.any())
-            if dark is not None:
-                f = f - dark
-            if hot is not None:
-                f = fix_hot_pixels(f, hot)
-            fr.append(f)
+        fr, sat = _sample_frames(r, shape, options, dark, hot)
         if sat:
             if options.saturated == "error":
                 raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "

@@ -204,33 +204,15 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     if recipe.batch % world:
         raise ConfigError("train.batch", f"{recipe.batch} is not divisible by the {world} processes")
     run = Path(run)
-    ckpt = run / "checkpoint.pt"
-    if run.exists() and (run / "checkpoint.pt").exists() and not resume:
-        raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
-    if resume and not ckpt.is_file():
-        raise ValidationError(f"{run}: no checkpoint.pt to resume from")
-    # How the end-to-end loss meets a sample's screens (train.pib_operator):
-    # * "stored": the bucket operators A stored in the dataset (`metadesign dataset operators`): the loader
-    #   reads A instead of regenerating 13 screens, and the loss is ||A u||^2 (a small matrix product);
-    # * "quadratic": A computed the first time a sample is drawn and kept in memory (no stored operators);
-    # * "split_step": the screens regenerated per draw and the split step run forward and back;
-    # * "auto" (default): "stored" when the dataset's training split has operators, else "split_step".
-    # All three give the same loss (tests); they differ in cost only.
-    # The loader's screens / operators flags are set per epoch below.
-
+    ckpt = _check_run(run, resume)
     tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
                     limit=recipe.train_limit or None)
     any_pib = any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
-    mode = recipe.pib_operator
-    if mode == "auto":
-        mode = "stored" if has_operators(tr.info.attrs, "train") else "split_step"
-    ops: dict[int, object] = {}
+    mode = _pib_mode(recipe, tr)
     quadratic = mode == "quadratic" and any_pib
     stored = mode == "stored" and any_pib
     if stored:
         tr.require_operators("train")
-    needs_screens = lambda ep: recipe.loss_at(ep) == "pib" and not stored and not (  # noqa: E731
-        quadratic and len(ops) >= len(tr))
     va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(va) == 0:
@@ -239,18 +221,9 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     if len(tr) < recipe.batch:
         raise ValidationError(f"{dataset}: {len(tr)} training samples, fewer than one batch ({recipe.batch})")
     c0, a = tr.crop()
-    cfg = UNetConfig(8, recipe.base, recipe.depth, tr.info.tensor_size, a, recipe.norm)
-    torch.manual_seed(recipe.seed)
-    model = build_unet(cfg).to(device)
-    init_card = None
-    if init is not None:
-        src, card = load_model(init)
-        init_card = {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
-        if asdict(src.config) != asdict(cfg):
-            raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
-                                  f"{asdict(cfg)}")
-        model.load_state_dict(src.state_dict())
+    model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device)
     pib = PiB(tr.scenario(), c0, a, device)
+    batch_loss = _BatchLoss(pib, stored, quadratic, device)
     if quadratic:
         n_ap = int(pib.ap.sum())
         check_memory("train.pib_operator = \"quadratic\"", len(tr) * len(pib.bucket) * n_ap * 8,
@@ -261,18 +234,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     best = -math.inf
     start = 0
     if resume:
-        st = _load_checkpoint(ckpt, device)
-        try:
-            model.load_state_dict(st["model"])
-            opt.load_state_dict(st["optimizer"])
-            sched.load_state_dict(st["scheduler"])
-            torch.set_rng_state(st["rng"]["torch"])
-            history = json.loads(st["history"])
-            best = float(st["best"])
-            start = int(st["epoch"]) + 1
-        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-            raise ValidationError(f"{ckpt}: does not fit this recipe's model and optimiser (another architecture? "
-                                  f"{str(exc).strip().splitlines()[-1].strip()[:120]})") from None
+        history, best, start = _restore(ckpt, model, opt, sched, device)
         sched.step_size = recipe.lr_halve_every  # the recipe's schedule wins over the checkpoint's
         log(f"resumed {run} at epoch {start}")
     ddp_model = model
@@ -288,7 +250,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     steps = 0
     for epoch in range(start, recipe.epochs):
         loss_name = recipe.loss_at(epoch)
-        tr.screens = needs_screens(epoch)
+        tr.screens = loss_name == "pib" and not stored and not (quadratic and len(batch_loss.ops) >= len(tr))
         tr.operators = stored and loss_name == "pib"
         tr.set_epoch(epoch)
         sampler.set_epoch(epoch)
@@ -309,26 +271,9 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
             rec = b["received"].to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
                 phi = ddp_model(x)
-            phi = phi.float()
-            if loss_name == "pib" and stored:
-                loss, npib = pib.loss(phi, A=b["A"].to(device))
+            loss, npib = batch_loss(loss_name, phi.float(), b, rec)
+            if npib is not None:
                 npib_tr.append(npib.detach().cpu())
-            elif loss_name == "pib" and quadratic:
-                idx = [int(i) for i in b["index"]]
-                miss = [k for k, i in enumerate(idx) if i not in ops]
-                if miss:
-                    with torch.no_grad():
-                        for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
-                            ops[idx[k]] = A.cpu()
-                loss, npib = pib.loss(phi, A=torch.stack([ops[i] for i in idx]).to(device))
-                npib_tr.append(npib.detach().cpu())
-            elif loss_name == "pib":
-                loss, npib = pib.loss(phi, b["screens"].to(device))
-                npib_tr.append(npib.detach().cpu())
-            elif loss_name == "phase":
-                loss = phase_loss(phi, rec, pib.ap)
-            else:
-                loss = mse_loss(phi, rec, pib.ap)
             lv = float(loss.detach())
             if not math.isfinite(lv):
                 raise ValidationError(f"train: the {loss_name} loss is {lv} at epoch {epoch + 1}, step {nb + 1} (the "
@@ -353,37 +298,8 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
                    "train_npib": float(torch.cat(npib_tr).mean()) if npib_tr else None}
         stop = max_steps is not None and steps >= max_steps
         if rank == 0:
-            va.set_epoch(0)  # the same validation noise every epoch: comparable numbers
-            ev = evaluate_split(model, va, pib, device)
-            gain = captured_fraction(ev["none"], ev["unet"], ev["phase_conjugate"])
-            rec_row |= {"val_npib": float(ev["unet"].mean()), "val_npib_none": float(ev["none"].mean()),
-                        "val_npib_phase_conjugate": float(ev["phase_conjugate"].mean()),
-                        "val_captured_fraction": float(gain), "val_loss": float(-np.log(np.maximum(ev["unet"], 1e-12)).mean()),
-                        "epoch_seconds": time.perf_counter() - t0}
-            if not math.isfinite(rec_row["val_npib"]):
-                raise ValidationError(f"train: validation NPiB is {rec_row['val_npib']} at epoch {epoch + 1} (non-finite "
-                                      "model output): lower train.lr, or --resume from the last checkpoint")
-            history.append(rec_row)
-            is_best = rec_row["val_npib"] > best
-            if is_best:
-                best = rec_row["val_npib"]
-                save_model(model, run / "model.safetensors", {
-                    "dataset": {"path": str(dataset), "recipe_hash": tr.info.attrs.get("recipe_hash"),
-                                "layout_sha256": tr.info.attrs["provenance"].get("layout_sha256")},
-                    "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row, "init": init_card,
-                    "input_normalisation": tr.info.attrs.get("normalisation"),
-                    "noise_percent": recipe.noise_percent, "received_crop": tr.info.attrs.get("received_crop"),
-                    "output": "received phase (vacuum removed) on the A x A receiver-aperture crop, rad; the "
-                              "correction applied is its conjugate plus the focusing phase"})
-            _save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(),
-                                    "scheduler": sched.state_dict(), "rng": {"torch": torch.get_rng_state()},
-                                    "history": json.dumps(history), "best": best, "epoch": epoch,
-                                    "recipe": json.dumps(recipe.raw, default=str)})
-            _write_metrics(run, history)
-            log(f"epoch {epoch + 1}/{recipe.epochs} {loss_name}: train {rec_row['train_loss']:.4f}, val NPiB "
-                f"{rec_row['val_npib']:.3f} (none {rec_row['val_npib_none']:.3f}, conjugate "
-                f"{rec_row['val_npib_phase_conjugate']:.3f}, captured {gain:.2f}), {rec_row['epoch_seconds']:.0f} s"
-                + (" *" if is_best else ""))
+            best = _end_epoch(rec_row, t0, model, va, pib, device, history, best, run, ckpt, opt, sched, recipe,
+                              dataset, tr.info.attrs, init_card, log)
         if world > 1:
             import torch.distributed as dist
 
@@ -397,6 +313,136 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
 
         dist.destroy_process_group()
     return report
+
+
+def _end_epoch(rec_row: dict, t0: float, model, va, pib, device, history: list, best: float, run: Path, ckpt: Path,
+               opt, sched, recipe: TrainRecipe, dataset: Path, attrs: dict, init_card, log) -> float:
+    """Rank 0 after an epoch: validation (the same noise every epoch), the best model by validation NPiB
+    with its card, the checkpoint, metrics and curves; returns the best validation NPiB."""
+    import torch
+
+    epoch = rec_row["epoch"] - 1
+    va.set_epoch(0)  # the same validation noise every epoch: comparable numbers
+    ev = evaluate_split(model, va, pib, device)
+    gain = captured_fraction(ev["none"], ev["unet"], ev["phase_conjugate"])
+    rec_row |= {"val_npib": float(ev["unet"].mean()), "val_npib_none": float(ev["none"].mean()),
+                "val_npib_phase_conjugate": float(ev["phase_conjugate"].mean()),
+                "val_captured_fraction": float(gain), "val_loss": float(-np.log(np.maximum(ev["unet"], 1e-12)).mean()),
+                "epoch_seconds": time.perf_counter() - t0}
+    if not math.isfinite(rec_row["val_npib"]):
+        raise ValidationError(f"train: validation NPiB is {rec_row['val_npib']} at epoch {epoch + 1} (non-finite "
+                              "model output): lower train.lr, or --resume from the last checkpoint")
+    history.append(rec_row)
+    is_best = rec_row["val_npib"] > best
+    if is_best:
+        best = rec_row["val_npib"]
+        save_model(model, run / "model.safetensors", {
+            "dataset": {"path": str(dataset), "recipe_hash": attrs.get("recipe_hash"),
+                        "layout_sha256": attrs["provenance"].get("layout_sha256")},
+            "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row, "init": init_card,
+            "input_normalisation": attrs.get("normalisation"),
+            "noise_percent": recipe.noise_percent, "received_crop": attrs.get("received_crop"),
+            "output": "received phase (vacuum removed) on the A x A receiver-aperture crop, rad; the "
+                      "correction applied is its conjugate plus the focusing phase"})
+    _save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                            "scheduler": sched.state_dict(), "rng": {"torch": torch.get_rng_state()},
+                            "history": json.dumps(history), "best": best, "epoch": epoch,
+                            "recipe": json.dumps(recipe.raw, default=str)})
+    _write_metrics(run, history)
+    log(f"epoch {epoch + 1}/{recipe.epochs} {rec_row['loss_name']}: train {rec_row['train_loss']:.4f}, val NPiB "
+        f"{rec_row['val_npib']:.3f} (none {rec_row['val_npib_none']:.3f}, conjugate "
+        f"{rec_row['val_npib_phase_conjugate']:.3f}, captured {gain:.2f}), {rec_row['epoch_seconds']:.0f} s"
+        + (" *" if is_best else ""))
+    return best
+
+
+def _check_run(run: Path, resume: bool) -> Path:
+    """The run's checkpoint path; a fresh run into a finished one, or a resume without one, is refused."""
+    ckpt = run / "checkpoint.pt"
+    if run.exists() and ckpt.exists() and not resume:
+        raise ValidationError(f"{run}: holds a run already; --resume continues it, or choose another -o")
+    if resume and not ckpt.is_file():
+        raise ValidationError(f"{run}: no checkpoint.pt to resume from")
+    return ckpt
+
+
+def _pib_mode(recipe: TrainRecipe, tr) -> str:
+    """How the end-to-end loss meets a sample's screens (``train.pib_operator``):
+
+    * "stored": the bucket operators A stored in the dataset (`metadesign dataset operators`): the loader
+      reads A instead of regenerating 13 screens, and the loss is ||A u||^2 (a small matrix product);
+    * "quadratic": A computed the first time a sample is drawn and kept in memory (no stored operators);
+    * "split_step": the screens regenerated per draw and the split step run forward and back;
+    * "auto" (default): "stored" when the dataset's training split has operators, else "split_step".
+
+    All give the same loss (tests); they differ in cost only.  The loader's screens / operators flags are
+    set per epoch."""
+    if recipe.pib_operator == "auto":
+        return "stored" if has_operators(tr.info.attrs, "train") else "split_step"
+    return recipe.pib_operator
+
+
+def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
+    """The recipe's U-Net (seeded), from ``--init`` weights of the same architecture when given; and the
+    init's record for the model card."""
+    import torch
+
+    cfg = UNetConfig(8, recipe.base, recipe.depth, tensor_size, aperture, recipe.norm)
+    torch.manual_seed(recipe.seed)
+    model = build_unet(cfg).to(device)
+    if init is None:
+        return model, None
+    src, card = load_model(init)
+    if asdict(src.config) != asdict(cfg):
+        raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
+                              f"{asdict(cfg)}")
+    model.load_state_dict(src.state_dict())
+    return model, {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+
+
+class _BatchLoss:
+    """A batch's loss by the name of the epoch's loss (:data:`~.losses.LOSSES`), and its training NPiB for
+    the end-to-end one; the bucket operators of the "quadratic" mode are kept here, per sample."""
+
+    def __init__(self, pib, stored: bool, quadratic: bool, device):
+        self.pib, self.stored, self.quadratic, self.device = pib, stored, quadratic, device
+        self.ops: dict[int, object] = {}
+
+    def __call__(self, name: str, phi, b: dict, rec):
+        import torch
+
+        pib, device = self.pib, self.device
+        if name == "pib" and self.stored:
+            return pib.loss(phi, A=b["A"].to(device))
+        if name == "pib" and self.quadratic:
+            idx = [int(i) for i in b["index"]]
+            miss = [k for k, i in enumerate(idx) if i not in self.ops]
+            if miss:
+                with torch.no_grad():
+                    for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
+                        self.ops[idx[k]] = A.cpu()
+            return pib.loss(phi, A=torch.stack([self.ops[i] for i in idx]).to(device))
+        if name == "pib":
+            return pib.loss(phi, b["screens"].to(device))
+        if name == "phase":
+            return phase_loss(phi, rec, pib.ap), None
+        return mse_loss(phi, rec, pib.ap), None
+
+
+def _restore(ckpt: Path, model, opt, sched, device) -> tuple[list, float, int]:
+    """Model, optimiser, scheduler and torch RNG from a checkpoint; returns (history, best, next epoch)."""
+    import torch
+
+    st = _load_checkpoint(ckpt, device)
+    try:
+        model.load_state_dict(st["model"])
+        opt.load_state_dict(st["optimizer"])
+        sched.load_state_dict(st["scheduler"])
+        torch.set_rng_state(st["rng"]["torch"])
+        return json.loads(st["history"]), float(st["best"]), int(st["epoch"]) + 1
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise ValidationError(f"{ckpt}: does not fit this recipe's model and optimiser (another architecture? "
+                              f"{str(exc).strip().splitlines()[-1].strip()[:120]})") from None
 
 
 def _load_checkpoint(ckpt: Path, device) -> dict:

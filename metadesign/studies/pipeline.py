@@ -9,9 +9,11 @@ S6), dataset, training (or a given model), evaluation (Figs. 3b-d), report."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 import html
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Callable
@@ -106,6 +108,8 @@ def _h(*parts) -> str:
 
 
 def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] = print) -> dict:
+    """Every stage of a pipeline recipe into ``out`` (stages whose inputs did not change are skipped), and
+    ``report.html``; returns the report (stages, tables, figures)."""
     rec = load_pipeline_recipe(recipe_path)
     out = Path(out)
     if rec["train"]["model"] is not None:  # a given model must fit the dataset it will be evaluated on: check now
@@ -113,185 +117,195 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
         check_sizes(model.config, rec["dataset"]["tensor_size"],
                     received_crop(load_scenario(rec["pipeline"]["turbulence"]))[1], f"[train] model {rec['train']['model']}")
     out.mkdir(exist_ok=True)
-    state_path = out / "pipeline-state.json"
-    state = json.loads(state_path.read_text()) if state_path.exists() else {}
-    report: dict = {"stages": {}, "figures": {}, "tables": {}}
-    p = rec["pipeline"]
+    run = _Pipeline(rec, out, log)
+    for step in (run.library, run.design, run.layout, run.psf, run.turbulence, run.dataset, run.train, run.evaluate):
+        step()
+    html_path = out / "report.html"
+    atomic_write_text(html_path, _html(rec["name"], run.report))
+    run.report["report"] = str(html_path)
+    return run.report
 
-    def stage(name: str, key: str, outputs: list[Path], fn) -> dict:
+
+class _Pipeline:
+    """The steps of :func:`run_pipeline`, in order; each records its key (a hash of its inputs and of the
+    upstream keys), tables and figures, and is skipped when its key and outputs are unchanged."""
+
+    def __init__(self, rec: dict, out: Path, log: Callable[[str], None]):
+        self.rec, self.out, self.log, self.p = rec, out, log, rec["pipeline"]
+        self.state_path = out / "pipeline-state.json"
+        self.state = json.loads(self.state_path.read_text()) if self.state_path.exists() else {}
+        self.report: dict = {"stages": {}, "figures": {}, "tables": {}}
+
+    def stage(self, name: str, key: str, outputs: list[Path], fn) -> dict:
         t0 = time.perf_counter()
-        if state.get(name, {}).get("key") == key and all(o.exists() for o in outputs):
-            log(f"{name}: up to date")
-            info = state[name]["info"]
+        if self.state.get(name, {}).get("key") == key and all(o.exists() for o in outputs):
+            self.log(f"{name}: up to date")
+            info = self.state[name]["info"]
             info["skipped"] = True
         else:
-            log(f"{name}: running")
+            self.log(f"{name}: running")
             info = fn()
             info["skipped"] = False
-            state[name] = {"key": key, "info": info}
-            atomic_write_text(state_path, json.dumps(state, indent=1, sort_keys=True, default=str))
+            self.state[name] = {"key": key, "info": info}
+            atomic_write_text(self.state_path, json.dumps(self.state, indent=1, sort_keys=True, default=str))
         info["seconds"] = time.perf_counter() - t0
-        report["stages"][name] = info
+        self.report["stages"][name] = info
         return info
 
-    # 1. library
-    lib_path = p["library"]
-    if p["library_recipe"] is not None:
-        lib_path = out / "library.npz"
-        k_lib = _h(p["library_recipe"])
-        stage("library", k_lib, [lib_path],
-              lambda: {"report": build_library(load_recipe(p["library_recipe"]), lib_path, workers=2)[1]["cells"]})
-    else:
-        k_lib = _h(lib_path)
-        stage("library", k_lib, [lib_path], lambda: {"file": str(lib_path)})
-    lib = load_library(lib_path)
-    fig_s1 = out / "fig-s1.png"
-    if not fig_s1.exists() or not report["stages"]["library"]["skipped"]:
-        plot_library(lib, fig_s1)
-    report["figures"]["Fig. S1: unit-cell library"] = fig_s1
+    def library(self) -> None:
+        p, out = self.p, self.out
+        self.lib_path = p["library"]
+        if p["library_recipe"] is not None:
+            self.lib_path = lib_path = out / "library.npz"
+            self.k_lib = _h(p["library_recipe"])
+            self.stage("library", self.k_lib, [lib_path], lambda: {
+                "report": build_library(load_recipe(p["library_recipe"]), lib_path, workers=2)[1]["cells"]})
+        else:
+            self.k_lib = _h(self.lib_path)
+            self.stage("library", self.k_lib, [self.lib_path], lambda: {"file": str(self.lib_path)})
+        self.lib = load_library(self.lib_path)
+        fig_s1 = out / "fig-s1.png"
+        if not fig_s1.exists() or not self.report["stages"]["library"]["skipped"]:
+            plot_library(self.lib, fig_s1)
+        self.report["figures"]["Fig. S1: unit-cell library"] = fig_s1
 
-    # 2. design
-    dr = load_design_recipe(p["design"])
-    import dataclasses
+    def design(self) -> None:
+        out = self.out
+        dr = dataclasses.replace(load_design_recipe(self.p["design"]), library_path=self.lib_path)
+        self.k_des = _h(self.k_lib, self.p["design"])
+        self.ddir = out / "design"
 
-    dr = dataclasses.replace(dr, library_path=lib_path)
-    k_des = _h(k_lib, p["design"])
-    ddir = out / "design"
+        def do_design():
+            d, _ = run_design(dr, self.ddir)
+            plot_design(d, out / "fig-s2.png", self.lib)
+            return {"metrics": {k: d.metrics[k] for k in ("rmse_rad", "peak_error_rad", "mean_T0", "n_atoms",
+                                                          "n_empty_bins", "n_cells_in_aperture")}}
 
-    def do_design():
-        d, _ = run_design(dr, ddir)
-        plot_design(d, out / "fig-s2.png", lib)
-        return {"metrics": {k: d.metrics[k] for k in ("rmse_rad", "peak_error_rad", "mean_T0", "n_atoms",
-                                                      "n_empty_bins", "n_cells_in_aperture")}}
+        des = self.stage("design", self.k_des, [self.ddir / "design.npz", out / "fig-s2.png"], do_design)
+        self.report["figures"]["Fig. S2: design"] = out / "fig-s2.png"
+        self.report["tables"]["Design metrics"] = des["metrics"]
 
-    des = stage("design", k_des, [ddir / "design.npz", out / "fig-s2.png"], do_design)
-    report["figures"]["Fig. S2: design"] = out / "fig-s2.png"
-    report["tables"]["Design metrics"] = des["metrics"]
+    def layout(self) -> None:
+        out = self.out
+        self.lay = lay = self.ddir / "layout.oas"
+        self.k_lay = _h(self.k_des)
 
-    # 3. layout
-    lay = ddir / "layout.oas"
-    k_lay = _h(k_des)
+        def do_layout():
+            d = load_design(self.ddir)
+            w = write_layout(d, lay, "oas")
+            lc = read_layout(lay)
+            v = verify_against_design(lc, d)
+            drc = drc_check(lc, 100, 150)
+            preview_layout(lc, out / "layout-preview.png")
+            return {"pillars": w["pillars"], "bytes": w["bytes"], "exact": v["exact"], "drc_passed": drc["passed"]}
 
-    def do_layout():
-        d = load_design(ddir)
-        w = write_layout(d, lay, "oas")
-        lc = read_layout(lay)
-        v = verify_against_design(lc, d)
-        drc = drc_check(lc, 100, 150)
-        preview_layout(lc, out / "layout-preview.png")
-        return {"pillars": w["pillars"], "bytes": w["bytes"], "exact": v["exact"], "drc_passed": drc["passed"]}
+        li = self.stage("layout", self.k_lay, [lay, out / "layout-preview.png"], do_layout)
+        if not (li["exact"] and li["drc_passed"]):
+            raise ValidationError(f"{lay}: the layout failed its read-back or design-rule check")
+        self.report["figures"]["Layout preview"] = out / "layout-preview.png"
+        self.report["tables"]["Layout"] = {k: li[k] for k in ("pillars", "bytes", "exact", "drc_passed")}
 
-    li = stage("layout", k_lay, [lay, out / "layout-preview.png"], do_layout)
-    if not (li["exact"] and li["drc_passed"]):
-        raise ValidationError(f"{lay}: the layout failed its read-back or design-rule check")
-    report["figures"]["Layout preview"] = out / "layout-preview.png"
-    report["tables"]["Layout"] = {k: li[k] for k in ("pillars", "bytes", "exact", "drc_passed")}
+    def psf(self) -> None:
+        """As-fabricated PSFs, the Table S1 focal check and a fab study."""
+        out = self.out
+        sr = load_sensing_recipe(self.p["sensor"])
+        self.k_psf = _h(self.k_lay, self.p["sensor"])
 
-    # 4. as-fabricated PSFs, Table S1 focal check, fab study
-    sr = load_sensing_recipe(p["sensor"])
-    k_psf = _h(k_lay, p["sensor"])
+        def do_psf():
+            fab = AsFabricated.from_files(self.lay)
+            res = render_psf(fab, sr)
+            plot_frames(res.frames, sr.sensor, out / "fig-2c.png", fab.channels, "as-fabricated sensor frames")
+            rows = fab_study(fab, sr, [-10.0, 0.0, 10.0], [0.0], [0.0])
+            plot_fab_study(rows, out / "fab-study.png")
+            focal = [{"pol": r["pol"], "k": r["k"], "design_f_mm": r["design_focal_length_mm"],
+                      "best_focus_mm": r["design_focal_length_mm"] + r["focal_shift_mm"], "strehl": r["strehl"]}
+                     for r in rows if r["bias_nm"] == 0]
+            study = [{"bias_nm": b, "mean_strehl": float(np.mean([r["strehl"] for r in rows if r["bias_nm"] == b])),
+                      "mean_efficiency": float(np.mean([r["focusing_efficiency"] for r in rows
+                                                        if r["bias_nm"] == b]))}
+                     for b in (-10.0, 0.0, 10.0)]
+            return {"focal_check": focal, "fab_study": study}
 
-    def do_psf():
-        fab = AsFabricated.from_files(lay)
-        res = render_psf(fab, sr)
-        plot_frames(res.frames, sr.sensor, out / "fig-2c.png", fab.channels, "as-fabricated sensor frames")
-        rows = fab_study(fab, sr, [-10.0, 0.0, 10.0], [0.0], [0.0])
-        plot_fab_study(rows, out / "fab-study.png")
-        focal = [{"pol": r["pol"], "k": r["k"], "design_f_mm": r["design_focal_length_mm"],
-                  "best_focus_mm": r["design_focal_length_mm"] + r["focal_shift_mm"], "strehl": r["strehl"]}
-                 for r in rows if r["bias_nm"] == 0]
-        study = [{"bias_nm": b, "mean_strehl": float(np.mean([r["strehl"] for r in rows if r["bias_nm"] == b])),
-                  "mean_efficiency": float(np.mean([r["focusing_efficiency"] for r in rows if r["bias_nm"] == b]))}
-                 for b in (-10.0, 0.0, 10.0)]
-        return {"focal_check": focal, "fab_study": study}
+        ps = self.stage("psf", self.k_psf, [out / "fig-2c.png", out / "fab-study.png"], do_psf)
+        self.report["figures"]["Fig. 2c: sensor frames"] = out / "fig-2c.png"
+        self.report["figures"]["Fab study"] = out / "fab-study.png"
+        self.report["tables"]["Table S1 focal check (through-focus peak)"] = ps["focal_check"]
+        self.report["tables"]["Fab study"] = ps["fab_study"]
 
-    ps = stage("psf", k_psf, [out / "fig-2c.png", out / "fab-study.png"], do_psf)
-    report["figures"]["Fig. 2c: sensor frames"] = out / "fig-2c.png"
-    report["figures"]["Fab study"] = out / "fab-study.png"
-    report["tables"]["Table S1 focal check (through-focus peak)"] = ps["focal_check"]
-    report["tables"]["Fab study"] = ps["fab_study"]
+    def turbulence(self) -> None:
+        p, out = self.p, self.out
+        sc = load_scenario(p["turbulence"])
+        self.k_tu = _h(p["turbulence"], p["turbulence_samples"])
 
-    # 5. turbulence validation
-    sc = load_scenario(p["turbulence"])
-    k_tu = _h(p["turbulence"], p["turbulence_samples"])
+        def do_turb():
+            res = validate(sc, (0.1, 0.3, 0.5), samples=p["turbulence_samples"], pib_samples=5)
+            figs = plot_validation(res, out)
+            return {"figures": [str(f) for f in figs],
+                    "levels": [{"rytov_nominal": x["rytov_nominal"], "rytov_measured": x["rytov_measured"],
+                                "D_over_r0": x["D_over_r0"]} for x in res["levels"]]}
 
-    def do_turb():
-        res = validate(sc, (0.1, 0.3, 0.5), samples=p["turbulence_samples"], pib_samples=5)
-        figs = plot_validation(res, out)
-        return {"figures": [str(f) for f in figs],
-                "levels": [{"rytov_nominal": x["rytov_nominal"], "rytov_measured": x["rytov_measured"],
-                            "D_over_r0": x["D_over_r0"]} for x in res["levels"]]}
+        figs = [Path(f) for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
+        tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
+        for f in tu["figures"]:
+            self.report["figures"][f"Turbulence: {Path(f).stem}"] = Path(f)
+        self.report["tables"]["Turbulence: Rytov nominal vs measured"] = tu["levels"]
 
-    tu = stage("turbulence", k_tu, [Path(f) for f in state.get("turbulence", {}).get("info", {}).get("figures", [])]
-               or [out / "__none__"], do_turb)
-    for f in tu["figures"]:
-        report["figures"][f"Turbulence: {Path(f).stem}"] = Path(f)
-    report["tables"]["Turbulence: Rytov nominal vs measured"] = tu["levels"]
+    def dataset(self) -> None:
+        p = self.p
+        ds_sec = dict(self.rec["dataset"])
+        workers = ds_sec.pop("workers")
+        self.dsdir = self.out / "dataset"
+        ds_raw = {"dataset": {"layout": str(self.lay.resolve()), "sensor": str(p["sensor"].resolve()),
+                              "turbulence": str(p["turbulence"].resolve()), "samples": ds_sec["samples"],
+                              "rytov_min": ds_sec["rytov_min"], "rytov_max": ds_sec["rytov_max"],
+                              "split": list(ds_sec["split"]), "seed": ds_sec["seed"],
+                              "tensor_size": ds_sec["tensor_size"], "shard_size": ds_sec["shard_size"]}}
+        self.k_ds = _h(self.k_psf, self.k_tu, ds_raw)
+        self.report["tables"]["Dataset"] = self.stage("dataset", self.k_ds, [self.dsdir / "zarr.json"], lambda: {
+            k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), self.dsdir, workers=workers,
+                                           overwrite=True).items()
+            if k in ("samples", "bytes_per_sample", "split_counts")})
 
-    # 6. dataset
-
-    ds_sec = dict(rec["dataset"])
-    workers = ds_sec.pop("workers")
-    dsdir = out / "dataset"
-    ds_raw = {"dataset": {"layout": str(lay.resolve()), "sensor": str(p["sensor"].resolve()),
-                          "turbulence": str(p["turbulence"].resolve()), "samples": ds_sec["samples"],
-                          "rytov_min": ds_sec["rytov_min"], "rytov_max": ds_sec["rytov_max"],
-                          "split": list(ds_sec["split"]), "seed": ds_sec["seed"],
-                          "tensor_size": ds_sec["tensor_size"], "shard_size": ds_sec["shard_size"]}}
-    k_ds = _h(k_psf, k_tu, ds_raw)
-    dsi = stage("dataset", k_ds, [dsdir / "zarr.json"], lambda: {
-        k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), dsdir, workers=workers,
-                                       overwrite=True).items() if k in ("samples", "bytes_per_sample", "split_counts")})
-    report["tables"]["Dataset"] = dsi
-
-    # 7. training (or a given model)
-    t = rec["train"]
-    if t["model"] is not None:
-        model = t["model"]
-        stage("train", _h(model), [model], lambda: {"model": str(model)})
-    else:
-        run = out / "run"
-        k_tr = _h(k_ds, t["recipe"])
+    def train(self) -> None:
+        """Training (or the given model)."""
+        t = self.rec["train"]
+        if t["model"] is not None:
+            self.model = t["model"]
+            self.stage("train", _h(self.model), [self.model], lambda: {"model": str(self.model)})
+            return
+        run = self.out / "run"
 
         def do_train():
-            import shutil
-
-            shutil.rmtree(run, ignore_errors=True)
-            r = train(load_train_recipe(t["recipe"]), run, dataset=dsdir, log=log, progress=False)
+            shutil.rmtree(run, ignore_errors=True)  # the pipeline's own run folder
+            r = train(load_train_recipe(t["recipe"]), run, dataset=self.dsdir, log=self.log, progress=False)
             return {"epochs": r["epochs_done"], "best_val_npib": r["best_val_npib"]}
 
-        stage("train", k_tr, [run / "model.safetensors"], do_train)
-        model = run / "model.safetensors"
+        self.stage("train", _h(self.k_ds, t["recipe"]), [run / "model.safetensors"], do_train)
+        self.model = run / "model.safetensors"
         if (run / "curves.png").exists():
-            report["figures"]["Training curves"] = run / "curves.png"
+            self.report["figures"]["Training curves"] = run / "curves.png"
 
-    # 8. evaluation
+    def evaluate(self) -> None:
+        ev_dir = self.out / "evaluation"
+        ev_opts = self.rec["evaluate"]
+        k_ev = _h(self.k_ds, Path(self.model), ev_opts)
 
-    ev_dir = out / "evaluation"
-    ev_opts = rec["evaluate"]
-    k_ev = _h(k_ds, Path(model), ev_opts)
+        def do_eval():
+            ev_dir.mkdir(exist_ok=True)
+            # noise levels stay in percent of the peak (config: "percent" is not rescaled)
+            res = evaluate_model(self.model, self.dsdir, ev_opts["split"], list(ev_opts["noise_percent"]))
+            write_results(res, ev_dir)
+            figs = plot_fig3(res, ev_dir)
+            return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in res["rows"]}}
 
-    def do_eval():
-        ev_dir.mkdir(exist_ok=True)
-        # noise levels stay in percent of the peak (config: "percent" is not rescaled)
-        res = evaluate_model(model, dsdir, ev_opts["split"], list(ev_opts["noise_percent"]))
-        write_results(res, ev_dir)
-        figs = plot_fig3(res, ev_dir)
-        keys = list(res["rows"])
-        return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in keys}}
-
-    ev = stage("evaluate", k_ev, [Path(f) for f in state.get("evaluate", {}).get("info", {}).get("figures", [])]
-               or [ev_dir / "__none__"], do_eval)
-    for f in ev["figures"]:
-        report["figures"][f"Evaluation: {Path(f).stem}"] = Path(f)
-    report["tables"]["NPiB summary"] = [
-        {"noise": k, **{f"npib_{m}": v["npib"][m] for m in v["npib"]}, "captured_fraction": v["captured_fraction"],
-         "gain_median": v["gain"]["median"], "gain_ratio_of_means": v["gain"]["ratio_of_means"]}
-        for k, v in ev["summary"].items()]
-    html_path = out / "report.html"
-    atomic_write_text(html_path, _html(rec["name"], report))
-    report["report"] = str(html_path)
-    return report
+        figs = [Path(f) for f in self.state.get("evaluate", {}).get("info", {}).get("figures", [])]
+        ev = self.stage("evaluate", k_ev, figs or [ev_dir / "__none__"], do_eval)
+        for f in ev["figures"]:
+            self.report["figures"][f"Evaluation: {Path(f).stem}"] = Path(f)
+        self.report["tables"]["NPiB summary"] = [
+            {"noise": k, **{f"npib_{m}": v["npib"][m] for m in v["npib"]}, "captured_fraction": v["captured_fraction"],
+             "gain_median": v["gain"]["median"], "gain_ratio_of_means": v["gain"]["ratio_of_means"]}
+            for k, v in ev["summary"].items()]
 
 
 def _table(obj) -> str:
