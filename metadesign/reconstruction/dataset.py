@@ -118,6 +118,14 @@ class DatasetRecipe:
     def default_output(self) -> Path:
         return (self.source.parent if self.source else Path.cwd()) / self.name
 
+    def with_fabrication(self, name: str, **kinds) -> "DatasetRecipe":
+        """The same dataset through a device made with another process: ``kinds`` are the recipe's
+        [fabrication] keys (:attr:`metadesign.sensing.transmission.Perturbation.KINDS`, ``fab_library``),
+        checked as a recipe is."""
+        raw = json.loads(json.dumps(self.raw))
+        raw["fabrication"] = dict(kinds)
+        return dataset_recipe_from_dict(raw, name, self.source)
+
     def with_samples(self, n: int) -> "DatasetRecipe":
         raw = json.loads(json.dumps(self.raw))
         raw.setdefault("dataset", {})["samples"] = n

@@ -94,6 +94,14 @@ class TrainRecipe:
     def loss_at(self, epoch: int) -> str:
         return self.pretrain_loss if epoch < self.pretrain_epochs else self.loss
 
+    def derive(self, name: str, data: dict | None = None, **train) -> "TrainRecipe":
+        """A training recipe for another run of this architecture (a fine-tune, a retraining): the same
+        [model], batch and weight decay, seed 0, the given [data] keys and [train] keys (checked as a
+        recipe is)."""
+        raw = {"data": dict(data or {}), "model": {"base": self.base, "depth": self.depth, "norm": self.norm},
+               "train": {"batch": self.batch, "weight_decay": self.weight_decay, "seed": 0, **train}}
+        return train_recipe_from_dict(raw, name, self.source)
+
 
 def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None = None) -> TrainRecipe:
     v = parse(data, SECTIONS, str(source) if source else "recipe")
@@ -102,7 +110,6 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
     if ds is not None and not Path(ds).is_absolute():
         ds = (source.parent if source else Path.cwd()) / ds
     return TrainRecipe(name=name, source=source, dataset=Path(ds) if ds else None,
-                       # *_percent keys load as fractions (unit suffix converted at the edge); PSFDataset takes %
                        noise_percent=d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],

@@ -29,7 +29,7 @@ from ..reconstruction.evaluate import evaluate_model
 from ..reconstruction.losses import LOSSES
 from ..reconstruction.metrics import captured_fraction, gain
 from ..reconstruction.model import check_sizes, load_model
-from ..reconstruction.train import load_train_recipe, train, train_recipe_from_dict
+from ..reconstruction.train import load_train_recipe, train
 from ..validation import ValidationError
 
 __all__ = ["run_tolerance", "load_tolerance_recipe", "TOLERANCE_SECTIONS"]
@@ -143,12 +143,11 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
             log(f"{label}: done before")
             continue
         case.mkdir(exist_ok=True)
-        raw = json.loads(json.dumps(recipe.dataset))
-        raw["fabrication"] = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
+        fab = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
         if hh or sw != 90 or hg or sg:
-            raw["fabrication"].update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg,
-                                       "sidewall_gradient_deg": sg, "fab_library": recipe.fab_library})
-        ds_rec = dataset_recipe_from_dict(raw, f"tolerance-{label}", recipe.source)
+            fab.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg,
+                        "fab_library": recipe.fab_library})
+        ds_rec = ds0.with_fabrication(f"tolerance-{label}", **fab)
         log(f"{label}: dataset ...")
         build_dataset(ds_rec, case / "dataset", workers=workers, log=log)
         res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
@@ -159,14 +158,12 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
         log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} (captured {row['before']['captured_fraction']:.2f})")
         fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias)
         if fine:
-            tr_raw = {"data": {"noise_percent": recipe.noise_percent, "val_limit": 0},
-                      "model": {"base": base_train.base, "depth": base_train.depth, "norm": base_train.norm},
-                      "train": {"epochs": recipe.epochs, "batch": base_train.batch, "lr": recipe.lr,
-                                "weight_decay": base_train.weight_decay, "lr_halve_every": max(1, recipe.epochs),
-                                "loss": recipe.loss, "pretrain_epochs": 0, "seed": 0}}
+            tr_rec = base_train.derive(f"finetune-{label}", {"noise_percent": recipe.noise_percent, "val_limit": 0},
+                                       epochs=recipe.epochs, lr=recipe.lr, lr_halve_every=max(1, recipe.epochs),
+                                       loss=recipe.loss, pretrain_epochs=0)
             run = case / "finetune"
             resume = (run / "checkpoint.pt").exists()
-            rep = train(train_recipe_from_dict(tr_raw, f"finetune-{label}"), run, dataset=case / "dataset",
+            rep = train(tr_rec, run, dataset=case / "dataset",
                         resume=resume, init=None if resume else recipe.model, log=log, progress=False)
             res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
             row["after"] = _metrics(res2, next(iter(res2["rows"])))

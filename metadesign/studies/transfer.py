@@ -34,7 +34,7 @@ from ..reconstruction.evaluate import evaluate_model
 from ..reconstruction.losses import LOSSES
 from ..reconstruction.metrics import captured_fraction
 from ..reconstruction.model import check_fits, load_model
-from ..reconstruction.train import load_train_recipe, train, train_recipe_from_dict
+from ..reconstruction.train import load_train_recipe, train
 from ..sensing.camera import Alignment, CameraSpec
 from .captures import synth_captures
 from .tolerance import check_architecture
@@ -165,11 +165,9 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
         if done.exists():
             r = json.loads(done.read_text())
         else:
-            raw = {"data": {"noise_percent": f["noise_percent"], "val_limit": 0},
-                   "model": {"base": base.base, "depth": base.depth, "norm": base.norm},
-                   "train": {"batch": base.batch, "weight_decay": base.weight_decay, "seed": 0, **tr}}
+            tr_rec = base.derive(f"transfer-{name}", {"noise_percent": f["noise_percent"], "val_limit": 0}, **tr)
             resume = (run / "checkpoint.pt").exists()
-            rep = train(train_recipe_from_dict(raw, f"transfer-{name}"), run, dataset=imp, resume=resume,
+            rep = train(tr_rec, run, dataset=imp, resume=resume,
                         init=None if (resume or init is None) else init, log=log, progress=False)
             r = _metrics(evaluate_model(run / "model.safetensors", imp, "test", [0.0]))
             r["epochs"] = rep["epochs_done"]
