@@ -36,7 +36,7 @@ def main() -> int:
     )
     from metadesign.sensing.model import AsFabricated, load_sensing_recipe
     from metadesign.sensing.render import render_psf
-    from metadesign.turbulence.validate import load_scenario
+    from metadesign.turbulence.scenario import load_scenario
 
     rec = load_dataset_recipe(REPO / "sensing" / "dataset-demo.toml")
     layout = ensure_layout(rec, print)

@@ -214,7 +214,7 @@ def test_bad_design_recipes_refused_at_the_start(tmp_path, capsys):
 
 def test_bad_sensing_and_turbulence_recipes(tmp_path, capsys, demo_products):
     from metadesign.sensing.model import sensing_from_dict
-    from metadesign.turbulence.validate import scenario_from_dict
+    from metadesign.turbulence.scenario import scenario_from_dict
     from metadesign.validation import ValidationError
 
     with pytest.raises(ValidationError, match="noise.photons_at_peak"):

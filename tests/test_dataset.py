@@ -62,7 +62,7 @@ def test_screens_regenerate_from_the_stored_seed_and_psf_equals_a_fresh_render(t
     from metadesign.sensing.model import AsFabricated, load_sensing_recipe
     from metadesign.turbulence.chain import BeaconChain
     from metadesign.turbulence.propagate import split_step
-    from metadesign.turbulence.validate import load_scenario
+    from metadesign.turbulence.scenario import load_scenario
 
     A = _arrays(tiny_dataset)
     i = 7

@@ -54,7 +54,7 @@ from ..sensing.sensor import SensorSpec
 from ..sensing.transmission import Perturbation
 from ..turbulence.chain import BeaconChain
 from ..turbulence.path import check_sampling, solve_path
-from ..turbulence.validate import load_scenario, scenario_from_dict
+from ..turbulence.scenario import load_scenario, scenario_from_dict
 from ..validation import ValidationError
 
 __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",

@@ -32,7 +32,8 @@ from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf, save_psf
 from ..turbulence.chain import BeaconChain
-from ..turbulence.validate import load_scenario, plot_validation, validate
+from ..turbulence.scenario import load_scenario
+from ..turbulence.validate import plot_validation, validate
 
 __all__ = ["run_demo"]
 

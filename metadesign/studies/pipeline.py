@@ -39,7 +39,8 @@ from ..reconstruction.train import load_train_recipe, train
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf
-from ..turbulence.validate import load_scenario, plot_validation, validate
+from ..turbulence.scenario import load_scenario
+from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
 
 __all__ = ["run_pipeline", "load_pipeline_recipe"]

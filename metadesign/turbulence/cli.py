@@ -18,7 +18,7 @@ RYTOV = num(0, 5, open_lo=True)
 
 def _scenario(a):
     from ..paths import repo_root
-    from .validate import load_scenario
+    from .scenario import load_scenario
 
     return load_scenario(a.recipe or repo_root() / "sensing" / "turbulence.toml")
 
