@@ -11,7 +11,7 @@ export MKL_NUM_THREADS ?= 1
 
 .PHONY: demo test test-slow install clean
 
-$(BIN)/metadesign: pyproject.toml constraints/cpu.txt
+$(BIN)/metadesign: pyproject.toml setup.py constraints/cpu.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q -c constraints/cpu.txt -e '.[test]'
 	touch $@

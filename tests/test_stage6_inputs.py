@@ -370,3 +370,24 @@ def test_strehl_of_a_perfect_lens_is_one_and_never_above(demo_products):
     cp = fab.pupil(sensor.distance, sr.pupil_grid)
     s = [r["strehl"] for r in channel_metrics(cp, sensor, fab)]
     assert max(s) <= 1.0 and min(s) > 0.3, s
+
+
+def test_a_scenario_at_another_wavelength_is_refused(demo_products, tmp_path, capsys):
+    """The turbulence scenario's wavelength must be the device's: a 1064 nm path in front of the 1550 nm
+    metasurface is one line (dataset build, before anything is written; BeaconChain; a Device)."""
+    from metadesign.sensing import AsFabricated, load_sensing_recipe
+    from metadesign.turbulence import BeaconChain, load_scenario
+    from metadesign.validation import ValidationError
+
+    turb = tmp_path / "turb1064.toml"
+    turb.write_text((REPO / "sensing" / "turbulence.toml").read_text().replace("wavelength_nm = 1550.0",
+                                                                                 "wavelength_nm = 1064.0"))
+    assert "1064" in turb.read_text()
+    rec = tiny_dataset_recipe(tmp_path, demo_products["layout"])
+    rec.write_text(rec.read_text().replace(str(REPO / "sensing" / "turbulence.toml"), str(turb)))
+    _one_line(["dataset", "build", rec, "-o", tmp_path / "ds"], capsys, "does not match the device's 1550 nm")
+    assert not (tmp_path / "ds").exists()
+    fab = AsFabricated.from_files(demo_products["layout"])
+    sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
+    with pytest.raises(ValidationError, match="1064 nm does not match"):
+        BeaconChain.for_device(fab, sr, load_scenario(turb))

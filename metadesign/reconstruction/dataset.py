@@ -48,7 +48,7 @@ from ..layouts import read_layout, verify_against_design, write_layout
 from ..library.locate import file_sha256
 from ..library.store import load_library
 from ..parallel import dask_client, run_tasks
-from ..sensing.device import Device, ReceiverCrop, load_pupil, save_pupil
+from ..sensing.device import Device, ReceiverCrop, check_wavelengths, load_pupil, save_pupil
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.sensor import SensorSpec
 from ..sensing.transmission import Perturbation
@@ -460,6 +460,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     layout = ensure_layout(recipe, log)
     layout_sha = _sha256(layout)
     fab = AsFabricated.from_files(layout)
+    check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
     if pert.has_fab_axes:
         if not f["fab_library"]:
             raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..sensing.device import check_wavelengths
 from ..sensing.forward import CoarsePupil, sensor_frames
 from ..sensing.model import AsFabricated, SensingRecipe
 from ..sensing.sensor import psf_tensor
@@ -39,6 +40,7 @@ class BeaconChain:
     turbulence draw plus eight matrix Fourier transforms."""
 
     def __init__(self, pupil: CoarsePupil, sensing: SensingRecipe, scenario: Scenario, aperture: float):
+        check_wavelengths(pupil.wavelength, scenario.wavelength, "turbulence scenario")  # one wavelength per chain
         self.pupil, self.sensing = pupil, sensing
         self.turbulence = Turbulence(replace(scenario, metasurface_aperture=aperture))
 
