@@ -16,7 +16,7 @@ from ..plotting import pyplot, save_figure
 from ..validation import ValidationError
 from .data import PSFDataset
 from .losses import PiB
-from .metrics import EVAL_NOISE_SEED, captured_fraction, gain
+from .metrics import EVAL_NOISE_SEED, captured_fraction, gain, npib_rows
 from .model import check_fits, load_model
 from .train import _collate, pick_device
 
@@ -78,14 +78,16 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                 scr = b["screens"].to(dev)
                 rec = b["received"].to(dev)
                 phi = model(b["psf"].to(dev))
-                acc["unet"].append(pib.npib_phase(phi, scr).cpu().numpy())
                 if not rows and len(examples["phi"]) < 4:
                     examples["phi"] += list(phi.cpu().numpy()[:4 - len(examples["phi"])])
                     examples["received"] += list(rec.cpu().numpy()[:4 - len(examples["received"])])
                 if not rows:  # the references do not depend on the sensor noise: once, at the first level
-                    acc["none"].append(pib.npib_phase(torch.zeros_like(phi), scr).cpu().numpy())
-                    acc["phase_conjugate"].append(pib.npib_phase(torch.angle(rec) * pib.ap, scr).cpu().numpy())
-                    acc["complex_conjugate"].append(pib.npib_complex(rec, scr).cpu().numpy())
+                    ref = npib_rows(pib, phi, scr, rec, complex_conjugate=True)
+                    acc["unet"].append(ref["estimate"].cpu().numpy())
+                    for k in ("none", "phase_conjugate", "complex_conjugate"):
+                        acc[k].append(ref[k].cpu().numpy())
+                else:
+                    acc["unet"].append(pib.npib_phase(phi, scr).cpu().numpy())
                 r, t = residual_rms(phi.cpu().numpy(), rec.cpu().numpy(), ap)
                 acc["residual_rms"].append(r)
                 acc["residual_tiptilt_rms"].append(t)

@@ -34,7 +34,7 @@ from ..reconstruction.estimators import ESTIMATORS as ESTIMATOR_CLASSES
 from ..reconstruction.estimators import HybridEstimator, checkpoints_for, estimator_names, make_estimator
 from ..reconstruction.evaluate import RYTOV_BINS
 from ..reconstruction.losses import PiB
-from ..reconstruction.metrics import EVAL_NOISE_SEED
+from ..reconstruction.metrics import EVAL_NOISE_SEED, npib_rows
 from ..reconstruction.model import check_fits, load_model
 from ..reconstruction.retrieval import RetrievalConfig
 from ..reconstruction.shack_hartmann import SHConfig
@@ -139,10 +139,9 @@ class _Runner:
             with torch.no_grad():
                 return pib.npib_phase(torch.as_tensor(phi), scr).numpy()
 
-        with torch.no_grad():
-            r["none"] = npib(torch.zeros(rec.shape, dtype=torch.float32))
-            r["phase_conjugate"] = npib(torch.angle(rec) * pib.ap)
-            r["complex_conjugate"] = pib.npib_complex(rec, scr).numpy()
+        ref = npib_rows(pib, torch.zeros(rec.shape, dtype=torch.float32), scr, rec, complex_conjugate=True)
+        for k in ("none", "phase_conjugate", "complex_conjugate"):
+            r[k] = ref[k].numpy()
         batch = _batch_of(items)
         done: dict = {}
         for name, est in self.est.items():

@@ -31,6 +31,7 @@ from ..plotting import pyplot, save_figure
 from ..reconstruction.data import PSFDataset, apply_noise
 from ..reconstruction.dataset import load_device, normalise_psf
 from ..reconstruction.losses import PiB
+from ..reconstruction.metrics import npib_rows
 from ..reconstruction.model import check_fits, load_model
 from ..sensing.forward import CoarsePupil, sensor_frames
 from ..sensing.model import channel_metrics
@@ -230,10 +231,10 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
         out[name] = {"npib_unet": float(npib.mean()),
                      "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk")}
                                   for r in m]}
-    with torch.no_grad():
-        out["npib_none"] = float(pib.npib_phase(torch.zeros(len(items), a, a), scr).mean())
-        rec = torch.from_numpy(np.stack([s["received"] for s in items]))
-        out["npib_phase_conjugate"] = float(pib.npib_phase(torch.angle(rec) * pib.ap, scr).mean())
+    rec = torch.from_numpy(np.stack([s["received"] for s in items]))
+    ref = npib_rows(pib, torch.zeros(len(items), a, a), scr, rec)
+    out["npib_none"] = float(ref["none"].mean())
+    out["npib_phase_conjugate"] = float(ref["phase_conjugate"].mean())
     return out
 
 
