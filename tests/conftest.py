@@ -35,6 +35,18 @@ def run_cli(*args, cwd=None):
                           capture_output=True, text=True, env=env, timeout=600)
 
 
+def run_main(argv, capsys):
+    """``metadesign ARGV`` in-process: (exit status, stdout, non-empty stderr lines)."""
+    from metadesign.cli import main
+
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse errors
+        rc = exc.code
+    cap = capsys.readouterr()
+    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+
+
 try:  # torch: one thread per process, like the workers
     import torch  # noqa: E402
 

@@ -150,14 +150,9 @@ def _edit_manifest(src, dst, fn):
 
 
 def _run(argv, capsys):
-    from metadesign.cli import main
+    from conftest import run_main
 
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:
-        rc = exc.code
-    cap = capsys.readouterr()
-    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+    return run_main(argv, capsys)
 
 
 def test_bad_captures_are_one_line_and_write_nothing(captures, tmp_path, capsys):

@@ -17,18 +17,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from conftest import REPO, tiny_dataset_recipe, tiny_model  # noqa: E402
+from conftest import REPO, run_main, tiny_dataset_recipe, tiny_model  # noqa: E402
 
-from metadesign.cli import main  # noqa: E402
-
-
-def _run(argv, capsys):
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:
-        rc = exc.code
-    cap = capsys.readouterr()
-    return rc, cap.out, [x for x in cap.err.splitlines() if x.strip()]
+_run = run_main
 
 
 def _one_line(argv, capsys, match: str):
