@@ -217,6 +217,28 @@ def test_onnx_export_matches_torch(tmp_path, capsys):
     np.testing.assert_allclose(sess.run(None, {"psf": x})[0], ref, atol=1e-4)
 
 
+def test_onnx_export_carries_its_preprocessing_contract(tmp_path):
+    """Read back with onnxruntime alone: input shape, channel order and normalisation, output grid and
+    units, the weights' sha256 from the model card."""
+    import onnxruntime as ort
+
+    from metadesign.reconstruction.export import export_onnx
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    save_model(build_unet(UNetConfig(8, 4, 3, 16, 41)), tmp_path / "m.safetensors",
+               {"input_normalisation": "psf: each sample's 8 channels sum to 8", "noise_percent": 5.0,
+                "received_crop": {"start": 108, "size": 41, "n_grid": 256, "dx_m": 0.0025}})
+    export_onnx(tmp_path / "m.safetensors", tmp_path / "m.onnx")
+    meta = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"]) \
+        .get_modelmeta().custom_metadata_map
+    card = json.loads((tmp_path / "m.safetensors.json").read_text())
+    inp, out = json.loads(meta["metadesign.input"]), json.loads(meta["metadesign.output"])
+    assert inp["shape"] == ["batch", 8, 16, 16] and inp["channels"][0] == "x-pol QI" and len(inp["channels"]) == 8
+    assert "sum to 8" in inp["normalisation"] and inp["training_noise_percent"] == 5.0
+    assert out["units"] == "rad" and out["grid"]["size"] == 41 and out["grid"]["pitch_m"] == 0.0025
+    assert meta["metadesign.weights_sha256"] == card["weights_sha256"]
+
+
 def test_recipe_noise_is_percent_of_the_peak(tiny_dataset, tmp_path):
     """noise_percent = 5 in a recipe means 5 % of each channel's peak at load (the paper's training noise)."""
     from metadesign.reconstruction.data import PSFDataset
