@@ -178,3 +178,24 @@ def test_layout_options_validated():
         LayoutOptions(layer=3, outline_layer=3)
     with pytest.raises(InputError, match="grid-nm"):
         LayoutOptions(grid_nm=0)
+
+
+@pytest.mark.parametrize("fmt", ["oas", "gds"])
+def test_one_top_cell_even_when_atoms_go_unused(tmp_path, fmt):
+    """A mask shop expects one top cell: atoms the layout does not place get no cell (their rectangles stay
+    in the provenance's atom table), and both readers still read the layout back exactly."""
+    import klayout.db as kdb
+
+    d = synthetic_design(n=2, n_atoms=9)  # 4 pillars, at most 4 of the 9 atoms placed
+    used = set(np.unique(d.index_map).tolist())
+    assert len(used) < 9
+    write_layout(d, tmp_path / f"l.{fmt}", fmt)
+    ly = kdb.Layout()
+    ly.read(str(tmp_path / f"l.{fmt}"))
+    tops = [c.name for c in ly.top_cells()]
+    assert tops == ["METASURFACE"], tops
+    atom_cells = sorted(c.name for c in ly.each_cell() if c.name.startswith("ATOM_"))
+    assert atom_cells == [f"ATOM_{a:03d}" for a in sorted(used)]
+    for reader in (read_layout, read_layout_klayout):
+        v = verify_against_design(reader(tmp_path / f"l.{fmt}"), d)
+        assert v["exact"], v["problems"]

@@ -117,8 +117,11 @@ def read_layout(path: str | Path) -> LayoutContents:
     centres2 = np.zeros((n_atoms, 2), np.int64)
     for a in range(n_atoms):
         c = cells.get(f"ATOM_{a:03d}")
-        if c is None or len(c.polygons) != 1:
-            raise InputError(f"{path}: atom cell ATOM_{a:03d} missing or not a single rectangle")
+        if c is None:  # an atom the layout does not place: its rectangle from the provenance's atom table
+            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
+            continue
+        if len(c.polygons) != 1:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} is not a single rectangle")
         (xa, ya), (xb, yb) = c.polygons[0].bounding_box()
         widths[a] = round(xb - xa), round(yb - ya)
         centres2[a] = round(xa + xb), round(ya + yb)
@@ -131,6 +134,8 @@ def read_layout(path: str | Path) -> LayoutContents:
         if not name.startswith("ATOM_"):
             raise InputError(f"{path}: unexpected reference to cell {name!r}")
         a = int(name[5:])
+        if name not in cells:
+            raise InputError(f"{path}: reference to the missing atom cell {name!r}")
         ox, oy = ref.origin
         if ref.repetition.size > 1:
             offs = np.asarray(ref.repetition.offsets)
@@ -185,8 +190,9 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
     index_of = {}
     for a in range(n_atoms):
         c = ly.cell(f"ATOM_{a:03d}")
-        if c is None:
-            raise InputError(f"{path}: atom cell ATOM_{a:03d} missing")
+        if c is None:  # not placed (instances of it would name a cell that exists)
+            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
+            continue
         shapes = list(c.shapes(layer).each())
         if len(shapes) != 1:
             raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
@@ -226,6 +232,16 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
             dup += d
             off += o
     return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
+
+
+def _unplaced_atom(path: Path, prov: dict, a: int) -> tuple[list[int], list[int]]:
+    """Width and doubled centre of an atom the layout writes no cell for (it places none): from the
+    provenance's atom table, centred as the writer centres rectangles."""
+    table = prov.get("atom_widths_nm")
+    if not table or a >= len(table):
+        raise InputError(f"{path}: atom cell ATOM_{a:03d} missing (and no atom table in the provenance)")
+    w = [int(table[a][0]), int(table[a][1])]
+    return w, [-(w[0] % 2), -(w[1] % 2)]
 
 
 def verify_against_design(lc: LayoutContents, design, grid_nm: int = 1) -> dict:

@@ -95,17 +95,21 @@ def build_gdstk_library(design, opts: LayoutOptions, provenance: dict):
     wx, ex = snap_widths(atoms.wx, opts.grid_nm)
     wy, ey = snap_widths(atoms.wy, opts.grid_nm)
     lib = gdstk.Library(name="METADESIGN", unit=1e-9, precision=1e-9)
-    cells = []
-    for a in range(len(atoms)):
-        c = lib.new_cell(f"ATOM_{a:03d}")
-        r = _rect(int(wx[a]), int(wy[a]))
-        r.layer, r.datatype = opts.layer, opts.datatype
-        c.add(r)
-        cells.append(c)
-    top = lib.new_cell(TOP_CELL)
     flat = im.ravel()
     order = np.argsort(flat, kind="stable")  # raster order within each atom (radix sort for uint8/16)
     counts = np.bincount(flat, minlength=len(atoms) + 1)
+    # only the atoms the layout places: a mask shop expects one top cell, and an unreferenced cell is one
+    # (the whole atom table stays in the provenance, so a reader still knows every atom's rectangle)
+    cells = []
+    for a in range(len(atoms)):
+        c = None
+        if counts[a]:
+            c = lib.new_cell(f"ATOM_{a:03d}")
+            r = _rect(int(wx[a]), int(wy[a]))
+            r.layer, r.datatype = opts.layer, opts.datatype
+            c.add(r)
+        cells.append(c)
+    top = lib.new_cell(TOP_CELL)
     start = 0
     for a in range(len(atoms)):
         cnt = int(counts[a])
