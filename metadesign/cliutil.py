@@ -9,6 +9,7 @@ import json
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 from .validation import ConfigError, ValidationError, check_int, check_number
@@ -103,23 +104,53 @@ def emit(obj: dict, as_json: bool, text: str) -> None:
         print(text)
 
 
-def progress_bar(desc: str, unit: str = "cell"):
-    """A tqdm-backed progress callback ``(done, total)``; silent off a terminal."""
-    from tqdm import tqdm
+#: seconds between progress lines when the output is not a terminal (a log file, CI); env override
+PROGRESS_SECONDS = float(os.environ.get("METADESIGN_PROGRESS_SECONDS", "30"))
 
+
+def progress_bar(desc: str, unit: str = "cell", stream=None, interval: float | None = None, clock=time.monotonic):
+    """A progress callback ``(done, total)``: a tqdm bar on a terminal; elsewhere (a log file, CI, where
+    tqdm turns itself off) one line every ``interval`` seconds with the rate and the time left, and a last
+    line at the end of a run that printed any (short runs stay silent)."""
+    stream = sys.stderr if stream is None else stream
+    interval = PROGRESS_SECONDS if interval is None else interval
     state: dict = {}
+    if getattr(stream, "isatty", lambda: False)():
+        from tqdm import tqdm
 
-    def cb(done: int, total: int) -> None:
-        bar = state.get("bar")
-        if bar is None:
-            bar = state["bar"] = tqdm(total=total, desc=desc, unit=unit, file=sys.stderr,
-                                      disable=None, dynamic_ncols=True)
-        bar.n = done
-        bar.refresh()
-        if done >= total:
-            bar.close()
+        def bar_cb(done: int, total: int) -> None:
+            bar = state.get("bar")
+            if bar is None:
+                bar = state["bar"] = tqdm(total=total, desc=desc, unit=unit, file=stream, dynamic_ncols=True)
+            bar.n = done
+            bar.refresh()
+            if done >= total:
+                bar.close()
 
-    return cb
+        return bar_cb
+
+    def log_cb(done: int, total: int) -> None:
+        now = clock()
+        if "t0" not in state:
+            state.update(t0=now, last=now, printed=False)
+        final = done >= total
+        if now - state["last"] < interval and not (final and state["printed"]):
+            return
+        if final and state.get("closed"):
+            return
+        el = now - state["t0"]
+        rate = done / el if el > 0 else 0.0
+        eta = (total - done) / rate if rate > 0 else float("inf")
+        left = "done" if final else (f"about {_duration(eta)} left" if eta != float("inf") else "")
+        print(f"{desc}: {done}/{total} {unit}s ({100 * done / max(total, 1):.0f} %), {_duration(el)} elapsed"
+              + (f", {rate:.3g} {unit}s/s" if rate else "") + (f"; {left}" if left else ""), file=stream, flush=True)
+        state.update(last=now, printed=True, closed=final)
+
+    return log_cb
+
+
+def _duration(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else (f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h")
 
 
 def log_to(quiet: bool):

@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
+from ..cliutil import progress_bar
 from ..config import Param, Section, load_toml, parse
 from ..design.plot import plot_design
 from ..design.recipe import load_design_recipe
@@ -264,7 +265,7 @@ class _Pipeline:
         self.k_ds = _h(self.k_psf, self.k_tu, ds_raw)
         self.report["tables"]["Dataset"] = self.stage("dataset", self.k_ds, [self.dsdir / "zarr.json"], lambda: {
             k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), self.dsdir, workers=workers,
-                                           overwrite=True).items()
+                                           overwrite=True, progress=progress_bar("dataset", "sample")).items()
             if k in ("samples", "bytes_per_sample", "split_counts")})
 
     def train(self) -> None:
@@ -294,7 +295,8 @@ class _Pipeline:
         def do_eval():
             ev_dir.mkdir(exist_ok=True)
             # noise levels stay in percent of the peak (config: "percent" is not rescaled)
-            res = evaluate_model(self.model, self.dsdir, ev_opts["split"], list(ev_opts["noise_percent"]))
+            res = evaluate_model(self.model, self.dsdir, ev_opts["split"], list(ev_opts["noise_percent"]),
+                                 progress=progress_bar("evaluate", "sample"))
             write_results(res, ev_dir)
             figs = plot_fig3(res, ev_dir)
             return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in res["rows"]}}
