@@ -264,3 +264,26 @@ def test_json_summaries_are_strict_json(demo_products, tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     json.loads(out, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+
+
+@pytest.mark.parametrize("argv,dest,value", [
+    (["evaluate", "M", "D", "--noise", "5"], "noise", [5.0]),
+    (["evaluate", "M", "D", "--noise-percent", "5"], "noise", [5.0]),
+    (["compare", "M", "D", "--noise", "2"], "noise", 2.0),
+    (["compare", "M", "D", "--noise-percent", "2"], "noise", 2.0),
+    (["dataset", "operators", "D", "--splits", "train", "val"], "splits", ["train", "val"]),
+    (["dataset", "operators", "D", "--split", "train", "val"], "splits", ["train", "val"]),
+    (["export", "M", "--onnx", "m.onnx"], "onnx", "m.onnx"),
+    (["export", "M", "-o", "m.onnx"], "onnx", "m.onnx"),
+    (["library", "export", "--csv", "l.csv"], "csv", "l.csv"),
+    (["library", "export", "--output", "l.csv"], "csv", "l.csv"),
+    (["dataset", "synth-captures", "P", "--device", "D", "-o", "C", "--samples", "3"], "samples", 3),
+    (["dataset", "synth-captures", "P", "--device", "D", "-o", "C", "--limit", "3"], "samples", 3),
+    (["library", "lpa-check", "L", "--samples", "7"], "samples", 7),
+    (["library", "lpa-check", "L", "--limit", "7", "--noise-percent", "2"], "samples", 7),
+])
+def test_one_option_convention_with_the_old_spellings_as_aliases(argv, dest, value):
+    """Units in option names (--noise-percent), --limit for 'at most N samples', --split, -o/--output for
+    every output; the old spellings still parse to the same thing."""
+    a = build_parser().parse_args(argv)
+    assert getattr(a, dest) == value

@@ -80,7 +80,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 def _cmd_export(a: argparse.Namespace) -> int:
     from .store import export_csv, load_library
 
-    out = out_file(a.csv, "--csv")
+    out = out_file(a.csv, "-o/--output")
     lib = load_library(_lib_arg(a))
     n = export_csv(lib, out)
     print(f"wrote {out}: {n} rows")
@@ -123,6 +123,6 @@ def register(sub) -> dict:
 
     ex = lsub.add_parser("export", help="write the library as CSV for other tools")
     ex.add_argument("library", nargs="?", help="library file (default: the committed library/paper.npz)")
-    ex.add_argument("--csv", required=True, help="CSV output path")
+    ex.add_argument("-o", "--output", "--csv", dest="csv", required=True, help="CSV output path")
     ex.set_defaults(func=_cmd_export)
     return {"library": lsub}

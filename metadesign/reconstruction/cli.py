@@ -182,7 +182,7 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 def _cmd_export(a: argparse.Namespace) -> int:
     from .export import export_onnx
 
-    out = out_file(a.onnx, "--onnx", suffixes=(".onnx",))
+    out = out_file(a.onnx, "-o/--output", suffixes=(".onnx",))
     rep = export_onnx(a.model, out, a.opset)
     emit(rep, a.json, f"wrote {out} ({rep['bytes'] / 1e6:.1f} MB, opset {rep['opset']}, dynamic batch): onnxruntime "
          f"matches torch within {rep['max_abs_diff']:.1e} rad on random inputs")
@@ -220,7 +220,7 @@ def register(sub) -> dict:
                         description="Export the U-Net as ONNX with a dynamic batch axis and check it against "
                         "torch in onnxruntime.")
     ex.add_argument("model", help="model weights (.safetensors with its .json card)")
-    ex.add_argument("--onnx", required=True, help="output .onnx file")
+    ex.add_argument("-o", "--output", "--onnx", dest="onnx", required=True, help="output .onnx file")
     ex.add_argument("--opset", type=integer(13, 23), default=17, help="ONNX opset (default 17)")
     ex.add_argument("--json", action="store_true", help="print the report as JSON")
     ex.set_defaults(func=_cmd_export)
@@ -233,7 +233,8 @@ def register(sub) -> dict:
     ev.add_argument("model", help="model weights (.safetensors with its .json card)")
     ev.add_argument("dataset", help="dataset folder")
     ev.add_argument("--split", default="test", choices=["test", "val", "train", "all"])
-    ev.add_argument("--noise", type=num(0, 100, unit="%"), nargs="+", default=[0.0],
+    ev.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), nargs="+",
+                    default=[0.0],
                     help="test noise levels, %% of each channel's peak (default 0)")
     ev.add_argument("--photons", type=num(0, 1e15, open_lo=True), nargs="+",
                     help="also: shot noise with these photo-electrons at the peak (+3 e- read noise)")
@@ -284,7 +285,7 @@ def register(sub) -> dict:
         "training then reads A instead of regenerating the screens (train.pib_operator = auto/stored). "
         "Resumable; a local process pool or a Dask cluster.")
     op.add_argument("dataset", help="dataset folder (from `dataset build` or `dataset import`)")
-    op.add_argument("--splits", nargs="+", default=["train"], choices=["train", "val", "test"],
+    op.add_argument("--split", "--splits", dest="splits", nargs="+", default=["train"], choices=["train", "val", "test"],
                     help="splits to compute (default: train)")
     workers_arg(op)
     op.add_argument("--scheduler", metavar="ADDRESS",

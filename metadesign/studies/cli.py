@@ -62,7 +62,7 @@ def _cmd_compare(a: argparse.Namespace) -> int:
     from .compare import run_compare, tune, write_compare
 
     model = _model_arg(a.model)
-    out = out_dir(a.output)
+    out = out_dir(a.output or Path(a.dataset) / "compare")
     st = _settings(a, a.methods)
     log = log_to(a.json)
     tuning = None
@@ -133,7 +133,7 @@ def _common(p, iterations_help: str) -> None:
     p.add_argument("dataset", help="dataset folder (its device pupil and provenance define the forward model)")
     p.add_argument("--split", default="test", choices=["test", "val", "train", "all"])
     p.add_argument("--limit", type=integer(1, 10**8), help="at most this many samples of the split")
-    p.add_argument("--noise", type=num(0, 100, unit="%"), default=5.0,
+    p.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), default=5.0,
                    help="sensor noise for every method, %% of each frame's peak (default 5, the demo model's)")
     p.add_argument("--iterations", type=integer(0, 100000), help=iterations_help)
     p.add_argument("--starts", type=integer(1, 64), help="retrieval: starts per sample in the modal stage (default 3)")
@@ -324,7 +324,7 @@ def register(sub, groups: dict) -> None:
                    help="estimators to run (default: all)")
     c.add_argument("--tune", type=integer(0, 10000), default=0, metavar="N",
                    help="first tune every baseline on N validation samples (grids in metadesign.studies.compare)")
-    c.add_argument("-o", "--output", required=True, help="output folder")
+    c.add_argument("-o", "--output", help="output folder (default: DATASET/compare)")
     c.set_defaults(func=_cmd_compare)
 
     r = sub.add_parser(
@@ -383,8 +383,10 @@ def register(sub, groups: dict) -> None:
     lp.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
     lp.add_argument("--dataset", help="dataset whose device pupil and test samples serve the downstream study")
     lp.add_argument("--model", help="U-Net weights for the downstream NPiB")
-    lp.add_argument("--samples", type=integer(1, 100000), default=64, help="test samples downstream (64)")
-    lp.add_argument("--noise", type=num(0, 100), default=5.0, help="sensor noise downstream, %% of peak (5)")
+    lp.add_argument("--limit", "--samples", dest="samples", type=integer(1, 100000), default=64,
+                    help="at most this many test samples downstream (64)")
+    lp.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), default=5.0,
+                    help="sensor noise downstream, %% of peak (5)")
     lp.add_argument("-o", "--output", help="output folder (default: lpa-check/ beside the design)")
     workers_arg(lp)
     lp.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -398,7 +400,8 @@ def register(sub, groups: dict) -> None:
     sy.add_argument("--device", required=True, help="dataset (or its device-pupil.npz) of the device to render")
     sy.add_argument("-o", "--output", required=True, help="capture folder to write")
     sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
-    sy.add_argument("--samples", type=integer(1, 10_000_000), help="at most this many samples")
+    sy.add_argument("--limit", "--samples", dest="samples", type=integer(1, 10_000_000),
+                    help="at most this many samples of the split")
     sy.add_argument("--shift", nargs=2, type=num(-200, 200), default=(0.0, 0.0), metavar=("DX", "DY"),
                     help="relay shift, camera pixels")
     sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)
