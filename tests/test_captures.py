@@ -364,3 +364,32 @@ def test_synth_captures_refuses_an_empty_split(captures, tmp_path, capsys):
     rc, _, err = _run(["dataset", "synth-captures", ref, "--device", ref, "--split", empty, "-o",
                        tmp_path / "c"], capsys)
     assert rc == 2 and len(err) == 1 and "empty" in err[0] and not (tmp_path / "c").exists()
+
+
+def test_fits_frames_import_as_the_same_counts_in_png(captures, tmp_path, capsys):
+    """The same synthetic captures written as FITS (unsigned 16-bit: BZERO 32768) and as PNG import to
+    identical tensors; a FITS frame reads back as the uint16 counts written."""
+    from astropy.io import fits
+
+    from metadesign.reconstruction.captures import import_captures, read_frame
+    from metadesign.sensing.camera import Alignment, CameraSpec
+    from metadesign.studies.captures import synth_captures
+
+    cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
+    cap = tmp_path / "cap-fits"
+    synth_captures(captures["ref"], captures["device"], cap, Alignment(**TRUE), cam, samples=5, saturate=1,
+                   fmt="fits", seed=2)
+    f = cap / "frames" / "000000-x.fits"
+    raw = fits.getdata(f)
+    a, full = read_frame(f)
+    assert raw.dtype == np.uint16 and full == 65535 and np.array_equal(a, raw.astype(np.float64))
+    png, _ = read_frame(captures["cap"] / "frames" / "000000-x.png")
+    assert np.array_equal(a, png)
+    got = {}
+    for name, folder in (("fits", cap), ("png", captures["cap"])):
+        import_captures(folder, tmp_path / name, folder / "flat.csv", captures["ref"], sorted((folder / "dark").glob("*")))
+        from metadesign.reconstruction.data import PSFDataset
+
+        ds = PSFDataset(tmp_path / name, "all")
+        got[name] = np.stack([ds.get(j)["psf"] for j in range(len(ds))])
+    assert np.array_equal(got["fits"], got["png"])

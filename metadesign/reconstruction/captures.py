@@ -5,7 +5,7 @@ Inputs (paths in the CSVs are relative to the CSV):
 * ``FOLDER/manifest.csv``: columns ``sample, frame_x, frame_y, slm_phase`` and optionally ``rytov`` (empty
   or absent: unknown, stored as NaN and reported so), ``split`` (train / val / test) and ``slm_extent_mm``.
   One frame per polarisation per sample (the paper rotates a polariser between captures): 16-bit PNG or
-  TIFF, or ``.npy`` (any real dtype), ``width x height`` of the reference sensor (640 x 512 for the
+  TIFF, FITS (the first 2-D image HDU, BZERO/BSCALE applied), or ``.npy`` (any real dtype), ``width x height`` of the reference sensor (640 x 512 for the
   paper's).  ``slm_phase``: the phase the SLM applied, as ``.npy`` in radians or as a 16-bit image with
   ``--phase-per-count`` rad per count (default ``2 pi / 65536``: the full range is one wave), either on
   the receiver crop of the reference's turbulence grid (A x A samples spanning ``A dx``: ``dataset show
@@ -59,7 +59,7 @@ from .dataset import DATASET_FORMAT, _create_store, _read_attrs, load_device, no
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fits", ".fit", ".fts", ".fits.gz")
 RYTOV_MAX = 5.0  # the largest Rytov number a dataset recipe takes
 
 
@@ -68,12 +68,16 @@ def read_frame(path: Path, what: str = "frame") -> tuple[np.ndarray, float | Non
     path = Path(path)
     if not path.is_file():
         raise ValidationError(f"{path}: no such {what}")
-    suf = path.suffix.lower()
+    name = path.name.lower()
+    suf = next((s for s in IMAGE_SUFFIXES if name.endswith(s)), path.suffix.lower())
     if suf not in IMAGE_SUFFIXES:
-        raise ValidationError(f"{path}: {what}: expected .png, .tif/.tiff or .npy, got {suf or 'no suffix'}")
+        raise ValidationError(f"{path}: {what}: expected .png, .tif/.tiff, .npy or FITS (.fits, .fit, .fts, "
+                              f".fits.gz), got {suf or 'no suffix'}")
     try:
         if suf == ".npy":
             a = np.load(path, allow_pickle=False)
+        elif suf in (".fits", ".fit", ".fts", ".fits.gz"):
+            a = _read_fits(path)
         else:
             from PIL import Image
 
@@ -88,6 +92,18 @@ def read_frame(path: Path, what: str = "frame") -> tuple[np.ndarray, float | Non
     if not np.isfinite(a).all():
         raise ValidationError(f"{path}: {what}: holds NaN or infinite values")
     return a, full
+
+
+def _read_fits(path: Path) -> np.ndarray:
+    """The first 2-D image of a FITS file (primary HDU or an image extension), BZERO/BSCALE applied
+    (unsigned 16-bit frames come back as uint16, as cameras write them)."""
+    from astropy.io import fits
+
+    with fits.open(path, memmap=False) as hdus:
+        for h in hdus:
+            if getattr(h, "data", None) is not None and h.is_image and np.ndim(h.data) == 2:
+                return np.array(h.data)
+    raise ValueError("no 2-D image in any HDU")
 
 
 def read_manifest(path: Path, need: tuple[str, ...], what: str = "manifest") -> list[dict]:

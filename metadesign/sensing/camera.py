@@ -189,12 +189,17 @@ def slm_pupil_field(phase_crop: np.ndarray, geometry: tuple, n_out: int, pad: in
 
 
 def write_frame(path: Path, counts: np.ndarray) -> None:
-    """A uint16 frame as 16-bit PNG or TIFF (Pillow) or .npy, by the suffix."""
+    """A uint16 frame as 16-bit PNG or TIFF (Pillow), FITS (astropy: unsigned 16-bit as BZERO 32768) or
+    .npy, by the suffix."""
     path = Path(path)
     with atomic_path(path) as tmp:
         if path.suffix == ".npy":
             with open(tmp, "wb") as fh:
                 np.save(fh, counts, allow_pickle=False)
+        elif path.suffix == ".fits":
+            from astropy.io import fits
+
+            fits.PrimaryHDU(np.ascontiguousarray(counts, np.uint16)).writeto(tmp, overwrite=True)
         else:
             from PIL import Image
 

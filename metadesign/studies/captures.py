@@ -51,7 +51,7 @@ def _synth_captures(phases, device, final: Path, alignment, camera, samples, spl
     n = len(ds)
     if n == 0:
         raise ValidationError(f"{phases}: the {split} split is empty (no samples to capture)")
-    ext = {"png": ".png", "tiff": ".tif", "npy": ".npy"}[fmt]
+    ext = {"png": ".png", "tiff": ".tif", "npy": ".npy", "fits": ".fits"}[fmt]
     out = final.with_name(final.name + ".partial")  # renamed when complete: a failure leaves no capture folder
     shutil.rmtree(out, ignore_errors=True)
     try:

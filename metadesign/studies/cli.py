@@ -406,7 +406,7 @@ def register(sub, groups: dict) -> None:
                     help="relay shift, camera pixels")
     sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)
     sy.add_argument("--scale", type=num(0.8, 1.25), default=1.0, help="relay magnification / nominal")
-    sy.add_argument("--format", choices=("png", "tiff", "npy"), default="png")
+    sy.add_argument("--format", choices=("png", "tiff", "fits", "npy"), default="png")
     sy.add_argument("--peak-counts", type=num(1, 65535), default=40000.0)
     sy.add_argument("--photons", type=num(0, 1e9), default=20000.0, help="photo-electrons at the peak (0: none)")
     sy.add_argument("--read-noise-e", type=num(0, 1e4), default=5.0)
