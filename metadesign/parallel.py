@@ -75,8 +75,7 @@ def dask_client(scheduler: str):
                               f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
 
 
-_NONE = object()
-_SHARED = _NONE  # a worker's shared object (set once by the pool's initializer)
+_SHARED = None  # a worker's shared object (set once by the pool's initializer)
 
 
 def _init_shared(shared) -> None:
@@ -92,7 +91,7 @@ class _Call:
         self.fn = fn
 
     def __call__(self, task):
-        return self.fn(task) if _SHARED is _NONE or _SHARED is None else self.fn(_SHARED, task)
+        return self.fn(task) if _SHARED is None else self.fn(_SHARED, task)
 
 
 class WorkerPool:

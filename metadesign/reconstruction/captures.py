@@ -5,8 +5,8 @@ Inputs (paths in the CSVs are relative to the CSV):
 * ``FOLDER/manifest.csv``: columns ``sample, frame_x, frame_y, slm_phase`` and optionally ``rytov`` (empty
   or absent: unknown, stored as NaN and reported so), ``split`` (train / val / test) and ``slm_extent_mm``.
   One frame per polarisation per sample (the paper rotates a polariser between captures): 16-bit PNG or
-  TIFF, FITS (the first 2-D image HDU, BZERO/BSCALE applied), or ``.npy`` (any real dtype), ``width x height`` of the reference sensor (640 x 512 for the
-  paper's).  ``slm_phase``: the phase the SLM applied, as ``.npy`` in radians or as a 16-bit image with
+  TIFF, FITS (the first 2-D image HDU, BZERO/BSCALE applied), or ``.npy`` (any real dtype), ``width x
+  height`` of the reference sensor (640 x 512 for the paper's).  ``slm_phase``: the phase the SLM applied, as ``.npy`` in radians or as a 16-bit image with
   ``--phase-per-count`` rad per count (default ``2 pi / 65536``: the full range is one wave), either on
   the receiver crop of the reference's turbulence grid (A x A samples spanning ``A dx``: ``dataset show
   REFERENCE`` prints both) or, with ``slm_extent_mm`` (the map's side length), on any square grid centred on
@@ -59,7 +59,8 @@ from .dataset import DATASET_FORMAT, _create_store, _read_attrs, load_device, no
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fits", ".fit", ".fts", ".fits.gz")
+FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", *FITS_SUFFIXES)
 RYTOV_MAX = 5.0  # the largest Rytov number a dataset recipe takes
 
 
@@ -76,7 +77,7 @@ def read_frame(path: Path, what: str = "frame") -> tuple[np.ndarray, float | Non
     try:
         if suf == ".npy":
             a = np.load(path, allow_pickle=False)
-        elif suf in (".fits", ".fit", ".fts", ".fits.gz"):
+        elif suf in FITS_SUFFIXES:
             a = _read_fits(path)
         else:
             from PIL import Image

@@ -296,10 +296,6 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
 # ------------------------------------------------------------ the builder
 
 
-def _sha256(path: Path) -> str:
-    return file_sha256(path)
-
-
 def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
     """The recipe's layout; built from its design recipe (design + OASIS + exact verify) if missing."""
     if recipe.layout is not None and recipe.layout.exists():
@@ -458,7 +454,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     f = recipe.fabrication
     pert = Perturbation.from_config(f)
     layout = ensure_layout(recipe, log)
-    layout_sha = _sha256(layout)
+    layout_sha = file_sha256(layout)
     fab = AsFabricated.from_files(layout)
     check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
     if pert.has_fab_axes:

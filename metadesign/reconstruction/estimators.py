@@ -69,6 +69,7 @@ class Estimator:
     style: ClassVar[tuple[str, str]] = ("k", "o")  # matplotlib colour and marker in study figures
     needs_model: ClassVar[bool] = False  # takes the U-Net (the model argument of a study)
     config_key: ClassVar[str | None] = None  # attribute of a study's settings holding this estimator's config
+    starts_from: ClassVar[str | None] = None  # the estimator whose estimate it starts from (its latency adds)
 
     def __init__(self, device: Device, config=None, model=None, noise_percent: float = 0.0, noise_seed: int = 0):
         """The ``prepare`` step: everything that does not depend on the sample (not timed)."""
@@ -182,7 +183,7 @@ class HybridEstimator(RetrievalEstimator):
     """The retrieval started from the U-Net's estimate (fewer, finer iterations)."""
 
     name, label, style, config_key, needs_model = "hybrid", "U-Net + retrieval", ("tab:red", "*"), "hybrid", True
-    starts_from = "unet"  # its latency includes that estimator's
+    starts_from = "unet"
     DEFAULT = RetrievalConfig(modal_iterations=0, zonal_iterations=50, lr_zonal=0.03, misfit="gaussian")
 
     def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None,
@@ -192,8 +193,8 @@ class HybridEstimator(RetrievalEstimator):
     def start(self, batch, done):
         import torch
 
-        if done and "unet" in done:
-            return done["unet"]
+        if done and self.starts_from in done:
+            return done[self.starts_from]
         with torch.no_grad():
             return self.model(_torch(batch["psf"]))
 

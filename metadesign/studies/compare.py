@@ -42,7 +42,7 @@ from ..timing import repeat_seconds
 from ..validation import ConfigError, ValidationError
 
 __all__ = ["CompareSettings", "run_compare", "tune", "summarise", "write_compare", "checkpoints_for",
-           "at_budget", "METHODS", "BUDGETS_MS", "methods", "label", "style"]
+           "at_budget", "BUDGETS_MS", "methods", "label", "style"]
 
 #: the registered estimators (metadesign.reconstruction.estimators), in registration order, at import; the
 #: functions below read the registry live, so an estimator registered later takes part too
@@ -65,11 +65,6 @@ def style(m: str) -> tuple[str, str]:
     return _FIXED[m][1] if m in _FIXED else ESTIMATOR_CLASSES[m].style
 
 
-METHODS = methods()
-LABELS = {m: label(m) for m in METHODS}
-
-HYBRID_DEFAULT = HybridEstimator.DEFAULT  # from the U-Net
-
 
 @dataclass(frozen=True)
 class CompareSettings:
@@ -80,7 +75,7 @@ class CompareSettings:
     batch: int = 8
     methods: tuple[str, ...] = ESTIMATORS
     retrieval: RetrievalConfig = field(default_factory=lambda: RetrievalConfig(misfit="gaussian"))
-    hybrid: RetrievalConfig = HYBRID_DEFAULT
+    hybrid: RetrievalConfig = HybridEstimator.DEFAULT  # from the U-Net
     sh: SHConfig = field(default_factory=lambda: SHConfig(lenslets=5, threshold=0.3, noise_sigmas=3.0))
     latency_samples: int = 2
 
@@ -162,14 +157,14 @@ class _Runner:
         items = self.items(range(min(self.st.latency_samples, len(self.ds))))
         out: dict = {}
         for name, est in self.est.items():
-            base = out.get(getattr(est, "starts_from", None) or "", 0.0)
+            base = out.get(est.starts_from, 0.0)
             if est.iterations is None:
                 out[name] = 1e3 * repeat_seconds(est.latency_fn(_batch_of(items[:1])), 15)
                 continue
             cks, runs = est.checkpoints(), []
             for s in items:
                 one = _batch_of([s])
-                done = {k: v.estimate(one) for k, v in self.est.items() if k == getattr(est, "starts_from", None)}
+                done = {est.starts_from: self.est[est.starts_from].estimate(one)} if est.starts_from else {}
                 stamps: dict = {}
                 t0 = time.perf_counter()
                 est.estimate(one, done, on_checkpoint=lambda it, phi: stamps.__setitem__(it, time.perf_counter()))
@@ -183,7 +178,7 @@ def _run_order(methods, have_model: bool) -> list[str]:
     """The estimators to run, in registry order: the asked ones a model allows, and those they start from
     (the hybrid's U-Net: recorded too)."""
     want = {m for m in methods if have_model or not ESTIMATOR_CLASSES[m].needs_model}
-    want |= {getattr(ESTIMATOR_CLASSES[m], "starts_from", None) for m in list(want)} - {None}
+    want |= {ESTIMATOR_CLASSES[m].starts_from for m in list(want)} - {None}
     return [m for m in ESTIMATOR_CLASSES if m in want]
 
 
@@ -395,13 +390,14 @@ def tune(model, dataset, st: CompareSettings, n: int, split: str = "val", log=pr
     batch = _batch_of(items)
     done: dict = {}
     mdl = None
-    if model is not None and any(getattr(ESTIMATOR_CLASSES[m], "starts_from", None) for m in methods):
+    starts = {ESTIMATOR_CLASSES[m].starts_from for m in methods} - {None}
+    if model is not None and starts:
         mdl, _ = load_model(model)
-        done["unet"] = make_estimator("unet", base.dev, model=mdl).estimate(batch)
+        done = {s: make_estimator(s, base.dev, model=mdl).estimate(batch) for s in starts}
     for name in _run_order(methods, model is not None):
         cls = ESTIMATOR_CLASSES[name]
         grid = TUNING_GRIDS.get(name)
-        if not grid or (getattr(cls, "starts_from", None) and cls.starts_from not in done):
+        if not grid or (cls.starts_from and cls.starts_from not in done):
             continue
         table = []
         for cfg in _grid(getattr(st, cls.config_key), grid):
