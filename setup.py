@@ -11,7 +11,11 @@ PRODUCTS = {
     "metadesign.products.library": ("library", ["paper.npz", "paper.toml", "paper-fab.npz", "paper-fab.toml"]),
     "metadesign.products.layouts": ("layouts", ["*.toml"]),
     "metadesign.products.sensing": ("sensing", ["*.toml"]),
-    "metadesign.products.sensing.models": ("sensing/models", ["demo-unet.safetensors", "demo-unet.safetensors.json",
+    # the demo's robust U-Net and its learned refinement (which names the U-Net beside it), and the
+    # 5 %-noise model the README's examples load
+    "metadesign.products.sensing.models": ("sensing/models", ["demo-unet-robust.safetensors",
+                                                              "demo-unet-robust.safetensors.json",
+                                                              "demo-refine.safetensors", "demo-refine.safetensors.json",
                                                               "demo-unet-long.safetensors",
                                                               "demo-unet-long.safetensors.json"]),
 }

@@ -56,6 +56,7 @@ class Param:
     open_hi: bool = False
     choices: Sequence[str] | None = None
     pairs: bool = False
+    span: bool = False  # a float kind that also takes a range [lo, hi]: the value is always (lo, hi)
     help: str = ""
 
     @property
@@ -77,7 +78,8 @@ class Param:
         unit = f" {self.unit}" if self.unit else ""
         if self.lo is None and self.hi is None:
             return f"a {self.kind.__name__}"
-        return f"a {self.kind.__name__} in {lo}{a}, {b}{hi}{unit}"
+        one = f"a {self.kind.__name__} in {lo}{a}, {b}{hi}{unit}"
+        return one + " or a range [lo, hi] of them" if self.span else one
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,16 @@ def _check_number(where: str, p: Param, v: Any) -> float:
 
 
 def _convert(where: str, p: Param, v: Any) -> Any:
+    if p.span:
+        if not isinstance(v, list):
+            x = _check_number(where, p, v) * p.scale
+            return (x, x)
+        if len(v) != 2:
+            raise ConfigError(where, f"expected {p.allowed()}, got {v!r}")
+        lo, hi = (_check_number(f"{where}[{i}]", p, x) * p.scale for i, x in enumerate(v))
+        if lo > hi:
+            raise ConfigError(where, f"expected a range [lo, hi] with lo <= hi, got {v!r}")
+        return (lo, hi)
     if p.kind in (float, int):
         v = _check_number(where, p, v)
         return v * p.scale if p.kind is float else int(v)

@@ -245,8 +245,8 @@ def test_recipe_noise_is_percent_of_the_peak(tiny_dataset, tmp_path):
     from metadesign.reconstruction.train import load_train_recipe
 
     r = load_train_recipe(_recipe(tmp_path, tiny_dataset))
-    assert r.noise_percent == pytest.approx(5.0)
-    ds = PSFDataset(tiny_dataset, "all", gaussian_percent=r.noise_percent, noise_seed=1)
+    assert r.noise_percent == (5.0, 5.0)
+    ds = PSFDataset(tiny_dataset, "all", **r.noise(), noise_seed=1)
     clean = PSFDataset(tiny_dataset, "all")
     d = np.stack([ds.get(i)["psf"] - clean.get(i)["psf"] for i in range(len(ds))])
     peak = np.stack([clean.get(i)["psf"] for i in range(len(ds))]).max(axis=(2, 3), keepdims=True)

@@ -163,18 +163,22 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
 
     atomic_write_text(out / "summary.json", _json.dumps(json_safe(summary), indent=2, sort_keys=True))
     s = summary
+    net = "refined" if "start" in s else "U-Net"  # a refiner's rows: the refined estimate, and its U-Net alone
     lines = [f"evaluated {a.model} on {res['n']} {a.split} samples of {a.dataset} (noise {keys[0]}) -> {out}",
-             "  mean NPiB: uncorrected {none:.3f}, U-Net {unet:.3f}, phase conjugate {phase_conjugate:.3f}, "
-             "complex conjugate {complex_conjugate:.3f}".format(**s["npib"]),
-             f"  captured fraction {s['captured_fraction']:.3f}; gain U-Net / uncorrected: mean {s['gain']['mean']:.1f}x, "
+             "  mean NPiB: uncorrected {none:.3f}, {net} {unet:.3f}, phase conjugate {phase_conjugate:.3f}, "
+             "complex conjugate {complex_conjugate:.3f}".format(net=net, **s["npib"])
+             + (f"; its U-Net alone {s['start']['npib']:.3f} (captured {s['start']['captured_fraction']:.3f})"
+                if "start" in s else ""),
+             f"  captured fraction {s['captured_fraction']:.3f}; gain {net} / uncorrected: mean {s['gain']['mean']:.1f}x, "
              f"median {s['gain']['median']:.1f}x, ratio of means {s['gain']['ratio_of_means']:.1f}x; residual RMS "
              f"{s['residual_rms_rad']:.2f} rad (+ tip/tilt {s['residual_tiptilt_rms_rad']:.2f} rad)"]
     for k, b in s["by_rytov"].items():
-        lines.append(f"  Rytov {k:>9}: n {b['n']:4d}, NPiB none {b['npib']['none']:.3f}, U-Net {b['npib']['unet']:.3f}, "
+        lines.append(f"  Rytov {k:>9}: n {b['n']:4d}, NPiB none {b['npib']['none']:.3f}, {net} {b['npib']['unet']:.3f}, "
                      f"conjugate {b['npib']['phase_conjugate']:.3f}, captured {b['captured_fraction']:.2f}")
     for k, b in s.get("by_noise", {}).items():
-        lines.append(f"  noise {k:>14}: U-Net NPiB {b['npib']['unet']:.3f} (median {b['npib_median']['unet']:.3f}), "
-                     f"captured {b['captured_fraction']:.2f}, residual {b['residual_rms_rad']:.2f} rad")
+        lines.append(f"  noise {k:>14}: {net} NPiB {b['npib']['unet']:.3f} (median {b['npib_median']['unet']:.3f}), "
+                     f"captured {b['captured_fraction']:.2f}, residual {b['residual_rms_rad']:.2f} rad"
+                     + (f"; U-Net alone captured {b['start']['captured_fraction']:.2f}" if "start" in b else ""))
     emit(summary, a.json, "\n".join(lines))
     return 0
 

@@ -14,7 +14,7 @@ from ..turbulence.propagate import Turbulence
 from ..validation import ValidationError, check_int, check_number
 from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, sample_rytov
 
-__all__ = ["PSFDataset", "apply_noise"]
+__all__ = ["PSFDataset", "apply_noise", "NoiseRange"]
 
 
 def apply_noise(psf: np.ndarray, rng: np.random.Generator, gaussian_percent: float = 0.0,
@@ -37,28 +37,77 @@ def apply_noise(psf: np.ndarray, rng: np.random.Generator, gaussian_percent: flo
     return (y * peak).astype(np.float32)
 
 
+def _span(name: str, v, lo: float, hi: float, open_lo: bool = False) -> tuple[float, float]:
+    """A level or a ``(lo, hi)`` range of levels, checked; always a pair."""
+    a, b = (v, v) if np.ndim(v) == 0 else tuple(v) if len(v) == 2 else (None, None)
+    if a is None:
+        raise ValidationError(f"{name}: expected a number or a range [lo, hi], got {v!r}")
+    check_number(name, a, lo, hi, open_lo=open_lo)
+    check_number(name, b, lo, hi, open_lo=open_lo)
+    if a > b:
+        raise ValidationError(f"{name}: expected a range [lo, hi] with lo <= hi, got {list(v)}")
+    return float(a), float(b)
+
+
+class NoiseRange:
+    """The sensor noise of a split: Gaussian noise of ``gaussian_percent`` % of each channel's peak and
+    optional shot (``photons_at_peak`` photo-electrons at the peak) + read noise.  Each level is a number or
+    a range ``(lo, hi)``; a range is sampled per sample and epoch from the sample's own noise generator
+    (uniform in percent, log-uniform in photons), so one model learns every level of the range and the
+    draw is reproducible whatever the loader order (a fixed level draws nothing: the noise of a fixed-level
+    run is unchanged)."""
+
+    def __init__(self, gaussian_percent=0.0, photons_at_peak=None, read_noise_e: float = 0.0):
+        self.gaussian = _span("gaussian_percent", gaussian_percent, 0, 100)
+        self.photons = None if photons_at_peak is None or (np.ndim(photons_at_peak) == 0 and not photons_at_peak) \
+            else _span("photons_at_peak", photons_at_peak, 0, 1e15, open_lo=True)
+        check_number("read_noise_e", read_noise_e, 0, 1e6)
+        self.read_noise_e = float(read_noise_e)
+
+    @property
+    def active(self) -> bool:
+        return self.gaussian[1] > 0 or self.photons is not None
+
+    def levels(self, rng: np.random.Generator) -> tuple[float, float | None]:
+        """(Gaussian %, photons at peak) of one sample."""
+        g0, g1 = self.gaussian
+        g = g0 if g0 == g1 else float(rng.uniform(g0, g1))
+        if self.photons is None:
+            return g, None
+        p0, p1 = self.photons
+        return g, p0 if p0 == p1 else float(np.exp(rng.uniform(np.log(p0), np.log(p1))))
+
+    def apply(self, psf: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        g, p = self.levels(rng)
+        return apply_noise(psf, rng, g, p, self.read_noise_e)
+
+    def describe(self) -> dict:
+        """The levels as a model card records them: a number, or [lo, hi] for a range."""
+        def one(r):
+            return None if r is None else r[0] if r[0] == r[1] else list(r)
+        return {"gaussian_percent": one(self.gaussian), "photons_at_peak": one(self.photons),
+                "read_noise_e": self.read_noise_e}
+
+
 class PSFDataset:
     """Samples of one split: ``{"psf": (8,S,S) float32, "received": (A,A) complex64, "rytov", "rytov_measured",
     "seed", "index"}`` as torch tensors, plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
     operator) when asked.  Works with ``DataLoader(num_workers > 0)``: nothing but small
-    metadata is read in the constructor; each worker opens the store on first use."""
+    metadata is read in the constructor; each worker opens the store on first use.  Noise levels are
+    numbers or ``(lo, hi)`` ranges (:class:`NoiseRange`)."""
 
-    def __init__(self, path: str | Path, split: str = "train", gaussian_percent: float = 0.0,
-                 photons_at_peak: float | None = None, read_noise_e: float = 0.0, noise_seed: int = 0,
+    def __init__(self, path: str | Path, split: str = "train", gaussian_percent=0.0,
+                 photons_at_peak=None, read_noise_e: float = 0.0, noise_seed: int = 0,
                  limit: int | None = None, screens: bool = False, operators: bool = False):
         if split not in ("train", "val", "test", "all"):
             raise ValidationError(f"split: expected train, val, test or all, got {split!r}")
-        check_number("gaussian_percent", gaussian_percent, 0, 100)
-        if photons_at_peak is not None:
-            check_number("photons_at_peak", photons_at_peak, 0, 1e15, open_lo=True)
-        check_number("read_noise_e", read_noise_e, 0, 1e6)
+        self.noise = NoiseRange(gaussian_percent, photons_at_peak, read_noise_e)
         check_int("noise_seed", noise_seed, 0, 2**63 - 1)
         self.info = open_dataset(path)
         self.path = str(path)
         self.idx = self.info.indices(split)
         if limit is not None:
             self.idx = self.idx[:limit]
-        self.noise = (gaussian_percent, photons_at_peak, read_noise_e)
         self.noise_seed = noise_seed
         self.epoch = 0
         self.screens = screens  # regenerate each sample's screens (the end-to-end loss needs them)
@@ -141,9 +190,9 @@ class PSFDataset:
         why = check_psf(psf) or (None if np.isfinite(received).all() else "non-finite received field")
         if why:
             raise damaged(self.path, i, self.info.attrs["shard_size"], why)
-        if any(self.noise[:2]):
+        if self.noise.active:
             rng = np.random.default_rng(np.random.SeedSequence(self.noise_seed, spawn_key=(self.epoch, i)))
-            psf = apply_noise(psf, rng, *self.noise)
+            psf = self.noise.apply(psf, rng)
         out = {"psf": psf, "received": received, "rytov": float(self.info.rytov[i]),
                "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i}
         if self.screens:

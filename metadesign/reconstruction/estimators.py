@@ -34,7 +34,7 @@ from .retrieval import RetrievalConfig, RetrievalContext, retrieve
 from .shack_hartmann import ShackHartmann, SHConfig
 
 __all__ = ["Estimator", "register", "ESTIMATORS", "estimator_names", "make_estimator", "checkpoints_for",
-           "UNetEstimator", "RetrievalEstimator", "HybridEstimator", "ShackHartmannEstimator"]
+           "UNetEstimator", "RetrievalEstimator", "HybridEstimator", "ShackHartmannEstimator", "RefineEstimator"]
 
 #: name -> estimator class, in registration order (the order studies run and list them)
 ESTIMATORS: dict[str, type["Estimator"]] = {}
@@ -68,6 +68,7 @@ class Estimator:
     label: ClassVar[str] = ""
     style: ClassVar[tuple[str, str]] = ("k", "o")  # matplotlib colour and marker in study figures
     needs_model: ClassVar[bool] = False  # takes the U-Net (the model argument of a study)
+    needs_refiner: ClassVar[bool] = False  # takes a trained refiner (a study's model argument when it is one)
     config_key: ClassVar[str | None] = None  # attribute of a study's settings holding this estimator's config
     starts_from: ClassVar[str | None] = None  # the estimator whose estimate it starts from (its latency adds)
 
@@ -199,11 +200,38 @@ class HybridEstimator(RetrievalEstimator):
             return self.model(_torch(batch["psf"]))
 
 
+@register
+class RefineEstimator(Estimator):
+    """The learned refinement (:mod:`.refine`): the U-Net's estimate, then K unrolled steps through the
+    twin; its estimate after each step is a checkpoint (NPiB against K and against latency)."""
+
+    name, label, style = "refine", "U-Net + learned refinement", ("tab:cyan", "P")
+    needs_model, needs_refiner, starts_from = True, True, "unet"
+
+    @property
+    def iterations(self) -> int:
+        return len(self.model.steps)
+
+    def estimate(self, batch, done=None, on_checkpoint=None):
+        import torch
+
+        start = done.get(self.starts_from) if done else None
+        with torch.no_grad():
+            traj = self.model.trajectory(_torch(batch["psf"]), start=None if start is None else _torch(start))
+        if on_checkpoint is not None:
+            for k, phi in enumerate(traj):
+                on_checkpoint(k, phi * self.model.mask)
+        return traj[-1] * self.model.mask
+
+
 def make_estimator(name: str, device: Device, settings=None, model=None, noise_percent: float = 0.0,
-                   noise_seed: int = 0) -> Estimator:
-    """The registered estimator ``name`` for ``device``; its config is ``getattr(settings, config_key)``."""
+                   noise_seed: int = 0, refiner=None) -> Estimator:
+    """The registered estimator ``name`` for ``device``; its config is ``getattr(settings, config_key)``;
+    ``model`` the U-Net, ``refiner`` a trained refiner (for the estimators that need one)."""
     if name not in ESTIMATORS:
         raise ValidationError(f"estimator: expected one of {', '.join(ESTIMATORS)}, got {name!r}")
     cls = ESTIMATORS[name]
     cfg = getattr(settings, cls.config_key) if settings is not None and cls.config_key else None
-    return cls(device, cfg, model, noise_percent, noise_seed)
+    if cls.needs_refiner and refiner is None:
+        raise ValidationError(f"estimator {name}: needs a trained refiner (give its .safetensors as the model)")
+    return cls(device, cfg, refiner if cls.needs_refiner else model, noise_percent, noise_seed)

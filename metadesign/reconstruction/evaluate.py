@@ -17,7 +17,8 @@ from ..validation import ValidationError
 from .data import PSFDataset
 from .losses import PiB
 from .metrics import EVAL_NOISE_SEED, captured_fraction, gain, npib_rows
-from .model import check_fits, load_model
+from .model import check_fits
+from .refine import load_network
 from .train import _collate, pick_device
 
 __all__ = ["evaluate_model", "summarise", "residual_rms", "plot_fig3"]
@@ -45,6 +46,12 @@ def residual_rms(phi_pred: np.ndarray, received: np.ndarray, ap: np.ndarray) -> 
     return np.array(rms), np.array(tt)
 
 
+def training_noise(card: dict) -> str:
+    """The training noise a model card records, for a title: "5 %" or "0-10 %"."""
+    v = card.get("noise_percent", "?")
+    return f"{v[0]:g}-{v[1]:g} %" if isinstance(v, list) else f"{v:g} %" if isinstance(v, (int, float)) else f"{v} %"
+
+
 def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,), photons=None,
                    limit: int | None = None, batch: int = 16, device: str | None = None,
                    progress: Callable[[int, int], None] | None = None) -> dict:
@@ -52,7 +59,8 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     import torch
 
     dev = torch.device(device) if device else pick_device()
-    model, card = load_model(model_path, device=str(dev))
+    model, card = load_network(model_path, device=str(dev))
+    refines = "refine" in card  # rows: "unet" the refiner's estimate, "start" its U-Net's
     rows: dict = {}
     levels = [("gaussian", float(x)) for x in noise_levels] + [("photons", float(p)) for p in (photons or [])]
     total = 0
@@ -72,12 +80,18 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                         screens=True)
         loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
         acc = {k: [] for k in ("index", "rytov", "rytov_measured", "none", "unet", "phase_conjugate",
-                               "complex_conjugate", "residual_rms", "residual_tiptilt_rms")}
+                               "complex_conjugate", "residual_rms", "residual_tiptilt_rms")
+               + (("start",) if refines else ())}
         with torch.no_grad():
             for b in loader:
                 scr = b["screens"].to(dev)
                 rec = b["received"].to(dev)
-                phi = model(b["psf"].to(dev))
+                if refines:  # a refiner: its U-Net's estimate (K = 0) is recorded too, from the same pass
+                    traj = model.trajectory(b["psf"].to(dev))
+                    phi = traj[-1] * model.mask
+                    acc["start"].append(pib.npib_phase(traj[0] * model.mask, scr).cpu().numpy())
+                else:
+                    phi = model(b["psf"].to(dev))
                 if not rows and len(examples["phi"]) < 4:
                     examples["phi"] += list(phi.cpu().numpy()[:4 - len(examples["phi"])])
                     examples["received"] += list(rec.cpu().numpy()[:4 - len(examples["received"])])
@@ -122,6 +136,9 @@ def summarise(r: dict) -> dict:
                 "residual_tiptilt_rms_rad": float(np.mean(r["residual_tiptilt_rms"][m]))}
 
     out = block(np.ones(len(none), bool))
+    if "start" in r:  # a refiner's evaluation: its U-Net alone on the same inputs
+        out["start"] = {"npib": float(np.mean(r["start"])),
+                        "captured_fraction": captured_fraction(none, r["start"], pc)}
     out["by_rytov"] = {}
     x = r["rytov_measured"]
     for lo, hi in zip(RYTOV_BINS[:-1], RYTOV_BINS[1:]):
@@ -188,7 +205,7 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
         ax.axhline(np.mean(res["rows"][keys[0]]["none"]), ls=":", c="k", label="uncorrected (mean)")
         ax.axhline(np.mean(res["rows"][keys[0]]["phase_conjugate"]), ls="--", c="g", label="phase conjugate (mean)")
         ax.set(xlabel="test noise level (% of peak, or photons at peak)", ylabel="U-Net NPiB",
-               title=f"Fig. 3c/d: model trained with {res['card'].get('noise_percent', '?')} % noise")
+               title=f"Fig. 3c/d: model trained with {training_noise(res['card'])} noise")
         ax.legend(fontsize=8)
         figs.append(save_figure(fig, out / "fig-3cd.png"))
     ex, ap = res["examples"], res["aperture"]

@@ -1,8 +1,11 @@
-"""Deployment export: the U-Net as ONNX (dynamic batch axis), checked against torch in onnxruntime."""
+"""Deployment export: the U-Net, or the refiner (U-Net + unrolled steps through the real-arithmetic twin
+with its explicit adjoint: one feed-forward graph), as ONNX (dynamic batch axis), checked against torch
+in onnxruntime."""
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +13,7 @@ import numpy as np
 from .. import __version__
 from ..io import atomic_path
 from ..validation import ValidationError
-from .model import load_model
+from .refine import load_network
 
 __all__ = ["export_onnx", "onnx_parity", "contract", "PARITY_TOL"]
 
@@ -27,7 +30,7 @@ def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17) -> dic
     import onnx
     import torch
 
-    model, card = load_model(model_path)
+    model, card = load_network(model_path)
     s = model.config.input_size
     x = torch.randn(2, 8, s, s)
     meta = contract(model, card)
@@ -40,7 +43,8 @@ def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17) -> dic
         m = onnx.load(str(tmp))
         for k, v in meta.items():
             m.metadata_props.add(key=k, value=v if isinstance(v, str) else json.dumps(v, sort_keys=True))
-        m.doc_string = "metadesign U-Net: 8 PSFs of a birefringent metasurface -> received phase (rad)"
+        m.doc_string = ("metadesign " + ("U-Net + learned refinement" if "refine" in card else "U-Net") +
+                        ": 8 PSFs of a birefringent metasurface -> received phase (rad)")
         onnx.save(m, str(tmp))
         parity = onnx_parity(model, tmp)
         if not np.isfinite(parity["max_abs_diff"]) or parity["max_abs_diff"] > PARITY_TOL:
@@ -73,7 +77,9 @@ def contract(model, card: dict) -> dict:
                                        "start": crop.get("start"), "n_grid": crop.get("n_grid"),
                                        "centring": crop.get("centring")},
                               "outside_aperture": "0"},
-        "metadesign.architecture": card.get("architecture") or {},
+        "metadesign.architecture": card.get("architecture") or asdict(c),
+        **({"metadesign.refine": {**card["refine"], "unet_sha256": card["unet"]["weights_sha256"]}}
+           if "refine" in card else {}),
         "metadesign.weights_sha256": card.get("weights_sha256") or "",
         "metadesign.version": __version__,
     }

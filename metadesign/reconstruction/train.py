@@ -31,8 +31,10 @@ from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .losses import LOSSES, PiB, mse_loss, phase_loss
 from .metrics import captured_fraction, npib_rows
-from .model import UNetConfig, build_unet, load_model, save_model
+from .dataset import load_device
+from .model import UNetConfig, build_unet, check_sizes, load_model, save_model
 from .operators import has_operators
+from .refine import RefineConfig, build_refiner, save_refiner
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
 
@@ -40,7 +42,9 @@ __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train"
 SECTIONS = (
     Section("data", (
         Param("dataset", str, None),
-        Param("noise_percent", float, 5.0, lo=0, hi=100),
+        Param("noise_percent", float, 5.0, lo=0, hi=100, span=True),
+        Param("photons_at_peak", float, 0.0, lo=0, hi=1e15, span=True),
+        Param("read_noise_e", float, 0.0, lo=0, hi=1e6),
         Param("train_limit", int, 0, lo=0),
         Param("val_limit", int, 0, lo=0),
         Param("loader_workers", int, 0, lo=0, hi=64),
@@ -63,6 +67,16 @@ SECTIONS = (
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
         Param("max_minutes", float, 0.0, lo=0, hi=1e6),
     ), optional=True),
+    Section("refine", (
+        Param("unet", str, None),
+        Param("steps", int, 3, lo=0, hi=32),
+        Param("rebin", int, 4, lo=1, hi=64),
+        Param("samples", int, 1, lo=0, hi=16),
+        Param("width", int, 32, lo=1, hi=512),
+        Param("features", int, 16, lo=1, hi=512),
+        Param("step_init", float, 0.05, lo=0, hi=10),
+    ), optional=True, help="a learned refinement (metadesign.reconstruction.refine) trained on top of a frozen "
+                           "U-Net (refine.unet, or --init); samples = 0: every camera pixel"),
 )
 
 
@@ -71,7 +85,9 @@ class TrainRecipe:
     name: str
     source: Path | None
     dataset: Path | None
-    noise_percent: float
+    noise_percent: tuple[float, float]  # (lo, hi): the Gaussian level per sample is drawn in this range
+    photons_at_peak: tuple[float, float] | None  # shot noise (photo-electrons at each channel's peak), or None
+    read_noise_e: float
     train_limit: int
     val_limit: int
     loader_workers: int
@@ -90,6 +106,13 @@ class TrainRecipe:
     seed: int
     max_minutes: float
     raw: dict
+    refine: object = None  # RefineConfig when the recipe trains a refiner
+    refine_unet: Path | None = None
+
+    def noise(self) -> dict:
+        """The PSFDataset noise keywords of this recipe."""
+        return {"gaussian_percent": self.noise_percent, "photons_at_peak": self.photons_at_peak,
+                "read_noise_e": self.read_noise_e}
 
     def loss_at(self, epoch: int) -> str:
         return self.pretrain_loss if epoch < self.pretrain_epochs else self.loss
@@ -106,11 +129,25 @@ class TrainRecipe:
 def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None = None) -> TrainRecipe:
     v = parse(data, SECTIONS, str(source) if source else "recipe")
     d, m, t = v["data"], v["model"], v["train"]
+    if d["photons_at_peak"][0] == 0 < d["photons_at_peak"][1]:
+        raise ConfigError("data.photons_at_peak", f"expected a range in (0, 1e+15] (0 alone: no shot noise), got "
+                          f"{list(d['photons_at_peak'])}")
     ds = d["dataset"]
     if ds is not None and not Path(ds).is_absolute():
         ds = (source.parent if source else Path.cwd()) / ds
-    return TrainRecipe(name=name, source=source, dataset=Path(ds) if ds else None,
-                       noise_percent=d["noise_percent"], train_limit=d["train_limit"], val_limit=d["val_limit"],
+    refine = refine_unet = None
+    if "refine" in data:
+        r = v["refine"]
+        refine = RefineConfig(steps=r["steps"], rebin=r["rebin"], samples=r["samples"] or None, width=r["width"],
+                              features=r["features"], step_init=r["step_init"])
+        if r["unet"]:
+            refine_unet = Path(r["unet"]) if Path(r["unet"]).is_absolute() else \
+                (source.parent if source else Path.cwd()) / r["unet"]
+    return TrainRecipe(refine=refine, refine_unet=refine_unet, name=name, source=source,
+                       dataset=Path(ds) if ds else None,
+                       noise_percent=d["noise_percent"],
+                       photons_at_peak=None if d["photons_at_peak"][1] == 0 else d["photons_at_peak"],
+                       read_noise_e=d["read_noise_e"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],
@@ -192,7 +229,8 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     run = Path(run)
     rank = int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
     if dataset is not None or recipe.dataset:
-        check_not_input(run, {"the dataset": dataset or recipe.dataset, "--init": init})
+        check_not_input(run, {"the dataset": dataset or recipe.dataset, "--init": init,
+                              "refine.unet": recipe.refine_unet})
     with output_lock(run, "training run") if rank == 0 else contextlib.nullcontext():
         return _train(recipe, run, dataset, resume, init, log, progress, max_steps)
 
@@ -212,7 +250,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         raise ConfigError("train.batch", f"{recipe.batch} is not divisible by the {world} processes")
     run = Path(run)
     ckpt = _check_run(run, resume)
-    tr = PSFDataset(dataset, "train", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed,
+    tr = PSFDataset(dataset, "train", **recipe.noise(), noise_seed=recipe.seed,
                     limit=recipe.train_limit or None)
     any_pib = any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
     mode = _pib_mode(recipe, tr)
@@ -220,7 +258,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     stored = mode == "stored" and any_pib
     if stored:
         tr.require_operators("train")
-    va = PSFDataset(dataset, "val", gaussian_percent=recipe.noise_percent, noise_seed=recipe.seed + 1,
+    va = PSFDataset(dataset, "val", **recipe.noise(), noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(va) == 0:
         raise ValidationError(f"{dataset}: the validation split is empty (training keeps the model with the best "
@@ -228,14 +266,18 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     if len(tr) < recipe.batch:
         raise ValidationError(f"{dataset}: {len(tr)} training samples, fewer than one batch ({recipe.batch})")
     c0, a = tr.crop()
-    model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device)
+    if recipe.refine is not None:
+        model, init_card = _build_refiner(recipe, dataset, tr.info.tensor_size, a, init, device)
+    else:
+        model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device)
     pib = PiB(tr.scenario(), c0, a, device)
     batch_loss = _BatchLoss(pib, stored, quadratic, device)
     if quadratic:
         n_ap = int(pib.ap.sum())
         check_memory("train.pib_operator = \"quadratic\"", len(tr) * len(pib.bucket) * n_ap * 8,
                      "use pib_operator = \"split_step\" or data.train_limit")
-    opt = torch.optim.AdamW(model.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=recipe.lr,
+                            weight_decay=recipe.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=recipe.lr_halve_every, gamma=0.5)
     history: list[dict] = []
     best = -math.inf
@@ -343,12 +385,15 @@ def _end_epoch(rec_row: dict, t0: float, model, va, pib, device, history: list, 
     is_best = rec_row["val_npib"] > best
     if is_best:
         best = rec_row["val_npib"]
-        save_model(model, run / "model.safetensors", {
+        save = save_model if recipe.refine is None else \
+            (lambda m, p, c: save_refiner(m, p, init_card["path"], c))  # noqa: E731
+        save(model, run / "model.safetensors", {
             "dataset": {"path": str(dataset), "recipe_hash": attrs.get("recipe_hash"),
                         "layout_sha256": attrs["provenance"].get("layout_sha256")},
             "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row, "init": init_card,
             "input_normalisation": attrs.get("normalisation"),
-            "noise_percent": recipe.noise_percent, "received_crop": attrs.get("received_crop"),
+            "noise_percent": va.noise.describe()["gaussian_percent"], "noise": va.noise.describe(),
+            "received_crop": attrs.get("received_crop"),
             "output": "received phase (vacuum removed) on the A x A receiver-aperture crop, rad; the "
                       "correction applied is its conjugate plus the focusing phase"})
     _save_checkpoint(ckpt, {"model": model.state_dict(), "optimizer": opt.state_dict(),
@@ -387,6 +432,21 @@ def _pib_mode(recipe: TrainRecipe, tr) -> str:
     if recipe.pib_operator == "auto":
         return "stored" if has_operators(tr.info.attrs, "train") else "split_step"
     return recipe.pib_operator
+
+
+def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, aperture: int, init: Path | None, device):
+    """The recipe's refiner around its frozen U-Net (``refine.unet``, else ``--init``), with the twin of
+    the dataset's device; its steps seeded."""
+    import torch
+
+    path = recipe.refine_unet or init
+    if path is None:
+        raise ValidationError("train: a [refine] recipe needs its U-Net (refine.unet in the recipe, or --init)")
+    unet, card = load_model(path, str(device))
+    check_sizes(unet.config, tensor_size, aperture, f"refine.unet {path}")
+    torch.manual_seed(recipe.seed)
+    model = build_refiner(unet, recipe.refine, load_device(dataset)).to(device)
+    return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):

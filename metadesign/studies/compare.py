@@ -36,6 +36,7 @@ from ..reconstruction.evaluate import RYTOV_BINS
 from ..reconstruction.losses import PiB
 from ..reconstruction.metrics import EVAL_NOISE_SEED, npib_rows
 from ..reconstruction.model import check_fits, load_model
+from ..reconstruction.refine import is_refiner, load_refiner
 from ..reconstruction.retrieval import RetrievalConfig
 from ..reconstruction.shack_hartmann import SHConfig
 from ..timing import repeat_seconds
@@ -111,11 +112,9 @@ class _Runner:
                              limit=st.limit, screens=True)
         self.dev = dev = self.ds.device()
         self.pib = PiB(self.ds.scenario(), dev.crop.start, dev.crop.size)
-        self.model = None
-        if model is not None:
-            self.model, self.card = load_model(model)
-        self.est = {name: make_estimator(name, dev, st, self.model, st.noise_percent, st.noise_seed)
-                    for name in _run_order(st.methods, self.model is not None)}
+        self.model, self.refiner, self.card = _models(model)
+        self.est = {name: make_estimator(name, dev, st, self.model, st.noise_percent, st.noise_seed, self.refiner)
+                    for name in _run_order(st.methods, self.model is not None, self.refiner is not None)}
 
     def items(self, js):
         return [self.ds.get(j) for j in js]
@@ -148,7 +147,8 @@ class _Runner:
             done[name] = est.estimate(batch, done, on_checkpoint=lambda it, phi: curve.__setitem__(it, npib(phi)))
             r[f"{name}_curve"] = np.stack([curve[c] for c in cks])  # (n_checkpoints, B)
             r[name] = r[f"{name}_curve"][-1]
-            r[f"{name}_misfit"] = est.misfit()  # (iterations, B)
+            if est.misfit() is not None:
+                r[f"{name}_misfit"] = est.misfit()  # (iterations, B)
         return r
 
     def latency(self) -> dict:
@@ -174,10 +174,23 @@ class _Runner:
         return out
 
 
-def _run_order(methods, have_model: bool) -> list[str]:
-    """The estimators to run, in registry order: the asked ones a model allows, and those they start from
+def _models(model) -> tuple:
+    """(U-Net, refiner or None, card) of a study's model argument: U-Net weights, or a refiner (which
+    brings its U-Net), or None."""
+    if model is None:
+        return None, None, None
+    if is_refiner(model):
+        ref, card = load_refiner(model)
+        return ref.unet, ref, card
+    unet, card = load_model(model)
+    return unet, None, card
+
+
+def _run_order(methods, have_model: bool, have_refiner: bool = False) -> list[str]:
+    """The estimators to run, in registry order: the asked ones the model allows, and those they start from
     (the hybrid's U-Net: recorded too)."""
-    want = {m for m in methods if have_model or not ESTIMATOR_CLASSES[m].needs_model}
+    want = {m for m in methods if (have_model or not ESTIMATOR_CLASSES[m].needs_model)
+            and (have_refiner or not ESTIMATOR_CLASSES[m].needs_refiner)}
     want |= {ESTIMATOR_CLASSES[m].starts_from for m in list(want)} - {None}
     return [m for m in ESTIMATOR_CLASSES if m in want]
 
@@ -389,12 +402,12 @@ def tune(model, dataset, st: CompareSettings, n: int, split: str = "val", log=pr
     report: dict = {"split": split, "samples": len(items)}
     batch = _batch_of(items)
     done: dict = {}
-    mdl = None
+    mdl = refiner = None
     starts = {ESTIMATOR_CLASSES[m].starts_from for m in methods} - {None}
     if model is not None and starts:
-        mdl, _ = load_model(model)
+        mdl, refiner, _ = _models(model)
         done = {s: make_estimator(s, base.dev, model=mdl).estimate(batch) for s in starts}
-    for name in _run_order(methods, model is not None):
+    for name in _run_order(methods, model is not None, refiner is not None):
         cls = ESTIMATOR_CLASSES[name]
         grid = TUNING_GRIDS.get(name)
         if not grid or (cls.starts_from and cls.starts_from not in done):

@@ -307,6 +307,8 @@ class _Pipeline:
             self.report["figures"][f"Evaluation: {Path(f).stem}"] = Path(f)
         self.report["tables"]["NPiB summary"] = [
             {"noise": k, **{f"npib_{m}": v["npib"][m] for m in v["npib"]}, "captured_fraction": v["captured_fraction"],
+             **({"npib_unet_alone": v["start"]["npib"], "captured_fraction_unet_alone": v["start"]["captured_fraction"]}
+                if "start" in v else {}),
              "gain_median": v["gain"]["median"], "gain_ratio_of_means": v["gain"]["ratio_of_means"]}
             for k, v in ev["summary"].items()]
 
