@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from html import escape as html_escape
 
 from conftest import REPO
 
@@ -39,8 +40,21 @@ split = "all"
                   "turbulence-fig-s6", "fig-3b", "fig-3cd", "Design metrics", "Table S1 focal check", "NPiB summary"):
         assert title in html, title
     assert html.count("data:image/png;base64,") >= 10 and "src='http" not in html  # self-contained
-    noise = [r["noise"] for r in rep["tables"]["NPiB summary"]]
-    assert noise == ["gaussian:0", "gaussian:5"]
+    noise = [r["noise_percent"] for r in rep["tables"]["NPiB summary"]]
+    assert noise == [0.0, 5.0]
+    # the first screen: a verdict, the headline table and the checks with their thresholds
+    top = html[:html.index("<h2>1.")]
+    assert "checks passed" in top or "checks FAILED" in top
+    assert "What it achieved" in top and "captured fraction" in top and "threshold" in top
+    for c in rep["checks"]:
+        assert html_escape(c["check"]) in top
+    assert {c["check"].split(":")[0] for c in rep["checks"]} >= {
+        "design phase error (RMSE, worse polarisation)", "layout read-back", "focal lengths (Table S1)"}
+    assert "npib_phase_conjugate" not in top and "gaussian:" not in html  # human labels, not raw keys
     assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == 0
     again = json.loads(capsys.readouterr().out)
     assert all(v["skipped"] for v in again["stages"].values())
+    # a second run still says how long each stage took when it ran
+    assert all(v["ran_seconds"] > 0 for v in again["stages"].values())
+    html2 = (tmp_path / "out" / "report.html").read_text()
+    assert "up to date, ran in" in html2

@@ -29,9 +29,9 @@ from ..io import atomic_path, atomic_write_text, check_not_input, output_lock
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
+from .dataset import load_device
 from .losses import LOSSES, PiB, mse_loss, phase_loss
 from .metrics import captured_fraction, npib_rows
-from .dataset import load_device
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model
 from .operators import has_operators
 from .refine import RefineConfig, build_refiner, save_refiner

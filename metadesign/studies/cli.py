@@ -157,12 +157,21 @@ def _cmd_run(a: argparse.Namespace) -> int:
     rep = run_pipeline(a.recipe, out, log=log_to(a.json))
     lines = [f"pipeline {a.recipe} -> {out}"]
     for k, v in rep["stages"].items():
-        lines.append(f"  {k:<11} {'up to date' if v.get('skipped') else '%.1f s' % v['seconds']}")
+        lines.append(f"  {k:<11} " + (f"up to date (ran in {v.get('ran_seconds', float('nan')):.1f} s)"
+                                      if v.get("skipped") else f"{v['seconds']:.1f} s"))
+    est = (rep.get("headline") or {}).get("estimator", "U-Net")
     for row in rep["tables"].get("NPiB summary", []):
-        lines.append(f"  NPiB (noise {row['noise']}): none {row['npib_none']:.3f}, U-Net {row['npib_unet']:.3f}, "
-                     f"phase conjugate {row['npib_phase_conjugate']:.3f}; captured {row['captured_fraction']:.2f}")
+        lines.append(f"  NPiB at {row['noise_percent']:g} % noise: none {row['npib_none']:.3f}, {est} "
+                     f"{row['npib_unet']:.3f}, phase conjugate {row['npib_phase_conjugate']:.3f}; captured "
+                     f"{row['captured_fraction']:.2f}"
+                     + (f" (U-Net alone {row['captured_fraction_unet_alone']:.2f})"
+                        if "captured_fraction_unet_alone" in row else ""))
+    failed = [c for c in rep["checks"] if not c["passed"]]
+    lines.append(f"  checks     {len(rep['checks']) - len(failed)}/{len(rep['checks'])} passed"
+                 + "".join(f"\n    FAILED: {c['check']}: {c['value']} (needs {c['threshold']})" for c in failed))
     lines.append(f"  report     {rep['report']}")
-    emit({"stages": rep["stages"], "tables": rep["tables"], "report": rep["report"]}, a.json, "\n".join(lines))
+    emit({"stages": rep["stages"], "tables": rep["tables"], "checks": rep["checks"], "passed": not failed,
+          "report": rep["report"]}, a.json, "\n".join(lines))
     return 0
 
 

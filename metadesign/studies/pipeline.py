@@ -136,18 +136,36 @@ class _Pipeline:
         self.rec, self.out, self.log, self.p = rec, out, log, rec["pipeline"]
         self.state_path = out / "pipeline-state.json"
         self.state = json.loads(self.state_path.read_text()) if self.state_path.exists() else {}
-        self.report: dict = {"stages": {}, "figures": {}, "tables": {}}
+        self.report: dict = {"stages": {}, "figures": {}, "tables": {}, "checks": [], "headline": {}, "sections": {}}
+
+    def check(self, what: str, value: str, threshold: str, passed: bool, why: str = "") -> None:
+        """A pass/fail line of the report's headline."""
+        self.report["checks"].append({"check": what, "value": value, "threshold": threshold, "passed": bool(passed),
+                                      "why": why})
+
+    def section(self, name: str, table: tuple | None = None, figures: tuple = (), raw=None) -> None:
+        """A report section: a table (title, rows with human labels and units) beside its figures ((title,
+        path, caption), ...); ``raw``: the table's numbers as the JSON summary gives them (default: the rows)."""
+        sec = self.report["sections"].setdefault(name, {"tables": [], "figures": []})
+        if table is not None:
+            sec["tables"].append(table)
+            self.report["tables"][table[0]] = table[1] if raw is None else raw
+        for title, path, caption in figures:
+            sec["figures"].append((title, Path(path), caption))
+            self.report["figures"][title] = Path(path)
 
     def stage(self, name: str, key: str, outputs: list[Path], fn) -> dict:
         t0 = time.perf_counter()
         if self.state.get(name, {}).get("key") == key and all(o.exists() for o in outputs):
-            self.log(f"{name}: up to date")
             info = self.state[name]["info"]
             info["skipped"] = True
+            self.log(f"{name}: up to date (ran in {info.get('ran_seconds', float('nan')):.1f} s)")
         else:
             self.log(f"{name}: running")
             info = fn()
             info["skipped"] = False
+            info["ran_seconds"] = time.perf_counter() - t0
+            info["ran_at"] = time.strftime("%Y-%m-%d %H:%M:%S")
             self.state[name] = {"key": key, "info": info}
             atomic_write_text(self.state_path, json.dumps(self.state, indent=1, sort_keys=True, default=str))
         info["seconds"] = time.perf_counter() - t0
@@ -169,7 +187,10 @@ class _Pipeline:
         fig_s1 = out / "fig-s1.png"
         if not fig_s1.exists() or not self.report["stages"]["library"]["skipped"]:
             plot_library(self.lib, fig_s1)
-        self.report["figures"]["Fig. S1: unit-cell library"] = fig_s1
+        self.section("1. Unit-cell library", None, [(
+            "Fig. S1: unit-cell library", fig_s1,
+            "Phase and transmission of every pillar for x and y polarisation: the 16 x 16 birefringent bins need "
+            "pillars whose two phases cover 0-2 pi independently with high transmission.")])
 
     def design(self) -> None:
         out = self.out
@@ -184,8 +205,22 @@ class _Pipeline:
                                                           "n_empty_bins", "n_cells_in_aperture")}}
 
         des = self.stage("design", self.k_des, [self.ddir / "design.npz", out / "fig-s2.png"], do_design)
-        self.report["figures"]["Fig. S2: design"] = out / "fig-s2.png"
-        self.report["tables"]["Design metrics"] = des["metrics"]
+        m = des["metrics"]
+        q = 2 * np.pi / 16 / np.sqrt(12)  # a uniform quantiser of 16 phase bins
+        rmse = max(m["rmse_rad"])
+        self.check("design phase error (RMSE, worse polarisation)", f"{rmse:.3f} rad", f"<= {1.1 * q:.3f} rad",
+                   rmse <= 1.1 * q, "16 x 16 binning: a uniform quantiser's error is (2 pi / 16) / sqrt(12) = "
+                   f"{q:.3f} rad; 10 % allowance for empty or uneven bins")
+        rows = [{"quantity": "phase RMSE x / y", "value": f"{m['rmse_rad'][0]:.4f} / {m['rmse_rad'][1]:.4f} rad"},
+                {"quantity": "peak phase error x / y", "value": f"{m['peak_error_rad'][0]:.3f} / "
+                                                                f"{m['peak_error_rad'][1]:.3f} rad"},
+                {"quantity": "mean transmission x / y", "value": f"{m['mean_T0'][0]:.3f} / {m['mean_T0'][1]:.3f}"},
+                {"quantity": "atoms used", "value": f"{m['n_atoms']:,} ({m['n_empty_bins']} empty bins)"},
+                {"quantity": "cells in the aperture", "value": f"{m['n_cells_in_aperture']:,}"}]
+        self.section("2. Design", ("Design metrics", rows), [(
+            "Fig. S2: design", out / "fig-s2.png",
+            "The target phases of the supercell lenses and the discretised ones: the error map should be "
+            "uniform noise within +- pi/16, with no structure following the lenses.")])
 
     def layout(self) -> None:
         out = self.out
@@ -204,8 +239,17 @@ class _Pipeline:
         li = self.stage("layout", self.k_lay, [lay, out / "layout-preview.png"], do_layout)
         if not (li["exact"] and li["drc_passed"]):
             raise ValidationError(f"{lay}: the layout failed its read-back or design-rule check")
-        self.report["figures"]["Layout preview"] = out / "layout-preview.png"
-        self.report["tables"]["Layout"] = {k: li[k] for k in ("pillars", "bytes", "exact", "drc_passed")}
+        self.check("layout read-back", "exact" if li["exact"] else "differs", "every pillar as designed", li["exact"],
+                   "the OASIS file read back pillar by pillar against the design")
+        self.check("design rules (gap >= 100 nm, width >= 150 nm)", "passed" if li["drc_passed"] else "violated",
+                   "no violation", li["drc_passed"])
+        self.section("3. Layout", ("Layout", [
+            {"quantity": "pillars", "value": f"{li['pillars']:,}"},
+            {"quantity": "OASIS file", "value": f"{li['bytes'] / 1e6:.2f} MB"},
+            {"quantity": "read-back", "value": "exact" if li["exact"] else "differs"},
+            {"quantity": "design rules", "value": "passed" if li["drc_passed"] else "violated"}]), [(
+            "Layout preview", out / "layout-preview.png",
+            "A corner of the written OASIS layout, as a mask shop would see it.")])
 
     def psf(self) -> None:
         """As-fabricated PSFs, the Table S1 focal check and a fab study."""
@@ -229,10 +273,28 @@ class _Pipeline:
             return {"focal_check": focal, "fab_study": study}
 
         ps = self.stage("psf", self.k_psf, [out / "fig-2c.png", out / "fab-study.png"], do_psf)
-        self.report["figures"]["Fig. 2c: sensor frames"] = out / "fig-2c.png"
-        self.report["figures"]["Fab study"] = out / "fab-study.png"
-        self.report["tables"]["Table S1 focal check (through-focus peak)"] = ps["focal_check"]
-        self.report["tables"]["Fab study"] = ps["fab_study"]
+        focal = [{"channel": f"{r['pol']}-pol {['QI', 'QII', 'QIII', 'QIV'][r['k'] - 1]}",
+                  "design f (mm)": f"{r['design_f_mm']:.4f}",
+                  "best focus - design (um)": f"{1e3 * (r['best_focus_mm'] - r['design_f_mm']):+.1f}",
+                  "Strehl": f"{r['strehl']:.3f}"} for r in ps["focal_check"]]
+        worst = max(abs(r["best_focus_mm"] - r["design_f_mm"]) for r in ps["focal_check"])
+        self.check("focal lengths (Table S1): worst best-focus shift", f"{1e3 * worst:.1f} um", "<= 100 um",
+                   worst <= 0.1, "through-focus peak of each of the 8 as-fabricated spots against its design focal "
+                   "length; the spots' depth of focus, +-2 lambda N^2 at f-number N ~ 20, is ~1 mm")
+        strehl = min(r["strehl"] for r in ps["focal_check"])
+        self.check("as-fabricated Strehl ratio, worst spot", f"{strehl:.3f}", ">= 0.8", strehl >= 0.8,
+                   "Marechal's criterion: a diffraction-limited spot")
+        study = [{"etch bias (nm)": f"{r['bias_nm']:+g}", "mean Strehl": f"{r['mean_strehl']:.3f}",
+                  "mean focusing efficiency (%)": f"{100 * r['mean_efficiency']:.2f}"} for r in ps["fab_study"]]
+        self.section("4. As-fabricated sensor", ("Table S1 focal check (through-focus peak)", focal),
+                     raw=ps["focal_check"], figures=[(
+            "Fig. 2c: sensor frames", out / "fig-2c.png",
+            "The 8 spots on the sensor (2 polarisations x 4 quadrants), each with its own defocus: all 8 should be "
+            "compact and centred in their quadrant.")])
+        self.section("4. As-fabricated sensor", ("Fab study", study), raw=ps["fab_study"], figures=[(
+            "Fab study", out / "fab-study.png",
+            "Strehl ratio and focusing efficiency of each spot against a uniform etch bias: how much a fab "
+            "process may drift before the spots degrade.")])
 
     def turbulence(self) -> None:
         p, out = self.p, self.out
@@ -248,9 +310,25 @@ class _Pipeline:
 
         figs = [Path(f) for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
         tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
-        for f in tu["figures"]:
-            self.report["figures"][f"Turbulence: {Path(f).stem}"] = Path(f)
-        self.report["tables"]["Turbulence: Rytov nominal vs measured"] = tu["levels"]
+        rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}", "Rytov (measured)": f"{x['rytov_measured']:.3f}",
+                 "D / r0": f"{x['D_over_r0']:.1f}"} for x in tu["levels"]]
+        w = max(tu["levels"], key=lambda x: abs(x["rytov_measured"] / x["rytov_nominal"] - 1))
+        dev = abs(w["rytov_measured"] / w["rytov_nominal"] - 1)
+        self.check("turbulence: measured / nominal Rytov number",
+                   f"worst level {w['rytov_nominal']:g} -> {w['rytov_measured']:.3f} "
+                   f"({100 * (w['rytov_measured'] / w['rytov_nominal'] - 1):+.0f} %)", "within 30 %", dev <= 0.3,
+                   f"log-amplitude variance of {self.p['turbulence_samples']} beacons per level; weak-fluctuation "
+                   "theory overestimates it as saturation begins (Rytov > 0.3)")
+        captions = {"fig-s5": "Fig. S5: phase structure function of the screens against Kolmogorov/von Karman theory "
+                              "(the lines should overlap up to a quarter of the grid), and the scintillation of the "
+                              "path model.",
+                    "fig-s6": "Fig. S6: normalised power in bucket (NPiB, the power a corrected beam puts in the "
+                              "target bucket over a vacuum beam's) for uncorrected, phase-conjugate and complex-"
+                              "conjugate correction; triangles: the complex conjugate. NPiB can exceed 1: "
+                              "turbulence can focus more power into the bucket than vacuum does."}
+        self.section("5. Turbulence", ("Turbulence: Rytov nominal vs measured", rows), raw=tu["levels"], figures=[
+            (f"Turbulence: {Path(f).stem}", Path(f), next((c for k, c in captions.items() if k in Path(f).stem), ""))
+            for f in tu["figures"]])
 
     def dataset(self) -> None:
         p = self.p
@@ -263,10 +341,15 @@ class _Pipeline:
                               "split": list(ds_sec["split"]), "seed": ds_sec["seed"],
                               "tensor_size": ds_sec["tensor_size"], "shard_size": ds_sec["shard_size"]}}
         self.k_ds = _h(self.k_psf, self.k_tu, ds_raw)
-        self.report["tables"]["Dataset"] = self.stage("dataset", self.k_ds, [self.dsdir / "zarr.json"], lambda: {
+        ds = self.stage("dataset", self.k_ds, [self.dsdir / "zarr.json"], lambda: {
             k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), self.dsdir, workers=workers,
                                            overwrite=True, progress=progress_bar("dataset", "sample")).items()
             if k in ("samples", "bytes_per_sample", "split_counts")})
+        sc = ds.get("split_counts") or {}
+        self.section("6. Reconstruction", ("Dataset", [
+            {"quantity": "samples", "value": f"{ds.get('samples', 0):,}"},
+            {"quantity": "train / val / test", "value": " / ".join(f"{sc.get(k, 0):,}" for k in ("train", "val", "test"))},
+            {"quantity": "storage per sample", "value": f"{ds.get('bytes_per_sample', 0) / 1e3:.1f} kB"}]))
 
     def train(self) -> None:
         """Training (or the given model)."""
@@ -285,7 +368,9 @@ class _Pipeline:
         self.stage("train", _h(self.k_ds, t["recipe"]), [run / "model.safetensors"], do_train)
         self.model = run / "model.safetensors"
         if (run / "curves.png").exists():
-            self.report["figures"]["Training curves"] = run / "curves.png"
+            self.section("6. Reconstruction", None, [(
+                "Training curves", run / "curves.png",
+                "Loss and validation NPiB per epoch: validation should rise and level off, not fall (over-fitting).")])
 
     def evaluate(self) -> None:
         ev_dir = self.out / "evaluation"
@@ -303,17 +388,40 @@ class _Pipeline:
 
         figs = [Path(f) for f in self.state.get("evaluate", {}).get("info", {}).get("figures", [])]
         ev = self.stage("evaluate", k_ev, figs or [ev_dir / "__none__"], do_eval)
-        for f in ev["figures"]:
-            self.report["figures"][f"Evaluation: {Path(f).stem}"] = Path(f)
-        self.report["tables"]["NPiB summary"] = [
-            {"noise": k, **{f"npib_{m}": v["npib"][m] for m in v["npib"]}, "captured_fraction": v["captured_fraction"],
-             **({"npib_unet_alone": v["start"]["npib"], "captured_fraction_unet_alone": v["start"]["captured_fraction"]}
-                if "start" in v else {}),
-             "gain_median": v["gain"]["median"], "gain_ratio_of_means": v["gain"]["ratio_of_means"]}
-            for k, v in ev["summary"].items()]
+        levels = sorted(ev["summary"], key=_noise_value)  # numerically: 0, 2, 5, 10 (not as strings)
+        refines = any("start" in v for v in ev["summary"].values())
+        est = "U-Net + refinement" if refines else "U-Net"
+        summary = [{"noise_percent": _noise_value(k), **{f"npib_{m}": v["npib"][m] for m in v["npib"]},
+                    "captured_fraction": v["captured_fraction"],
+                    **({"npib_unet_alone": v["start"]["npib"],
+                        "captured_fraction_unet_alone": v["start"]["captured_fraction"]} if "start" in v else {}),
+                    "gain_median": v["gain"]["median"], "gain_ratio_of_means": v["gain"]["ratio_of_means"]}
+                   for k, v in ((k, ev["summary"][k]) for k in levels)]
+        rows = [{"sensor noise (% of peak)": f"{r['noise_percent']:g}", "NPiB uncorrected": f"{r['npib_none']:.3f}",
+                 **({"NPiB U-Net alone": f"{r['npib_unet_alone']:.3f}"} if refines else {}),
+                 f"NPiB {est}": f"{r['npib_unet']:.3f}", "NPiB phase conjugate": f"{r['npib_phase_conjugate']:.3f}",
+                 "captured fraction": f"{r['captured_fraction']:.2f}",
+                 **({"captured, U-Net alone": f"{r['captured_fraction_unet_alone']:.2f}"} if refines else {}),
+                 "gain (median)": f"{r['gain_median']:.1f}x"} for r in summary]
+        self.report["headline"] = {"estimator": est, "rows": rows, "n": ev.get("n")}
+        for r in summary:
+            self.check(f"reconstruction at {r['noise_percent']:g} % noise: {est} beats uncorrected",
+                       f"NPiB {r['npib_unet']:.3f} vs {r['npib_none']:.3f} (captured {r['captured_fraction']:.2f})",
+                       "NPiB above the uncorrected beam's", r["npib_unet"] > r["npib_none"],
+                       "captured fraction = (NPiB estimator - NPiB uncorrected) / (NPiB phase conjugate - NPiB "
+                       "uncorrected): 1 is the phase-only oracle")
+        captions = {"fig-3b": "Fig. 3b: NPiB of each test beacon against its measured Rytov number; the estimator "
+                              "should sit close under the phase conjugate and far above the uncorrected beam. NPiB "
+                              "(power in the bucket over a vacuum beam's) can exceed 1 where turbulence focuses.",
+                    "fig-3cd": "Fig. 3c/d: NPiB against the sensor noise (% of each frame's peak).",
+                    "phase": "Predicted against true received phase for a few test beacons (piston removed)."}
+        self.section("6. Reconstruction", ("NPiB summary", rows), raw=summary, figures=[
+            (f"Evaluation: {Path(f).stem}", Path(f), next((c for k, c in captions.items() if k in Path(f).stem), ""))
+            for f in ev["figures"]])
 
 
-def _table(obj) -> str:
+def _table(obj, raw: tuple = ()) -> str:
+    """An HTML table of rows (dicts); cells are escaped except in the ``raw`` columns (markup)."""
     rows = obj if isinstance(obj, list) else [obj]
     if not rows:
         return "<p>(empty)</p>"
@@ -329,28 +437,58 @@ def _table(obj) -> str:
         return html.escape(str(v))
 
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in rows)
+    body = "".join("<tr>" + "".join(f"<td>{r.get(c) if c in raw else fmt(r.get(c))}</td>" for c in cols) + "</tr>"
+                   for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def _noise_value(key: str) -> float:
+    """The level of an evaluation key ("gaussian:5" -> 5.0; photon levels after every Gaussian one)."""
+    kind, _, v = str(key).partition(":")
+    return float(v) + (0 if kind == "gaussian" else 1e6)
+
+
+def _img(title: str, f: Path) -> str:
+    b64 = base64.b64encode(Path(f).read_bytes()).decode()
+    return f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>"
+
+
 def _html(name: str, rep: dict) -> str:
+    """The report: a headline (did it pass, what it achieved) first, then a section per stage, each table
+    beside its figures with a caption saying what to look at."""
+    css = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222;line-height:1.4}"
+           "table{border-collapse:collapse;margin:0.5em 0 1em}td,th{border:1px solid #bbb;padding:3px 8px;"
+           "font-size:13px;text-align:left}th{background:#eee}img{max-width:100%;border:1px solid #ddd}"
+           "h2{border-bottom:1px solid #ccc;margin-top:2em}.pass{color:#070;font-weight:bold}"
+           ".fail{color:#b00;font-weight:bold}.verdict{font-size:20px;padding:0.6em 1em;border-radius:6px;"
+           "display:inline-block}.ok{background:#e6f4e6}.bad{background:#fbe3e3}figcaption{font-size:13px;"
+           "color:#444;margin:0.3em 0 1.2em}.small{font-size:12px;color:#555}")
+    checks = rep.get("checks", [])
+    passed = all(c["passed"] for c in checks)
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>metadesign report: {html.escape(name)}</title>",
-             "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}"
-             "table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #bbb;padding:3px 8px;"
-             "font-size:13px;text-align:right}th{background:#eee}img{max-width:100%;border:1px solid #ddd}"
-             "h2{border-bottom:1px solid #ccc}</style></head><body>",
-             f"<h1>metadesign pipeline report: {html.escape(name)}</h1>",
-             f"<p>metadesign {__version__}; stages: "
-             + ", ".join(f"{k} ({'up to date' if v.get('skipped') else '%.1f s' % v['seconds']})"
-                         for k, v in rep["stages"].items()) + "</p>"]
-    parts.append("<h2>Tables</h2>")
-    for title, t in rep["tables"].items():
-        parts.append(f"<h3>{html.escape(title)}</h3>{_table(t)}")
-    parts.append("<h2>Figures</h2>")
-    for title, f in rep["figures"].items():
-        f = Path(f)
-        if f.exists():
-            b64 = base64.b64encode(f.read_bytes()).decode()
-            parts.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
+             f"<style>{css}</style></head><body>", f"<h1>metadesign pipeline report: {html.escape(name)}</h1>",
+             f"<p class='verdict {'ok' if passed else 'bad'}'>"
+             + (f"All {len(checks)} checks passed" if passed else
+                f"{sum(not c['passed'] for c in checks)} of {len(checks)} checks FAILED") + "</p>"]
+    hl = rep.get("headline") or {}
+    if hl.get("rows"):
+        parts.append(f"<h2>What it achieved</h2><p>Wavefront estimate of the {html.escape(hl['estimator'])} from the 8 "
+                     "sensor spots, applied as a phase correction to a beam sent back through the same turbulence; "
+                     "NPiB: the power in the target bucket over a vacuum beam's.</p>" + _table(hl["rows"]))
+    parts.append("<h2>Checks</h2>" + _table([
+        {"check": c["check"], "value": c["value"], "threshold": c["threshold"],
+         "result": "<span class='pass'>pass</span>" if c["passed"] else "<span class='fail'>FAIL</span>",
+         "why": c["why"]} for c in checks], raw=("result",)))
+    parts.append("<p class='small'>metadesign " + html.escape(__version__) + "; stages: " + ", ".join(
+        f"{k} ({'up to date, ran in %.1f s' % v.get('ran_seconds', float('nan')) if v.get('skipped') else '%.1f s' % v['seconds']})"
+        for k, v in rep["stages"].items()) + "</p>")
+    for sec, body in rep.get("sections", {}).items():
+        parts.append(f"<h2>{html.escape(sec)}</h2>")
+        for title, rows in body["tables"]:
+            parts.append(f"<h3>{html.escape(title)}</h3>{_table(rows)}")
+        for title, f, caption in body["figures"]:
+            if Path(f).exists():
+                parts.append(f"<figure><h3>{html.escape(title)}</h3>{_img(title, f)}"
+                             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts)
