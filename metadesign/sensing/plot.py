@@ -7,49 +7,88 @@ from pathlib import Path
 import numpy as np
 
 from ..plotting import pyplot, save_figure
-from .sensor import SensorSpec
+from .sensor import SensorSpec, quadrant_slices
 
 __all__ = ["plot_frames", "plot_fab_study"]
 
 
 def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channels=None, title: str = "") -> Path:
-    """Two frames (x-pol, y-pol) with quadrant boundaries; row 0 at the top."""
+    """Two frames (x-pol, y-pol) with quadrant boundaries; row 0 at the top.  Each quadrant is scaled to
+    its own peak (the 8 spots have different defocus and so peaks spanning an order of magnitude: on one
+    linear scale only the sharpest show), and its peak relative to the brightest spot of the frame is
+    written in it.  Axes in micrometres on the camera."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), constrained_layout=True)
+    pitch_um = sensor.pixel_pitch * 1e6
+    extent = (-0.5 * pitch_um, (sensor.width_px - 0.5) * pitch_um, (sensor.height_px - 0.5) * pitch_um, -0.5 * pitch_um)
     for p, ax in enumerate(axes):
-        f = frames[p]
-        im = ax.imshow(f / max(f.max(), 1e-30), cmap="inferno", origin="upper", interpolation="nearest")
-        ax.axhline(sensor.height_px / 2 - 0.5, color="w", lw=0.6, ls="--")
-        ax.axvline(sensor.width_px / 2 - 0.5, color="w", lw=0.6, ls="--")
+        f = np.asarray(frames[p], np.float64)
+        top = max(float(f.max()), 1e-30)
+        shown = np.zeros_like(f)
+        peaks = []
+        for k in range(1, 5):
+            r, c = quadrant_slices(sensor, k)
+            q = f[r, c]
+            peaks.append(float(q.max()) / top)
+            shown[r, c] = q / max(float(q.max()), 1e-30)
+        im = ax.imshow(shown, cmap="inferno", origin="upper", interpolation="nearest", extent=extent, vmin=0, vmax=1)
+        ax.axhline(sensor.height_px / 2 * pitch_um - 0.5 * pitch_um, color="w", lw=0.6, ls="--")
+        ax.axvline(sensor.width_px / 2 * pitch_um - 0.5 * pitch_um, color="w", lw=0.6, ls="--")
         for k in range(1, 5):
             qx = 0.25 if k in (1, 3) else 0.75
             qy = 0.04 if k in (1, 2) else 0.54
             label = ["QI", "QII", "QIII", "QIV"][k - 1]
             if channels and channels[p]:
                 label += f"  f = {channels[p][k - 1].focal_length * 1e3:.4g} mm"
-            ax.text(qx * sensor.width_px, qy * sensor.height_px, label, color="w", ha="center", va="top", fontsize=9)
-        ax.set(title=("x-pol (TE)" if p == 0 else "y-pol (TM)") + " frame", xlabel="column [px]", ylabel="row [px]")
-        fig.colorbar(im, ax=ax, shrink=0.8, label="intensity / frame peak")
-    if title:
-        fig.suptitle(title)
+            label += f"\npeak {peaks[k - 1]:.2f} of the frame's brightest"
+            ax.text(qx * sensor.width_px * pitch_um, qy * sensor.height_px * pitch_um, label, color="w", ha="center",
+                    va="top", fontsize=9)
+        ax.set(title=("x-pol (TE)" if p == 0 else "y-pol (TM)") + " frame", xlabel="x on the camera [um]",
+               ylabel="y on the camera [um]")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="intensity / the quadrant's own peak")
+    fig.suptitle((title + ": " if title else "") + f"{sensor.width_px} x {sensor.height_px} pixels of "
+                 f"{pitch_um:g} um; each quadrant on its own scale")
     return save_figure(fig, out)
 
 
+def _case_label(r: dict) -> str:
+    """A fab-study case in words: "etch bias +10 nm", "jitter 5 nm", "nominal" ..."""
+    parts = []
+    if r.get("bias_nm"):
+        parts.append(f"etch bias {r['bias_nm']:+g} nm")
+    if r.get("jitter_nm"):
+        parts.append(f"jitter {r['jitter_nm']:g} nm")
+    if r.get("corner_nm"):
+        parts.append(f"corner radius {r['corner_nm']:g} nm")
+    return ", ".join(parts) or "nominal"
+
+
 def plot_fab_study(rows: list[dict], out: str | Path) -> Path:
-    """Efficiency, Strehl, focal shift and crosstalk per channel vs perturbation case."""
+    """Efficiency, Strehl, focal shift and crosstalk per channel vs perturbation case: each case its own
+    group of markers (the cases are separate devices: no line joins them), in %, um."""
     plt = pyplot()
     cases = sorted({r["case"] for r in rows})
-    labels = {r["case"]: r["label"] for r in rows}
+    labels = {r["case"]: _case_label(r) if "bias_nm" in r else r["label"] for r in rows}
     fig, axes = plt.subplots(2, 2, figsize=(12, 8), constrained_layout=True)
-    keys = (("focusing_efficiency", "focusing efficiency"), ("strehl", "Strehl ratio (best focus)"),
-            ("focal_shift_mm", "focal shift [mm]"), ("crosstalk", "crosstalk"))
+    keys = (("focusing_efficiency", "focusing efficiency [% of the incident power]", 100.0),
+            ("strehl", "Strehl ratio at best focus", 1.0),
+            ("focal_shift_mm", "best focus - design focal length [um]", 1e3),
+            ("crosstalk", "crosstalk into the other quadrants [% of the spot]", 100.0))
     chans = sorted({(r["pol"], r["k"]) for r in rows})
-    for ax, (key, name) in zip(axes.ravel(), keys):
-        for pol, k in chans:
-            ys = [np.mean([r[key] for r in rows if r["case"] == c and r["pol"] == pol and r["k"] == k]) for c in cases]
-            ax.plot(range(len(cases)), ys, "o-" if pol == "x" else "s--", label=f"{pol}-pol k={k}", ms=4)
-        ax.set_xticks(range(len(cases)), [labels[c] for c in cases], rotation=30, ha="right", fontsize=8)
-        ax.set(title=name)
-        ax.grid(True, lw=0.3)
-    axes[0, 0].legend(fontsize=7, ncol=2)
+    width = 0.7
+    for ax, (key, name, scale) in zip(axes.ravel(), keys):
+        for j, (pol, k) in enumerate(chans):
+            dx = (j / max(len(chans) - 1, 1) - 0.5) * width
+            ys = [scale * np.mean([r[key] for r in rows if r["case"] == c and r["pol"] == pol and r["k"] == k])
+                  for c in cases]
+            ax.plot(np.arange(len(cases)) + dx, ys, "o" if pol == "x" else "s", ms=5, ls="none",
+                    color=f"C{k - 1}", mfc="none" if pol == "y" else None,
+                    label=f"{pol}-pol {['QI', 'QII', 'QIII', 'QIV'][k - 1]}")
+        for i in range(1, len(cases)):
+            ax.axvline(i - 0.5, color="0.85", lw=0.8)
+        ax.set_xticks(range(len(cases)), [labels[c] for c in cases], rotation=20, ha="right", fontsize=8)
+        ax.set(ylabel=name)
+        ax.grid(True, axis="y", lw=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2, title="channel (x: filled, y: open)", title_fontsize=7)
+    fig.suptitle("Fab study: the 8 spots of each as-fabricated device (one group per device)")
     return save_figure(fig, out)

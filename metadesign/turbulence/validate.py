@@ -134,11 +134,14 @@ def plot_validation(res: dict, out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     figs = []
     lv = res["levels"]
-    fig, ax = plt.subplots(1, 4, figsize=(20, 4.6), constrained_layout=True)
+    # 2 x 2 (a report or a slide scales a figure to its width: four panels in a row made the text unreadable)
+    fig, axs = plt.subplots(2, 2, figsize=(12, 9), constrained_layout=True)
+    ax = axs.ravel()
     sf = res["structure_function"]
     ax[0].loglog(sf["r_m"], sf["theory"], "k-", label="theory (same PSD)")
     ax[0].loglog(sf["r_m"], sf["measured"], "o", label="screens (ensemble)")
-    ax[0].set(xlabel="separation [m]", ylabel="D_phi [rad^2]", title="phase structure function (r0 = 5 cm)")
+    ax[0].set(xlabel="separation [m]", ylabel="phase structure function D_phi [rad^2]",
+              title="phase structure function of single screens (r0 = 5 cm)")
     ax[0].legend()
     nom = [l_["rytov_nominal"] for l_ in lv]
     ax[1].boxplot([l_["rytov_per_sample"] for l_ in lv], positions=nom, widths=0.05, manage_ticks=False)
@@ -173,8 +176,12 @@ def plot_validation(res: dict, out_dir: Path) -> list[Path]:
         for p in b["boxes"]:
             p.set_facecolor(col)
         label = {"complex": "complex-field conjugate", "phase": "phase-only conjugate", "none": "uncorrected"}[mode]
-        ax.plot(np.array(nom) + dx, [np.mean(d) for d in data], "^", color=col, label=label)
-    ax.set(xlabel="nominal Rytov", ylabel="normalised PiB", title="(S6) correction by back-propagation")
-    ax.legend()
+        ax.plot(np.array(nom) + dx, [np.mean(d) for d in data], "^", color=col, label=label + " (triangle: mean)")
+    ax.axhline(1.0, color="k", lw=0.6, ls=":")
+    ax.set(xlabel="nominal Rytov number", ylabel="NPiB (power in bucket / vacuum beam's)")
+    ax.set_title("(S6) correction by back-propagation", fontsize=11, pad=30)
+    ax.text(0.5, 1.01, "boxes: quartiles over the samples. NPiB > 1: that sample's turbulence focuses\nmore power "
+            "into the bucket than vacuum does", transform=ax.transAxes, fontsize=7.5, ha="center", va="bottom")
+    ax.legend(fontsize=8, loc="center right")
     figs.append(save_figure(fig, out_dir / "turbulence-fig-s6.png"))
     return figs
