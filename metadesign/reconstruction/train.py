@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..cliutil import progress_bar
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..io import atomic_path, atomic_write_text, check_not_input, output_lock
 from ..plotting import pyplot, save_figure
@@ -309,12 +310,9 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         ddp_model.train()
         t0 = time.perf_counter()
         tot, nb, npib_tr = 0.0, 0, []
-        bar = None
-        if progress and rank == 0:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="batch",
-                       disable=None, leave=False)
+        # a bar on a terminal, a line every 30 s in a log file or CI (cliutil.progress_bar)
+        bar = progress_bar(f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="batch") \
+            if progress and rank == 0 else None
         for b in loader:
             x = b["psf"].to(device, non_blocking=True)
             rec = b["received"].to(device)
@@ -334,12 +332,9 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
             nb += 1
             steps += 1
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{tot / nb:.4f}")
+                bar(nb, len(loader))
             if max_steps is not None and steps >= max_steps:
                 break
-        if bar is not None:
-            bar.close()
         sched.step()
         t_train = time.perf_counter() - t0
         rec_row = {"epoch": epoch + 1, "loss_name": loss_name, "train_loss": tot / max(nb, 1),

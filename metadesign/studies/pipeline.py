@@ -362,7 +362,7 @@ class _Pipeline:
 
         def do_train():
             shutil.rmtree(run, ignore_errors=True)  # the pipeline's own run folder
-            r = train(load_train_recipe(t["recipe"]), run, dataset=self.dsdir, log=self.log, progress=False)
+            r = train(load_train_recipe(t["recipe"]), run, dataset=self.dsdir, log=self.log, progress=True)
             return {"epochs": r["epochs_done"], "best_val_npib": r["best_val_npib"]}
 
         self.stage("train", _h(self.k_ds, t["recipe"]), [run / "model.safetensors"], do_train)

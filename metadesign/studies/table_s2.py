@@ -50,9 +50,9 @@ def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Call
         run = out / f"run-{name.lower()}"
         if (run / "checkpoint.pt").exists():
             rep = train(train_recipe_from_dict(tr_raw, name), run, dataset=out / "dataset", resume=True, log=log,
-                        progress=False)
+                        progress=True)
         else:
-            rep = train(train_recipe_from_dict(tr_raw, name), run, dataset=out / "dataset", log=log, progress=False)
+            rep = train(train_recipe_from_dict(tr_raw, name), run, dataset=out / "dataset", log=log, progress=True)
         # the last epoch's weights: Table S2 compares train and test of the trained model, not a val-selected one
         import torch
 

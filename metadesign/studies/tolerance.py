@@ -164,7 +164,7 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
             run = case / "finetune"
             resume = (run / "checkpoint.pt").exists()
             rep = train(tr_rec, run, dataset=case / "dataset",
-                        resume=resume, init=None if resume else recipe.model, log=log, progress=False)
+                        resume=resume, init=None if resume else recipe.model, log=log, progress=True)
             res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
             row["after"] = _metrics(res2, next(iter(res2["rows"])))
 

@@ -168,7 +168,7 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
             tr_rec = base.derive(f"transfer-{name}", {"noise_percent": f["noise_percent"], "val_limit": 0}, **tr)
             resume = (run / "checkpoint.pt").exists()
             rep = train(tr_rec, run, dataset=imp, resume=resume,
-                        init=None if (resume or init is None) else init, log=log, progress=False)
+                        init=None if (resume or init is None) else init, log=log, progress=True)
             r = _metrics(evaluate_model(run / "model.safetensors", imp, "test", [0.0]))
             r["epochs"] = rep["epochs_done"]
             r["train_samples"] = int(len(open_dataset(imp).indices("train")))
