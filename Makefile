@@ -4,6 +4,10 @@
 #   make test   - the test suite (`make test-slow` for the long statistical checks)
 PYTHON ?= python3
 VENV   ?= .venv
+# where pip finds the CPU build of torch when it does not already (e.g. no local wheel folder):
+#   make demo TORCH_INDEX=https://download.pytorch.org/whl/cpu
+TORCH_INDEX ?=
+PIP_INDEX = $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX),)
 BIN     = $(VENV)/bin
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
@@ -13,7 +17,7 @@ export MKL_NUM_THREADS ?= 1
 
 $(BIN)/metadesign: pyproject.toml setup.py constraints/cpu.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q -c constraints/cpu.txt -e '.[test]'
+	$(BIN)/python -m pip install -q $(PIP_INDEX) -c constraints/cpu.txt -e '.[test]'
 	touch $@
 
 install: $(BIN)/metadesign

@@ -223,7 +223,7 @@ def test_compare_and_retrieve_cli(tmp_path, tiny_dataset):
     same bytes with 1 or 2 workers."""
     from pathlib import Path
 
-    model = Path(__file__).resolve().parents[1] / "sensing" / "models" / "demo-unet.safetensors"
+    model = Path(__file__).resolve().parents[1] / "sensing" / "models" / "demo-unet-long.safetensors"
     outs = []
     for j in ("1", "2"):
         r = run_cli("compare", "NONE", str(tiny_dataset), "--split", "all", "--limit", "4", "--batch", "2",

@@ -28,6 +28,7 @@ def test_readme_python_block_runs(i, demo_products, tmp_path, monkeypatch):
         build_dataset(load_dataset_recipe(tiny_dataset_recipe(tmp_path, demo_products["layout"], samples=8,
                                                               extra="split = [0.5, 0.25, 0.25]\n")), ds)
     for big, small in {"layouts/paper-5mm/layout.oas": demo_products["layout"],
+                       "layouts/paper-5mm": demo_products["design"],
                        "sensing/paper.toml": REPO / "sensing" / "demo.toml",
                        "sensing/turbulence.toml": REPO / "sensing" / "turbulence.toml",
                        "sensing/models/demo-unet-long.safetensors": model,

@@ -317,8 +317,8 @@ def test_studies_check_their_model_before_building_anything(tmp_path, capsys):
         assert not out.exists() or not any(out.rglob("zarr.json"))
     (sensing / "models").mkdir()
     m = tiny_model(tmp_path)  # 8 x 16^2 inputs; the recipe's dataset has 8 x 64^2
-    shutil.copy(m, sensing / "models" / "demo-unet.safetensors")
-    shutil.copy(m.with_name(m.name + ".json"), sensing / "models" / "demo-unet.safetensors.json")
+    shutil.copy(m, sensing / "models" / "demo-unet-robust.safetensors")
+    shutil.copy(m.with_name(m.name + ".json"), sensing / "models" / "demo-unet-robust.safetensors.json")
     out = tmp_path / "tol-out"
     rc, _, err = _run(["tolerance", sensing / "tolerance-demo.toml", "-o", out], capsys)
     assert rc == 2 and len(err) == 1 and "model input 16^2 does not match" in err[0], err

@@ -189,6 +189,14 @@ def provenance_of(design, opts: LayoutOptions) -> dict:
     }
 
 
+def layout_library(design, opts: LayoutOptions = LayoutOptions()):
+    """The ``gdstk.Library`` :func:`write_layout` would write for ``design``, in memory, for users who place
+    the metasurface into a larger mask: one top cell (``lib.top_level()[0]``) referencing one cell per
+    placed atom, coordinates in nm (``lib.unit`` = 1e-9: a host library must use the same unit, or scale
+    its references), the provenance as the top cell's properties."""
+    return build_gdstk_library(design, opts, provenance_of(design, opts))[0]
+
+
 def write_layout(design, out: Path, fmt: str = "oas", opts: LayoutOptions = LayoutOptions()) -> dict:
     """Write ``out`` (``.oas`` or ``.gds``) atomically plus ``out.json`` side-car."""
     out = Path(out)

@@ -311,7 +311,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         t0 = time.perf_counter()
         tot, nb, npib_tr = 0.0, 0, []
         # a bar on a terminal, a line every 30 s in a log file or CI (cliutil.progress_bar)
-        bar = progress_bar(f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="batch") \
+        bar = progress_bar(f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="step") \
             if progress and rank == 0 else None
         for b in loader:
             x = b["psf"].to(device, non_blocking=True)

@@ -35,7 +35,8 @@ from ..library.recipe import load_recipe
 from ..library.store import load_library
 from ..reconstruction.dataset import TENSOR_SIZE, build_dataset, dataset_recipe_from_dict, received_crop
 from ..reconstruction.evaluate import evaluate_model, plot_fig3, summarise, write_results
-from ..reconstruction.model import check_sizes, load_model
+from ..reconstruction.model import check_sizes
+from ..reconstruction.refine import load_network
 from ..reconstruction.train import load_train_recipe, train
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
@@ -115,7 +116,7 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     rec = load_pipeline_recipe(recipe_path)
     out = Path(out)
     if rec["train"]["model"] is not None:  # a given model must fit the dataset it will be evaluated on: check now
-        model, _ = load_model(rec["train"]["model"])
+        model, _ = load_network(rec["train"]["model"])  # a U-Net or a refiner (which brings its U-Net)
         check_sizes(model.config, rec["dataset"]["tensor_size"],
                     received_crop(load_scenario(rec["pipeline"]["turbulence"]))[1], f"[train] model {rec['train']['model']}")
     out.mkdir(exist_ok=True)
