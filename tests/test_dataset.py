@@ -211,3 +211,32 @@ def test_dask_workers_keep_freed_memory_despite_the_nannys_trim_threshold():
     assert ok == "True"
     assert int(before) > 100 * 400  # the nanny's setting: every allocation faults its pages in again
     assert int(after) < 2000
+
+
+def test_xarray_opens_a_dataset_with_coordinates_and_no_foreign_files(tiny_dataset):
+    """#24: `xarray.open_zarr` labels every axis (sample, channel names, tensor pixels, metres on the
+    turbulence grid) and carries Rytov numbers, seeds and split as coordinates; the device pupil is a zarr
+    group of the store (no foreign file that zarr warns about), and it is the device the loader hands out."""
+    import warnings
+
+    xr = pytest.importorskip("xarray")
+    from metadesign.reconstruction.dataset import load_device, open_dataset
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # zarr's "not recognized as a component of a Zarr hierarchy" included
+        ds = xr.open_zarr(tiny_dataset, consolidated=False)
+    info = open_dataset(tiny_dataset)
+    assert ds["psf"].dims == ("sample", "channel", "row", "col")
+    assert {"rytov", "rytov_measured", "seed", "split"} <= set(ds["psf"].coords)
+    np.testing.assert_array_equal(ds["seed"].values, info.seed)
+    np.testing.assert_array_equal(ds["sample"].values, np.arange(info.n))
+    crop = info.attrs["received_crop"]
+    x = ds["x"].values
+    assert len(x) == crop["size"] and np.allclose(np.diff(x), crop["dx_m"])
+    assert x[crop["size"] // 2] == pytest.approx((crop["start"] + crop["size"] // 2 - crop["n_grid"] // 2) * crop["dx_m"])
+    assert list(ds["channel"].attrs["labels"])[4] == "y-pol QI"
+    assert not any(p.suffix == ".npz" for p in tiny_dataset.iterdir())
+    dev = load_device(tiny_dataset)
+    assert dev.pupil.G.ndim == 4 and dev.pupil.G.shape[0] == 2
+    one = ds["psf"].isel(sample=0).values
+    np.testing.assert_allclose(one.sum(), 8.0, rtol=1e-4)

@@ -48,7 +48,8 @@ from ..layouts import read_layout, verify_against_design, write_layout
 from ..library.locate import file_sha256
 from ..library.store import load_library
 from ..parallel import dask_client, run_tasks
-from ..sensing.device import Device, ReceiverCrop, check_wavelengths, load_pupil, save_pupil
+from ..sensing.device import Device, ReceiverCrop, check_wavelengths, load_pupil
+from ..sensing.forward import CoarsePupil
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.sensor import SensorSpec
 from ..sensing.transmission import Perturbation
@@ -316,22 +317,72 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
     return target
 
 
-def _device_pupil(fab, sensing, pert, cache: Path, layout_sha: str, progress=None):
-    """The device's coarse pupil, cached beside the dataset (keyed by layout, library, perturbation, sensor)."""
+def _device_pupil(fab, sensing, pert, store: Path, layout_sha: str, progress=None):
+    """The device's coarse pupil, kept in the dataset's store as the zarr group ``device`` (keyed by
+    layout, library, perturbation, sensor: a resumed build reuses it)."""
     key = {"layout_sha256": layout_sha, "library_sha256": fab.lib.identity, "perturbation": pert.to_dict(),
            "distance_m": sensing.sensor.distance, "pupil_grid": sensing.pupil_grid}
     if fab.fab_lib is not None:
         key["fab_library_sha256"] = fab.fab_lib.identity
-    if cache.exists():
-        try:
-            z = read_npz(cache, "device pupil")
-            if json.loads(str(z["key"])) == key:
-                return load_pupil(cache, z)
-        except (ValidationError, KeyError, ValueError):
-            pass
+    try:
+        cp, stored = read_store_pupil(store)
+        if stored == key:
+            return cp
+    except ValidationError:
+        pass
     cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
-    save_pupil(cache, cp, key=np.array(json.dumps(key, sort_keys=True)))
+    write_store_pupil(store, cp, key)
     return cp
+
+
+#: the zarr group of a dataset that holds its device's coarse pupil (older datasets: device-pupil.npz)
+PUPIL_GROUP = "device"
+
+
+def write_store_pupil(store: Path, cp, key: dict) -> None:
+    """The coarse pupil as arrays ``device/G`` (2, m*m, N, N) complex64 and ``device/X`` (N,) metres, with
+    its scalars and cache key as the group's attributes."""
+    import zarr
+
+    g = zarr.open_group(str(store), mode="r+")
+    d = g.require_group(PUPIL_GROUP)
+    d.attrs.update({"complete": False})
+    G = d.create_array("G", shape=cp.G.shape, chunks=cp.G.shape, dtype="complex64", overwrite=True,
+                       dimension_names=("pol", "channel", "y", "x"))
+    G[:] = cp.G
+    X = d.create_array("X", shape=cp.X.shape, chunks=cp.X.shape, dtype="float64", overwrite=True,
+                       dimension_names=("x",))
+    X[:] = cp.X
+    d.attrs.update({"block": int(cp.block), "period_m": float(cp.period), "wavelength_m": float(cp.wavelength),
+                    "z_m": float(cp.z), "n_clamped": int(cp.n_clamped), "key": key, "complete": True,
+                    "meaning": "coarse pupil of the as-fabricated device (metadesign.sensing.forward.CoarsePupil)"})
+
+
+def read_store_pupil(store: Path):
+    """(coarse pupil, its cache key) from a dataset's ``device`` group, or from the ``device-pupil.npz``
+    beside the store of datasets built before the group existed."""
+    import zarr
+
+    legacy = Path(store) / "device-pupil.npz"
+    try:
+        d = zarr.open_group(str(store), mode="r")[PUPIL_GROUP]
+    except (KeyError, FileNotFoundError, ValueError, OSError):
+        d = None
+    if d is None or not d.attrs.get("complete"):
+        if legacy.is_file():
+            z = read_npz(legacy, "device pupil")
+            return load_pupil(legacy, z), (json.loads(str(z["key"])) if "key" in z else None)
+        raise ValidationError(f"{store}: no device pupil (written by `metadesign dataset build`)")
+    try:
+        G, X = np.asarray(d["G"][:]), np.asarray(d["X"][:])
+        a = d.attrs
+        cp = CoarsePupil(G, X, int(a["block"]), float(a["period_m"]), float(a["wavelength_m"]), float(a["z_m"]),
+                         int(a["n_clamped"]))
+    except Exception as exc:  # a damaged group: zarr raises many kinds
+        raise ValidationError(f"{store}: damaged device pupil ({exc.__class__.__name__})") from None
+    if G.ndim != 4 or G.shape[0] != 2 or not np.isfinite(G).all():
+        raise ValidationError(f"{store}: device pupil: expected finite G of shape (2, m*m, N, N), got {G.shape}")
+    return cp, dict(a["key"])
 
 
 def expected_sizes(recipe: DatasetRecipe) -> tuple[int, int]:
@@ -342,16 +393,13 @@ def expected_sizes(recipe: DatasetRecipe) -> tuple[int, int]:
 
 def load_device(dataset: str | Path) -> Device:
     """The device a dataset was made with (:class:`~metadesign.sensing.device.Device`): its coarse pupil
-    (``device-pupil.npz``, written by ``dataset build``), sensor and received-field crop; the dataset's
+    (the store's ``device`` group, written by ``dataset build``), sensor and received-field crop; the dataset's
     turbulence scenario must be at the device's wavelength."""
     info = open_dataset(dataset)
-    path = Path(dataset) / "device-pupil.npz"
-    if not path.is_file():
-        if info.attrs.get("propagation") == "slm":
-            raise ValidationError(f"{dataset}: imported captures carry no device model (the forward model of "
-                                  "compare / retrieve / synth-captures needs a synthetic dataset)")
-        raise ValidationError(f"{path}: missing (the device's coarse pupil, written by `metadesign dataset build`)")
-    cp = load_pupil(path)
+    if info.attrs.get("propagation") == "slm":
+        raise ValidationError(f"{dataset}: imported captures carry no device model (the forward model of "
+                              "compare / retrieve / synth-captures needs a synthetic dataset)")
+    cp, _ = read_store_pupil(Path(dataset))
     dev = Device(cp, info.sensor(), info.receiver_crop())
     dev.check_wavelength(info.scenario().wavelength, f"{dataset}: turbulence scenario")
     return dev
@@ -383,8 +431,39 @@ def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, sp
     sp = g.create_array("split", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=255,
                         dimension_names=("sample",))
     sp[:] = split
+    _write_coordinates(g, n, s, a, attrs)
     g.attrs.update(attrs)
     return g
+
+
+#: the per-sample arrays xarray shows as coordinates of the data arrays (CF "coordinates" attribute)
+SAMPLE_COORDINATES = "rytov rytov_measured seed split"
+
+
+def _write_coordinates(g, n: int, s: int, a: int, attrs: dict) -> None:
+    """Dimension coordinates, so that ``xarray.open_zarr(DATASET)`` labels every axis: ``sample`` (index),
+    ``channel`` (0..7 with their names), ``row``/``col`` (tensor pixel index in a quadrant), ``y``/``x``
+    (metres on the turbulence grid, the received crop's samples); and the per-sample Rytov numbers,
+    seeds and split as coordinates of ``psf``, ``received`` and ``psf_power``."""
+    crop = attrs.get("received_crop") or {}
+    c = g.create_array("sample", shape=(n,), chunks=(max(n, 1),), dtype="int64", dimension_names=("sample",))
+    c[:] = np.arange(n)
+    ch = g.create_array("channel", shape=(8,), chunks=(8,), dtype="int8", dimension_names=("channel",))
+    ch[:] = np.arange(8)
+    ch.attrs.update({"labels": ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV",
+                                "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]})
+    for k in ("row", "col"):
+        r = g.create_array(k, shape=(s,), chunks=(s,), dtype="int32", dimension_names=(k,))
+        r[:] = np.arange(s)
+        r.attrs.update({"long_name": f"tensor pixel {k} in its quadrant (each quadrant area-resampled to S x S)"})
+    if crop.get("dx_m") is not None:
+        x = (crop["start"] + np.arange(a) - crop["n_grid"] // 2) * float(crop["dx_m"])
+        for k in ("y", "x"):
+            r = g.create_array(k, shape=(a,), chunks=(a,), dtype="float64", dimension_names=(k,))
+            r[:] = x
+            r.attrs.update({"units": "m", "long_name": f"{k} on the turbulence grid (FFT-centred)"})
+    for k in ("psf", "received", "psf_power"):
+        g[k].attrs.update({"coordinates": SAMPLE_COORDINATES})
 
 
 def _make_shard(ctx, i: int) -> dict:
@@ -502,7 +581,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
             "split_labels": {"0": "train", "1": "val", "2": "test"},
         }
         _create_store(out, n, recipe.tensor_size, shard, a, attrs, split_labels(recipe.seed, n, recipe.split))
-    cp = _device_pupil(fab, sensing, pert, out / "device-pupil.npz", layout_sha)  # after the store (mode "w")
+    cp = _device_pupil(fab, sensing, pert, out, layout_sha)  # after the store (mode "w")
     done = {i for i in range(n_shards) if _marker(out, i).exists()}
     pending = [i for i in range(n_shards) if i not in done]
     ctx = ShardContext(cp, sensing, scenario, fab.n_cells * fab.period, str(out), recipe.seed, n, shard,

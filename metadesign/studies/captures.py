@@ -30,7 +30,7 @@ def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alig
     wavefront captures), ``dark/`` (dark frames), ``truth.json`` (alignment, camera, device; for tests).
 
     ``phases``: the dataset whose received phases the SLM shows (``split`` of it, first ``samples``);
-    ``device``: the dataset (or its ``device-pupil.npz``) whose device renders the frames; the sensor
+    ``device``: the dataset (older datasets: or their ``device-pupil.npz``) whose device renders the frames; the sensor
     and geometry come from ``phases``.  The last ``saturate`` samples are over-exposed 2x (clipped)."""
     final = Path(out)
     if final.exists() and (not final.is_dir() or any(final.iterdir())):

@@ -406,7 +406,7 @@ def register(sub, groups: dict) -> None:
         "coarse pupil onto a misaligned camera with shot and read noise, dark offset and hot pixels (16-bit PNG, "
         "TIFF or .npy), with flat and dark captures and a manifest: input for `dataset import`.")
     sy.add_argument("phases", help="dataset whose received phases the SLM shows (also the sensor geometry)")
-    sy.add_argument("--device", required=True, help="dataset (or its device-pupil.npz) of the device to render")
+    sy.add_argument("--device", required=True, help="dataset of the device to render (older datasets: or their device-pupil.npz)")
     sy.add_argument("-o", "--output", required=True, help="capture folder to write")
     sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
     sy.add_argument("--limit", "--samples", dest="samples", type=integer(1, 10_000_000),
