@@ -248,7 +248,7 @@ def register(sub) -> dict:
     ev.set_defaults(func=_cmd_evaluate)
 
     tr = sub.add_parser(
-        "train", help="stage 6: train the U-Net (end-to-end PiB or MSE loss), resumable, DDP under torchrun",
+        "train", help="stage 6: train the U-Net, or a learned refinement on top of one ([refine] recipes); resumable, DDP under torchrun",
         description="Stage 6b. Train the U-Net of a recipe on a dataset: AdamW, step schedule, noise at load; "
         "a checkpoint every epoch (--resume continues a killed run), metrics CSV/JSON and curves, the best "
         "model by validation NPiB as safetensors + JSON card. Multi-process: `torchrun --nproc_per_node N -m "

@@ -321,12 +321,13 @@ def register(sub, groups: dict) -> None:
     from .compare import ESTIMATORS
 
     c = sub.add_parser(
-        "compare", help="baselines: NPiB and latency of Shack-Hartmann, retrieval, U-Net and hybrid on the same samples",
+        "compare", help="every estimator (Shack-Hartmann, retrieval, U-Net, hybrid, learned refinement) on the same samples: NPiB and latency",
         description="Every wavefront sensor on the same samples and the same sensor noise: uncorrected, a "
         "simulated Shack-Hartmann, model-based phase-diversity retrieval on the 8 PSFs, the U-Net, the "
-        "U-Net + retrieval hybrid, and the phase/complex conjugate bounds. NPiB per sample vs Rytov number, "
-        "NPiB vs single-sample latency, NPiB at 1/10/100 ms budgets; CSV, JSON and figures in -o.")
-    c.add_argument("model", help="U-Net weights (.safetensors with its .json card), or NONE")
+        "U-Net + retrieval hybrid, the learned refinement (when MODEL is a refiner: its U-Net runs too), and "
+        "the phase/complex conjugate bounds. NPiB per sample vs Rytov number, NPiB vs single-sample latency "
+        "(and vs iterations or refinement steps), NPiB at 1/10/100 ms budgets; CSV, JSON and figures in -o.")
+    c.add_argument("model", help="U-Net or refiner weights (.safetensors with its .json card), or NONE")
     _common(c, "zonal iterations of the retrieval (default 100)")
     c.add_argument("--hybrid-iterations", type=integer(0, 100000), help="iterations of the hybrid (default 50)")
     c.add_argument("--methods", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS),
