@@ -46,6 +46,11 @@ def residual_rms(phi_pred: np.ndarray, received: np.ndarray, ap: np.ndarray) -> 
     return np.array(rms), np.array(tt)
 
 
+def _noise_words(key: str) -> str:
+    kind, _, v = key.partition(":")
+    return f"sensor noise {v} % of peak" if kind == "gaussian" else f"{v} photo-electrons at the peak"
+
+
 def training_noise(card: dict) -> str:
     """The training noise a model card records, for a title: "5 %" or "0-10 %"."""
     v = card.get("noise_percent", "?")
@@ -173,12 +178,18 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
     keys = list(res["rows"])
     r = res["rows"][keys[0]]
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
-    for k, lab, mk in (("complex_conjugate", "complex conjugate", "^"), ("phase_conjugate", "phase conjugate", "s"),
-                       ("unet", "U-Net", "o"), ("none", "uncorrected", "x")):
+    net = "U-Net + refinement" if "start" in r else "U-Net"
+    series = [("complex_conjugate", "complex conjugate (oracle)", "^"), ("phase_conjugate", "phase conjugate (oracle)", "s")]
+    series += [("start", "U-Net alone", "."), ("unet", net, "o")] if "start" in r else [("unet", net, "o")]
+    for k, lab, mk in series + [("none", "uncorrected", "x")]:
         ax.scatter(r["rytov_measured"], r[k], s=10, marker=mk, alpha=0.6, label=f"{lab} (mean {np.mean(r[k]):.3f})")
     top = max(1.05, 1.02 * max(float(np.max(r[k])) for k in ("complex_conjugate", "phase_conjugate", "unet")))
-    ax.set(xlabel="Rytov number of the sample (measured log-amplitude variance)", ylabel="NPiB",
-           title=f"Fig. 3b: {res['split']} split, {res['n']} samples, noise {keys[0]}", ylim=(0, top))
+    ax.axhline(1.0, color="k", lw=0.5, ls=":")
+    ax.set(xlabel="Rytov number of the sample (measured log-amplitude variance)",
+           ylabel="NPiB (power in bucket / a vacuum beam's)",
+           title=f"Fig. 3b: {res['split']} split, {res['n']} samples, {_noise_words(keys[0])}", ylim=(0, top))
+    ax.text(0.99, 0.01, "NPiB > 1: a sample whose turbulence focuses more power into the bucket than vacuum",
+            transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3")
     ax.legend(fontsize=8)
     figs.append(save_figure(fig, out / "fig-3b.png"))
     pkeys = [k for k in keys if k.startswith("photons:")]
@@ -200,11 +211,17 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
     if len(gkeys) > 1:
         keys = gkeys
         fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+        keys = sorted(keys, key=lambda k: float(k.split(":")[1]))
         data = [res["rows"][k]["unet"] for k in keys]
         ax.boxplot(data, tick_labels=[k.split(":")[1] for k in keys], showfliers=False)
+        if "start" in res["rows"][keys[0]]:  # a refiner: its U-Net alone beside it
+            ax.plot(range(1, len(keys) + 1), [np.mean(res["rows"][k]["start"]) for k in keys], "D--", color="tab:blue",
+                    ms=5, label="U-Net alone (mean)")
+            ax.plot(range(1, len(keys) + 1), [np.mean(res["rows"][k]["unet"]) for k in keys], "P-", color="tab:cyan",
+                    ms=7, label="U-Net + refinement (mean)")
         ax.axhline(np.mean(res["rows"][keys[0]]["none"]), ls=":", c="k", label="uncorrected (mean)")
         ax.axhline(np.mean(res["rows"][keys[0]]["phase_conjugate"]), ls="--", c="g", label="phase conjugate (mean)")
-        ax.set(xlabel="test noise level (% of peak, or photons at peak)", ylabel="U-Net NPiB",
+        ax.set(xlabel="sensor noise in the test inputs [% of each channel's peak]", ylabel=f"NPiB, {net}",
                title=f"Fig. 3c/d: model trained with {training_noise(res['card'])} noise")
         ax.legend(fontsize=8)
         figs.append(save_figure(fig, out / "fig-3cd.png"))
@@ -219,7 +236,7 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
             res_ = np.angle(d * np.conj(d[ap].mean()))
             piston = np.angle(np.mean(np.exp(1j * (pred - true))[ap]))
             for row, (img, title) in enumerate(((true, "true received phase"),
-                                                (np.angle(np.exp(1j * (pred - piston))), "U-Net (piston matched)"),
+                                                (np.angle(np.exp(1j * (pred - piston))), f"{net} (piston matched)"),
                                                 (res_, "residual"))):
                 h = axs[row, j].imshow(np.where(ap, img, np.nan), cmap="twilight", vmin=-np.pi, vmax=np.pi)
                 axs[row, j].set_xticks([])
