@@ -36,7 +36,11 @@ def test_demo_runs_from_an_installed_wheel_outside_the_checkout(tmp_path):
     assert p.returncode == 0, p.stderr
     tmp_path = run
     s = json.loads(p.stdout)
-    assert set(s["stages"]) >= {"library", "design", "layout", "sensing", "turbulence"}
+    assert set(s["stages"]) >= {"library", "design", "layout", "sensing", "turbulence", "reconstruction"}
+    # the committed robust U-Net and its refinement, at a clean camera and at 5 % noise (#23)
+    cap = s["stages"]["reconstruction"]["captured_fraction"]
+    assert set(cap) == {"unet@0", "unet@5", "refine@0", "refine@5"}
+    assert all(v > 0 for v in cap.values())
     assert s["passed"] is True
     lay = s["stages"]["layout"]
     assert lay["verify_gdstk"]["exact"] and lay["verify_klayout"]["exact"] and lay["drc"]["passed"]
