@@ -216,12 +216,12 @@ class RefineEstimator(Estimator):
         import torch
 
         start = done.get(self.starts_from) if done else None
-        with torch.no_grad():
-            traj = self.model.trajectory(_torch(batch["psf"]), start=None if start is None else _torch(start))
-        if on_checkpoint is not None:
-            for k, phi in enumerate(traj):
-                on_checkpoint(k, phi * self.model.mask)
-        return traj[-1] * self.model.mask
+        with torch.no_grad():  # each step's estimate reported as it is computed (latency per K)
+            for k, phi in enumerate(self.model.iterate(_torch(batch["psf"]),
+                                                       start=None if start is None else _torch(start))):
+                if on_checkpoint is not None:
+                    on_checkpoint(k, phi * self.model.mask)
+        return phi * self.model.mask
 
 
 def make_estimator(name: str, device: Device, settings=None, model=None, noise_percent: float = 0.0,

@@ -190,15 +190,16 @@ def _module_classes():
             self.unet.eval()  # frozen (its normalisation statistics too)
             return self
 
-        def trajectory(self, x, k: int | None = None, start=None) -> list:
-            """Estimates after 0..k steps; ``start``: the U-Net's estimate when already computed."""
+        def iterate(self, x, k: int | None = None, start=None):
+            """Yield the estimate before the first step (the U-Net's; ``start`` when already computed) and
+            after each of the first ``k`` steps (default all), as each is computed."""
             data = x * (8.0 / x.sum(dim=(1, 2, 3), keepdim=True))  # the twin's normalisation
             if start is None:
                 with torch.no_grad():
                     phi = self.unet(x).float()
             else:
                 phi = start.float()
-            out = [phi]
+            yield phi
             n = self.twin.support.sum()
             # the twin's products in float32 even under mixed precision (bf16 would lose the PSF's dim wings)
             with torch.autocast(x.device.type, enabled=False):
@@ -207,8 +208,11 @@ def _module_classes():
                     _, g, pred = self.twin.misfit_grad(phi, data, self.cfg.eps)
                     rms = torch.sqrt((g * g).sum(dim=(1, 2), keepdim=True) / n + 1e-30)
                     phi = step(phi, g / rms, data, pred, self.twin.support) * self.twin.support
-                    out.append(phi)
-            return out
+                    yield phi
+
+        def trajectory(self, x, k: int | None = None, start=None) -> list:
+            """Estimates after 0..k steps (on the support; ``* mask`` is what :meth:`forward` returns)."""
+            return list(self.iterate(x, k, start))
 
         def forward(self, x, k: int | None = None):
             return self.trajectory(x, k)[-1] * self.mask
