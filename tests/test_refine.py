@@ -195,6 +195,7 @@ unet = "{unet}"
 steps = 2
 width = 4
 features = 4
+deep_supervision = 0.5
 """)
     env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
 

@@ -214,7 +214,11 @@ def _module_classes():
             """Estimates after 0..k steps (on the support; ``* mask`` is what :meth:`forward` returns)."""
             return list(self.iterate(x, k, start))
 
-        def forward(self, x, k: int | None = None):
+        def forward(self, x, k: int | None = None, all_steps: bool = False):
+            """The estimate after ``k`` steps (default all) on the aperture; ``all_steps``: every step's
+            (K + 1, B, A, A), the U-Net's first (deep supervision in training)."""
+            if all_steps:
+                return torch.stack(self.trajectory(x, k)) * self.mask
             return self.trajectory(x, k)[-1] * self.mask
 
     return RealTwin, Refiner

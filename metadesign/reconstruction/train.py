@@ -35,7 +35,7 @@ from .losses import LOSSES, PiB, mse_loss, phase_loss
 from .metrics import captured_fraction, npib_rows
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model
 from .operators import has_operators
-from .refine import RefineConfig, build_refiner, save_refiner
+from .refine import RefineConfig, build_refiner, load_refiner, save_refiner
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
 
@@ -76,6 +76,8 @@ SECTIONS = (
         Param("width", int, 32, lo=1, hi=512),
         Param("features", int, 16, lo=1, hi=512),
         Param("step_init", float, 0.05, lo=0, hi=10),
+        Param("deep_supervision", float, 0.0, lo=0, hi=10),
+        Param("init", str, None),
     ), optional=True, help="a learned refinement (metadesign.reconstruction.refine) trained on top of a frozen "
                            "U-Net (refine.unet, or --init); samples = 0: every camera pixel"),
 )
@@ -109,6 +111,8 @@ class TrainRecipe:
     raw: dict
     refine: object = None  # RefineConfig when the recipe trains a refiner
     refine_unet: Path | None = None
+    refine_deep: float = 0.0  # weight of the intermediate steps' losses (deep supervision)
+    refine_init: Path | None = None  # a trained refiner to start from
 
     def noise(self) -> dict:
         """The PSFDataset noise keywords of this recipe."""
@@ -136,15 +140,18 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
     ds = d["dataset"]
     if ds is not None and not Path(ds).is_absolute():
         ds = (source.parent if source else Path.cwd()) / ds
-    refine = refine_unet = None
+    refine = refine_unet = refine_init = None
+    r = v["refine"]
     if "refine" in data:
-        r = v["refine"]
         refine = RefineConfig(steps=r["steps"], rebin=r["rebin"], samples=r["samples"] or None, width=r["width"],
                               features=r["features"], step_init=r["step_init"])
-        if r["unet"]:
-            refine_unet = Path(r["unet"]) if Path(r["unet"]).is_absolute() else \
-                (source.parent if source else Path.cwd()) / r["unet"]
-    return TrainRecipe(refine=refine, refine_unet=refine_unet, name=name, source=source,
+
+        def rel(q):
+            return None if not q else Path(q) if Path(q).is_absolute() else (source.parent if source else Path.cwd()) / q
+
+        refine_unet, refine_init = rel(r["unet"]), rel(r["init"])
+    return TrainRecipe(refine=refine, refine_unet=refine_unet, refine_deep=r["deep_supervision"], refine_init=refine_init,
+                       name=name, source=source,
                        dataset=Path(ds) if ds else None,
                        noise_percent=d["noise_percent"],
                        photons_at_peak=None if d["photons_at_peak"][1] == 0 else d["photons_at_peak"],
@@ -316,9 +323,15 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         for b in loader:
             x = b["psf"].to(device, non_blocking=True)
             rec = b["received"].to(device)
+            deep = recipe.refine is not None and recipe.refine_deep > 0
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
-                phi = ddp_model(x)
-            loss, npib = batch_loss(loss_name, phi.float(), b, rec)
+                phi = ddp_model(x, all_steps=True) if deep else ddp_model(x)
+            if deep:  # deep supervision: every step's estimate is an estimate (NPiB rises with K; early exit)
+                loss, npib = batch_loss(loss_name, phi[-1].float(), b, rec)
+                for p_k in phi[1:-1]:
+                    loss = loss + recipe.refine_deep * batch_loss(loss_name, p_k.float(), b, rec)[0] / (len(phi) - 2)
+            else:
+                loss, npib = batch_loss(loss_name, phi.float(), b, rec)
             if npib is not None:
                 npib_tr.append(npib.detach().cpu())
             lv = float(loss.detach())
@@ -441,7 +454,13 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     check_sizes(unet.config, tensor_size, aperture, f"refine.unet {path}")
     torch.manual_seed(recipe.seed)
     model = build_refiner(unet, recipe.refine, load_device(dataset)).to(device)
-    return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+    if recipe.refine_init is not None:  # continue a trained refiner (same architecture and U-Net)
+        src, rcard = load_refiner(recipe.refine_init, str(device))
+        if rcard["unet"]["weights_sha256"] != card.get("weights_sha256") or src.cfg != recipe.refine:
+            raise ValidationError(f"refine.init {recipe.refine_init}: another U-Net or another [refine] architecture")
+        model.load_state_dict(src.state_dict())
+    return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
+                   **({"refiner": str(recipe.refine_init)} if recipe.refine_init is not None else {})}
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
