@@ -307,19 +307,27 @@ class _Pipeline:
             figs = plot_validation(res, out)
             return {"figures": [str(f) for f in figs],
                     "levels": [{"rytov_nominal": x["rytov_nominal"], "rytov_measured": x["rytov_measured"],
-                                "D_over_r0": x["D_over_r0"]} for x in res["levels"]]}
+                                "rytov_theory": x["rytov_weak_theory_inner_scale"], "D_over_r0": x["D_over_r0"]}
+                               for x in res["levels"]]}
 
         figs = [Path(f) for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
         tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
-        rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}", "Rytov (measured)": f"{x['rytov_measured']:.3f}",
-                 "D / r0": f"{x['D_over_r0']:.1f}"} for x in tu["levels"]]
-        w = max(tu["levels"], key=lambda x: abs(x["rytov_measured"] / x["rytov_nominal"] - 1))
-        dev = abs(w["rytov_measured"] / w["rytov_nominal"] - 1)
-        self.check("turbulence: measured / nominal Rytov number",
-                   f"worst level {w['rytov_nominal']:g} -> {w['rytov_measured']:.3f} "
-                   f"({100 * (w['rytov_measured'] / w['rytov_nominal'] - 1):+.0f} %)", "within 30 %", dev <= 0.3,
-                   f"log-amplitude variance of {self.p['turbulence_samples']} beacons per level; weak-fluctuation "
-                   "theory overestimates it as saturation begins (Rytov > 0.3)")
+        rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}",
+                 "weak theory with inner scale": f"{x.get('rytov_theory', float('nan')):.3f}",
+                 "Rytov (measured)": f"{x['rytov_measured']:.3f}", "D / r0": f"{x['D_over_r0']:.1f}"}
+                for x in tu["levels"]]
+
+        def ref(x):  # the prediction for this path: weak-fluctuation theory with the inner scale
+            return x.get("rytov_theory") or x["rytov_nominal"]
+
+        w = max(tu["levels"], key=lambda x: abs(x["rytov_measured"] / ref(x) - 1))
+        dev = abs(w["rytov_measured"] / ref(w) - 1)
+        self.check("turbulence: measured log-amplitude variance against theory",
+                   f"worst level (Rytov {w['rytov_nominal']:g}): {w['rytov_measured']:.3f} vs {ref(w):.3f} "
+                   f"({100 * (w['rytov_measured'] / ref(w) - 1):+.0f} %)", "within 25 %", dev <= 0.25,
+                   f"{self.p['turbulence_samples']} beacons per level against weak-fluctuation theory with the inner "
+                   "scale (the nominal Rytov number leaves the inner scale out; saturation lowers the measured "
+                   "value above ~0.5)")
         captions = {"fig-s5": "Fig. S5: phase structure function of the screens against Kolmogorov/von Karman theory "
                               "(the lines should overlap up to a quarter of the grid), and the scintillation of the "
                               "path model.",
