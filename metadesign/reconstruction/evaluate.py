@@ -223,7 +223,7 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
         ax.axhline(np.mean(res["rows"][keys[0]]["phase_conjugate"]), ls="--", c="g", label="phase conjugate (mean)")
         ax.set(xlabel="sensor noise in the test inputs [% of each channel's peak]", ylabel=f"NPiB, {net}",
                title=f"Fig. 3c/d: model trained with {training_noise(res['card'])} noise")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)  # below: the boxes fill the axes
         figs.append(save_figure(fig, out / "fig-3cd.png"))
     ex, ap = res["examples"], res["aperture"]
     if ex["phi"]:
