@@ -20,14 +20,15 @@ twin's approximation leave).  Weights ship as safetensors with a JSON card (:fun
 
 from __future__ import annotations
 
-import hashlib
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..io import atomic_path, atomic_write_text
+from ..library.locate import file_sha256
 from ..sensing.device import Device
 from ..sensing.twin import twin_operators
 from ..validation import ValidationError, check_int, check_number
@@ -241,10 +242,6 @@ def build_refiner(unet, cfg: RefineConfig, dev: Device | None = None, buffers: d
     return cls(unet, cfg, buffers)
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def save_refiner(refiner, path: str | Path, unet_path: str | Path, card: dict) -> tuple[Path, Path]:
     """The refiner's own weights and twin buffers as ``PATH`` (safetensors), the card as ``PATH.json``; the
     U-Net is named (path relative to the card when it can be, and sha256), not copied."""
@@ -255,20 +252,14 @@ def save_refiner(refiner, path: str | Path, unet_path: str | Path, card: dict) -
     with atomic_path(path) as tmp:
         save_file(state, str(tmp), metadata={"format": REFINER_FORMAT})
     try:
-        rel = str(Path(_relpath(unet_path.resolve(), path.resolve().parent)))
+        rel = os.path.relpath(unet_path.resolve(), path.resolve().parent)
     except ValueError:
         rel = str(unet_path.resolve())
-    card = {"format": REFINER_FORMAT, "refine": refiner.cfg.to_dict(), "weights_sha256": _sha256(path),
-            "unet": {"path": rel, "weights_sha256": _sha256(unet_path)}, **card}
+    card = {"format": REFINER_FORMAT, "refine": refiner.cfg.to_dict(), "weights_sha256": file_sha256(path),
+            "unet": {"path": rel, "weights_sha256": file_sha256(unet_path)}, **card}
     card_path = path.with_name(path.name + ".json")
     atomic_write_text(card_path, json.dumps(card, indent=2, sort_keys=True, default=float))
     return path, card_path
-
-
-def _relpath(target: Path, start: Path) -> str:
-    import os
-
-    return os.path.relpath(target, start)
 
 
 def is_refiner(path: str | Path) -> bool:
@@ -302,14 +293,14 @@ def load_refiner(path: str | Path, device: str = "cpu"):
         unet_ref = card["unet"]
     except (ValueError, KeyError, TypeError, UnicodeDecodeError, ValidationError) as exc:
         raise ValidationError(f"{card_path}: not a metadesign refiner card ({exc})") from None
-    if _sha256(path) != card.get("weights_sha256"):
+    if file_sha256(path) != card.get("weights_sha256"):
         raise ValidationError(f"{path}: weights do not match the card's sha256 (truncated or replaced)")
     up = Path(unet_ref["path"])
     up = up if up.is_absolute() else path.parent / up
     if not up.is_file() and (path.parent / up.name).is_file():  # copied beside the refiner (a wheel, a release)
         up = path.parent / up.name
     unet, _ = load_model(up, device)
-    if _sha256(up) != unet_ref.get("weights_sha256"):
+    if file_sha256(up) != unet_ref.get("weights_sha256"):
         raise ValidationError(f"{path}: its U-Net {up} is not the one it was trained on (sha256 differs)")
     try:
         state = load_file(str(path), device=device)
