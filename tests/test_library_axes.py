@@ -183,7 +183,7 @@ def test_supercell_of_identical_pillars_is_the_committed_library_cell():
     from metadesign.library.rcwa import Stack
     from metadesign.library.store import load_library
     from metadesign.library.supercell import solve_supercell
-    from metadesign.studies.lpa import matched_unit_harmonics
+    from metadesign.library.supercells import matched_unit_harmonics
 
     lib = load_library(REPO / "library" / "paper.npz")
     st = Stack()

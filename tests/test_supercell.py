@@ -57,7 +57,7 @@ def test_sliced_and_90_degree_tapered_pillars_equal_the_vertical_one():
 def test_supercell_of_identical_pillars_is_the_unit_cell():
     """Translation symmetry: at the matched truncation (the unit cell's harmonics = the supercell's even
     ones) the odd harmonics decouple and the supercell is the unit cell exactly."""
-    from metadesign.studies.lpa import matched_unit_harmonics
+    from metadesign.library.supercells import matched_unit_harmonics
 
     ns, nu = matched_unit_harmonics(240, ST)
     cell = solve_cell(0.32e-6, 0.21e-6, ST, SolverSettings(nu))

@@ -12,7 +12,7 @@ import numpy as np
 from ..config import InputError
 from ..io import atomic_path, json_array, read_product, write_npz
 
-__all__ = ["UnitCellLibrary", "load_library", "save_library", "export_csv", "FORMAT"]
+__all__ = ["UnitCellLibrary", "interpolate_t", "load_library", "save_library", "export_csv", "FORMAT"]
 
 FORMAT = "metadesign.unit-cell-library/1"
 EFFICIENCY_TOL = 1e-6
@@ -86,6 +86,27 @@ class UnitCellLibrary:
             "max_energy_error": float(np.abs(self.T_total + self.R_total - 1).max()),
             "phase_coverage_2d": float(coverage_fraction(self, threshold)),
         }
+
+
+def interpolate_t(lib: UnitCellLibrary, wx: np.ndarray, wy: np.ndarray):
+    """Bilinear complex interpolation of ``(t_x, t_y)`` and ``T0`` at widths
+    (m).  Returns ``(t (..., 2) complex64, T0 (..., 2) float32, n_clamped)``."""
+    wx = np.asarray(wx, np.float64)
+    wy = np.asarray(wy, np.float64)
+    gx, gy = lib.wx, lib.wy
+    out = (wx < gx[0] - 1e-12) | (wx > gx[-1] + 1e-12) | (wy < gy[0] - 1e-12) | (wy > gy[-1] + 1e-12)
+    fx = np.interp(wx, gx, np.arange(len(gx)))
+    fy = np.interp(wy, gy, np.arange(len(gy)))
+    i0 = np.minimum(np.floor(fx).astype(np.int64), len(gx) - 2)
+    j0 = np.minimum(np.floor(fy).astype(np.int64), len(gy) - 2)
+    ax, ay = (fx - i0)[..., None], (fy - j0)[..., None]
+    tab = np.stack([lib.t_x, lib.t_y], axis=-1)  # (nx, ny, 2)
+    T = lib.T0
+    t = ((1 - ax) * (1 - ay) * tab[i0, j0] + ax * (1 - ay) * tab[i0 + 1, j0]
+         + (1 - ax) * ay * tab[i0, j0 + 1] + ax * ay * tab[i0 + 1, j0 + 1])
+    T0 = ((1 - ax) * (1 - ay) * T[i0, j0] + ax * (1 - ay) * T[i0 + 1, j0]
+          + (1 - ax) * ay * T[i0, j0 + 1] + ax * ay * T[i0 + 1, j0 + 1])
+    return t.astype(np.complex64), T0.astype(np.float32), int(out.sum())
 
 
 def coverage_fraction(lib: UnitCellLibrary, threshold: float = 0.7, bins: int = 16) -> float:

@@ -535,6 +535,8 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     layout = ensure_layout(recipe, log)
     layout_sha = file_sha256(layout)
     fab = AsFabricated.from_files(layout)
+    if sensing.coupling != "lpa":
+        fab = fab.with_coupling(sensing.coupling, sensing.coupling_model)
     check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
     if pert.has_fab_axes:
         if not f["fab_library"]:
@@ -550,6 +552,8 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
              "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}
     if fab.fab_lib is not None:
         parts["fab_library_sha256"] = fab.fab_lib.identity
+    if fab.coupling_card is not None:  # absent for the LPA: those datasets keep their hash
+        parts["coupling_model_sha256"] = fab.coupling_card["weights_sha256"]
     rhash = _recipe_hash(parts)
     if existing is not None and existing.get("recipe_hash") != rhash:
         if not overwrite:

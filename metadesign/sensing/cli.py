@@ -37,7 +37,6 @@ def _read_wavefront(path: str):
 
 
 def _cmd_psf(a: argparse.Namespace) -> int:
-    from .model import AsFabricated
     from .plot import plot_frames
     from .render import check_field, full_resolution_check, render_psf, save_psf
     from .transmission import Perturbation
@@ -55,7 +54,7 @@ def _cmd_psf(a: argparse.Namespace) -> int:
             raise InputError("--full-resolution checks the flat-wavefront PSFs; omit --wavefront")
     out = out_dir(a.output if a.output else Path(a.layout).with_name("psf"))
     field = _read_wavefront(a.wavefront) if a.wavefront else None
-    fab = AsFabricated.from_files(a.layout, a.library)
+    fab = _device(a, sr)
     pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
     if field is not None:
         field = check_field(field, pupil, f"{a.wavefront}: field")
@@ -87,14 +86,13 @@ def _cmd_psf(a: argparse.Namespace) -> int:
 
 
 def _cmd_fab_study(a: argparse.Namespace) -> int:
-    from .model import AsFabricated
     from .render import fab_study, write_fab_study
 
     sr = _sensing_recipe(a)
     if a.seed + a.seeds - 1 > 2**63 - 1:
         raise InputError("--seed: the last jitter seed (--seed + --seeds - 1) exceeds 2^63 - 1")
     out = out_dir(a.output if a.output else Path(a.layout).with_name("fab-study"))
-    fab = AsFabricated.from_files(a.layout, a.library)
+    fab = _device(a, sr)
     needs_axes = any(h for h in a.height_nm) or any(x != 90 for x in a.sidewall_deg) or a.height_gradient_nm \
         or a.sidewall_gradient_deg
     if a.fab_library:
@@ -123,7 +121,6 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
 
 
 def _cmd_phasemap(a: argparse.Namespace) -> int:
-    from .model import AsFabricated
     from .phasemap import phase_maps, plot_phase_maps, save_phase_maps
     from .transmission import Perturbation
 
@@ -131,7 +128,7 @@ def _cmd_phasemap(a: argparse.Namespace) -> int:
         raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
     pert = Perturbation.from_nm(a.bias_nm[0], a.bias_nm[-1], a.jitter_nm, a.corner_nm, a.seed)
     out = out_dir(a.output if a.output else Path(a.layout).with_name("phasemap"))
-    fab = AsFabricated.from_files(a.layout, a.library)
+    fab = _device(a)
     maps = phase_maps(fab, pert, tuple(a.window) if a.window else None, a.bin,
                       progress=progress_bar("phasemap", unit="row"))
     out.mkdir(exist_ok=True)
@@ -158,6 +155,23 @@ def _forward_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
     p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
     p.add_argument("--library", help="unit-cell library (default: the one recorded in the layout, found by sha256)")
+    p.add_argument("--coupling", choices=("lpa", "supercell"), help="lpa: every pillar as in an infinite array "
+                   "of itself; supercell: plus its neighbours' coupling from the supercell model (default: the "
+                   "sensing recipe's pupil.coupling, else lpa)")
+    p.add_argument("--coupling-model", help="the supercell coupling model (default: the one fitted against the "
+                   "layout's library, found in library/)")
+
+
+def _device(a, sr=None):
+    """The as-fabricated device of ``a.layout`` with the coupling the options (else the recipe) choose."""
+    from .model import AsFabricated
+
+    fab = AsFabricated.from_files(a.layout, a.library)
+    kind = a.coupling or (sr.coupling if sr is not None else "lpa")
+    model = a.coupling_model or (sr.coupling_model if sr is not None else None)
+    if a.coupling_model and kind != "supercell":
+        raise InputError("--coupling-model needs --coupling supercell")
+    return fab if kind == "lpa" else fab.with_coupling(kind, model)
 
 
 def register(sub) -> None:

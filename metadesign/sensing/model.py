@@ -3,7 +3,7 @@ layout file -> pillars -> (perturbed) complex t -> coarse pupils -> sensor."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +14,7 @@ from ..design.recipe import design_recipe_from_dict
 from ..design.store import design_library, load_design
 from ..layouts.reader import LayoutContents, read_layout
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
+from ..library.coupling import find_coupling
 from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
@@ -32,7 +33,12 @@ SENSING_SECTIONS = (
         Param("distance_mm", float, 50.0, lo=0, open_lo=True, hi=10000),
         Param("tensor_size", int, 256, lo=2, hi=4096),
     ), optional=True),
-    Section("pupil", (Param("grid", int, 256, lo=8, hi=8192),), optional=True),
+    Section("pupil", (
+        Param("grid", int, 256, lo=8, hi=8192),
+        Param("coupling", str, "lpa", choices=("lpa", "supercell"),
+              help="lpa: every pillar as in an infinite array of itself; supercell: plus the coupling model"),
+        Param("coupling_model", str, None, help="the coupling model (default: the one fitted to the library)"),
+    ), optional=True),
     Section("noise", (
         Param("gaussian_percent", float, 0.0, lo=0, hi=100),
         Param("photons_at_peak", float, 0.0, lo=0, hi=1e15),
@@ -48,6 +54,8 @@ class SensingRecipe:
     sensor: SensorSpec
     pupil_grid: int
     noise: NoiseSpec
+    coupling: str = "lpa"  # "lpa" | "supercell"
+    coupling_model: Path | None = None  # None: the model fitted against the device's library
 
 
 def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
@@ -64,11 +72,18 @@ def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
     # NoiseSpec holds the Gaussian sigma as a fraction of the peak; the recipe gives it in percent
     noise = NoiseSpec(nz["gaussian_percent"] / 100, nz["photons_at_peak"] or None, nz["read_noise_e"],
                       nz["bit_depth"] or None, nz["seed"])
-    return SensingRecipe(sensor, v["pupil"]["grid"], noise)
+    pu = v["pupil"]
+    if pu["coupling_model"] is not None and pu["coupling"] != "supercell":
+        raise ConfigError("pupil.coupling_model", 'needs pupil.coupling = "supercell"')
+    return SensingRecipe(sensor, pu["grid"], noise, pu["coupling"],
+                         None if pu["coupling_model"] is None else Path(pu["coupling_model"]))
 
 
 def load_sensing_recipe(path: str | Path) -> SensingRecipe:
-    return sensing_from_dict(load_toml(path), str(path))
+    sr = sensing_from_dict(load_toml(path), str(path))
+    if sr.coupling_model is not None and not sr.coupling_model.is_absolute():
+        sr = replace(sr, coupling_model=Path(path).parent / sr.coupling_model)
+    return sr
 
 
 @dataclass
@@ -85,6 +100,22 @@ class AsFabricated:
     aperture: dict | None = None  # clear-aperture record of the layout (None: the full square)
     path: Path | None = None  # the layout file
     fab_lib: UnitCellLibrary | None = None  # library with height / sidewall axes (for those perturbations)
+    coupling: object | None = None  # a supercell coupling model (None: the LPA)
+    coupling_card: dict | None = None
+
+    def with_coupling(self, kind: str = "supercell", model: str | Path | None = None) -> "AsFabricated":
+        """This device with the pillars' supercell coupling (``kind`` "supercell": the model at ``model``,
+        default the one fitted against the device's library) or without it ("lpa")."""
+        if kind == "lpa":
+            return replace(self, coupling=None, coupling_card=None)
+        if kind != "supercell":
+            raise ValueError(f"coupling must be 'lpa' or 'supercell', got {kind!r}")
+        m, card, _ = find_coupling(self.lib, model)
+        return replace(self, coupling=m, coupling_card=card)
+
+    @property
+    def coupling_name(self) -> str:
+        return "lpa" if self.coupling is None else "supercell"
 
     @classmethod
     def from_files(cls, layout_path: str | Path, lib_path: str | Path | None = None) -> "AsFabricated":
@@ -156,7 +187,7 @@ class AsFabricated:
 
         def rows(r0, r1):
             t, clamped = pillar_transmission(self.layout.index_map, self.layout.atom_widths_nm, self.lib, pert,
-                                             slice(r0, r1), rng, self.fab_lib)
+                                             slice(r0, r1), rng, self.fab_lib, self.coupling)
             mask = self.aperture_mask_rows(r0, r1)
             if mask is not None:  # the clear aperture is a stop: opaque outside the outline
                 t[~mask] = 0

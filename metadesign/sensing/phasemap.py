@@ -71,7 +71,8 @@ def phase_maps(fab, pert: Perturbation = Perturbation(), window: tuple[int, int,
     tile = max(m, tile_rows // m * m)
     for r0 in range(0, ns * m, tile):
         r1 = min(ns * m, r0 + tile)
-        t, _ = pillar_transmission(fab.layout.index_map, fab.layout.atom_widths_nm, fab.lib, pert, slice(r0, r1), rng)
+        t, _ = pillar_transmission(fab.layout.index_map, fab.layout.atom_widths_nm, fab.lib, pert, slice(r0, r1), rng,
+                                   fab.fab_lib, fab.coupling)
         t = t * scale
         mask = fab.aperture_mask_rows(r0, r1)
         if mask is not None:

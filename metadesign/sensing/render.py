@@ -73,7 +73,8 @@ def save_psf(path: str | Path, res: PSFResult, fab: AsFabricated, sensing: Sensi
         "library_sha256": fab.lib.identity,
         "sensor": sensing.sensor.to_dict(), "pupil_grid": sensing.pupil_grid,
         "pupil": {"block_cells": res.pupil.block, "n": int(res.pupil.G.shape[-1]),
-                  "clamped_pillars": res.pupil.n_clamped},
+                  "clamped_pillars": res.pupil.n_clamped, "coupling": fab.coupling_name,
+                  **({"coupling_model_sha256": fab.coupling_card["weights_sha256"]} if fab.coupling_card else {})},
         "perturbation": res.perturbation.to_dict(),
         "noise": res.noise.to_dict() if res.noise is not None and res.noise.active else None,
         "channels": prov.get("channels") or [
@@ -104,7 +105,7 @@ def full_resolution_check(fab: AsFabricated, sensing: SensingRecipe, frames: np.
 
     def rows(r0, r1):
         t, c = pillar_transmission(fab.layout.index_map, fab.layout.atom_widths_nm, fab.lib, pert,
-                                   slice(r0, r1), rng, fab.fab_lib)
+                                   slice(r0, r1), rng, fab.fab_lib, fab.coupling)
         mask = fab.aperture_mask_rows(r0, r1)
         if mask is not None:
             t[~mask] = 0
@@ -141,7 +142,7 @@ def fab_study(fab: AsFabricated, sensing: SensingRecipe, bias_nm, jitter_nm, cor
         label = f"bias {b:+g} jit {j:g} cr {c:g}" + (f" h {h:+g} sw {a:g}" if (h or a != 90) else "")
         for r in channel_metrics(cp, sensing.sensor, fab):
             rows.append({"case": i // seeds, "label": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c,
-                         "height_nm": h, "sidewall_deg": a,
+                         "height_nm": h, "sidewall_deg": a, "coupling": fab.coupling_name,
                          "seed": seed + s, "clamped_pillars": cp.n_clamped, **r,
                          "centroid_shift_x_um": r["centroid_shift_um"][0],
                          "centroid_shift_y_um": r["centroid_shift_um"][1]})

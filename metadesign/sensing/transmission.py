@@ -26,10 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..library.store import UnitCellLibrary
+from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
-__all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission"]
+__all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission",
+           "couple_supercells"]
 
 
 @dataclass(frozen=True)
@@ -110,27 +111,6 @@ def perturb_widths(wx: np.ndarray, wy: np.ndarray, pert: Perturbation,
     return wx, wy
 
 
-def interpolate_t(lib: UnitCellLibrary, wx: np.ndarray, wy: np.ndarray):
-    """Bilinear complex interpolation of ``(t_x, t_y)`` and ``T0`` at widths
-    (m).  Returns ``(t (..., 2) complex64, T0 (..., 2) float32, n_clamped)``."""
-    wx = np.asarray(wx, np.float64)
-    wy = np.asarray(wy, np.float64)
-    gx, gy = lib.wx, lib.wy
-    out = (wx < gx[0] - 1e-12) | (wx > gx[-1] + 1e-12) | (wy < gy[0] - 1e-12) | (wy > gy[-1] + 1e-12)
-    fx = np.interp(wx, gx, np.arange(len(gx)))
-    fy = np.interp(wy, gy, np.arange(len(gy)))
-    i0 = np.minimum(np.floor(fx).astype(np.int64), len(gx) - 2)
-    j0 = np.minimum(np.floor(fy).astype(np.int64), len(gy) - 2)
-    ax, ay = (fx - i0)[..., None], (fy - j0)[..., None]
-    tab = np.stack([lib.t_x, lib.t_y], axis=-1)  # (nx, ny, 2)
-    T = lib.T0
-    t = ((1 - ax) * (1 - ay) * tab[i0, j0] + ax * (1 - ay) * tab[i0 + 1, j0]
-         + (1 - ax) * ay * tab[i0, j0 + 1] + ax * ay * tab[i0 + 1, j0 + 1])
-    T0 = ((1 - ax) * (1 - ay) * T[i0, j0] + ax * (1 - ay) * T[i0 + 1, j0]
-          + (1 - ax) * ay * T[i0, j0 + 1] + ax * ay * T[i0 + 1, j0 + 1])
-    return t.astype(np.complex64), T0.astype(np.float32), int(out.sum())
-
-
 def _interp_fab(lib: UnitCellLibrary, wx, wy, height, angle):
     """``(t (..., 2) complex, clamped (...) bool)``: multilinear in the four axes of ``lib.fab``."""
     fab = lib.fab
@@ -184,7 +164,8 @@ def _fab_axes_of(pert: Perturbation, lib: UnitCellLibrary, shape: tuple[int, int
 
 def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: UnitCellLibrary,
                         pert: Perturbation = Perturbation(), rows: slice | None = None,
-                        rng: np.random.Generator | None = None, fab_lib: UnitCellLibrary | None = None):
+                        rng: np.random.Generator | None = None, fab_lib: UnitCellLibrary | None = None,
+                        coupling=None):
     """Complex transmission ``(rows, n, 2)`` of the pillars in ``index_map``
     (``-1`` = no pillar: the bare stack's ``t``), perturbed.  Without jitter the
     look-up is done once per atom.  Returns ``(t, n_clamped)``.
@@ -192,10 +173,52 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     Height and sidewall perturbations: ``t = t_lib(w) + t_F(w, h, a) - t_F(w, h0, 90)`` with ``F`` the
     library with fab axes (``fab_lib``, or ``lib`` itself when it has them): exact when ``F`` is ``lib``
     with axes, and otherwise a correction from a (possibly coarser) fab library on top of the design's own
-    library, which the nominal device keeps exactly."""
+    library, which the nominal device keeps exactly.
+
+    ``coupling`` (a :mod:`metadesign.library.coupling` model; None = the LPA, unchanged): every pillar of a
+    complete 2 x 2 supercell gets its coupling term from its neighbours' perturbed widths and looked-up
+    ``t`` (:func:`couple_supercells`); ``rows`` must then start on a supercell row."""
     im = index_map if rows is None else index_map[rows]
+    want = coupling is not None
+    if want and rows is not None and (rows.start or 0) % 2:
+        raise ValueError("coupled transmission needs row tiles that start on a supercell (even) row")
     if pert.has_fab_axes:
-        return _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng, fab_lib)
+        t, clamped, w = _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng, fab_lib,
+                                                 want)
+    else:
+        t, clamped, w = _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want)
+    if want:
+        t = couple_supercells(t, w, im >= 0, coupling)
+    return t, clamped
+
+
+def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batch: int = 65536) -> np.ndarray:
+    """``t`` (R, C, 2) of pillars with widths ``w`` (R, C, 2) m, plus each pillar's coupling term where its
+    whole 2 x 2 supercell (rows 2I, 2I+1; columns 2J, 2J+1) has pillars; elsewhere (an aperture's edge,
+    empty cells) the LPA's ``t`` stays.  Supercells are evaluated in batches (bounded memory)."""
+    from ..library.coupling import pillar_terms
+
+    R2, C2 = t.shape[0] // 2, t.shape[1] // 2
+
+    def blocks(a):  # (R, C, ...) -> (R2 * C2, 2, 2, ...) as [supercell, r, c]
+        a = a[:2 * R2, :2 * C2]
+        return a.reshape(R2, 2, C2, 2, *a.shape[2:]).swapaxes(1, 2).reshape(R2 * C2, 2, 2, *a.shape[2:])
+
+    full = blocks(has).all((1, 2))
+    idx = np.flatnonzero(full)
+    if not len(idx):
+        return t
+    terms = np.zeros((R2 * C2, 2, 2, 2), np.complex64)
+    wb, tb = blocks(w), blocks(t)
+    for a in range(0, len(idx), batch):
+        k = idx[a:a + batch]
+        terms[k] = pillar_terms(model, wb[k], tb[k], batch)
+    out = t.copy()
+    out[:2 * R2, :2 * C2] += terms.reshape(R2, C2, 2, 2, 2).swapaxes(1, 2).reshape(2 * R2, 2 * C2, 2)
+    return out
+
+
+def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bool):
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]
     bare = np.complex64(2 * n_sub / (n_sub + n_sup))
@@ -211,13 +234,14 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
             bad = np.zeros(len(w) + 1, bool)
             bad[:-1] = ((wx < lib.wx[0]) | (wx > lib.wx[-1]) | (wy < lib.wy[0]) | (wy > lib.wy[-1]))
             clamped = int(bad[k].sum())
-        return t, clamped
+        widths = np.stack([np.append(wx, 0.0)[k], np.append(wy, 0.0)[k]], -1) if want_widths else None
+        return t, clamped, widths
     has = im >= 0
     k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng)
     t, _, clamped = interpolate_t(lib, np.where(has, wx, lib.wx[0]), np.where(has, wy, lib.wy[0]))
     t[~has] = bare
-    return t, clamped
+    return t, clamped, (np.stack([wx, wy], -1) if want_widths else None)
 
 
 def _fab_t(lib: UnitCellLibrary, F: UnitCellLibrary, wx, wy, h, a):
@@ -233,7 +257,7 @@ def _fab_t(lib: UnitCellLibrary, F: UnitCellLibrary, wx, wy, h, a):
     return base + tf - tn, out
 
 
-def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None):
+def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None, want_widths=False):
     """The look-up with height / sidewall perturbations: once per atom for a global height and angle without
     jitter, else per pillar (gradients and jitter make every pillar its own)."""
     F = fab_lib if fab_lib is not None else lib
@@ -251,11 +275,12 @@ def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=N
         t_atoms, bad = _fab_t(lib, F, ax, ay, h0 + pert.height, min(pert.sidewall_deg, 90.0))
         table = np.concatenate([t_atoms.astype(np.complex64), np.full((1, 2), bare, np.complex64)])
         k = np.where(has, im, len(w))
-        return table[k], int(np.append(bad, False)[k].sum())
+        widths = np.stack([np.append(ax, 0.0)[k], np.append(ay, 0.0)[k]], -1) if want_widths else None
+        return table[k], int(np.append(bad, False)[k].sum()), widths
     k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
     h, a = _fab_axes_of(pert, lib, im.shape, cols)
     t = np.full((*im.shape, 2), bare, np.complex64)
     tt, bad = _fab_t(lib, F, wx[has], wy[has], h[has], a[has])
     t[has] = tt
-    return t, int(bad.sum())
+    return t, int(bad.sum()), (np.stack([wx, wy], -1) if want_widths else None)

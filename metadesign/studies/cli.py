@@ -315,6 +315,60 @@ def _cmd_lpa(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_supercells(a: argparse.Namespace) -> int:
+    from .supercells import build_table, load_supercell_recipe
+
+    rec = load_supercell_recipe(a.recipe)
+    out = Path(a.output) if a.output else rec.default_output()
+    log = log_to(a.json)
+    rep = build_table(rec, out, supercells=a.supercells, workers=a.workers, scheduler=a.scheduler,
+                      progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+    emit(rep, a.json, f"wrote {out}: {rep['supercells']} supercells ({rep['held_out']} held out), nG "
+                      f"{rep['n_harmonics']}; {rep['solve_seconds']:.0f} s solving here "
+                      f"({rep['seconds_per_supercell_core']:.1f} s per supercell per core)")
+    return 0
+
+
+def _cmd_coupling(a: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..library.coupling import CouplingConfig, save_coupling
+    from ..library.locate import file_sha256, find_library
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+    from .supercells import certify_coupling, plot_coupling
+
+    table = load_table(a.table)
+    tp = Path(a.table)
+    lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
+                                                                table.meta["library"]["path"], tp.parent)
+    lib = load_library(lib_path)
+    out = Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-coupling.safetensors")
+    log = log_to(a.json)
+    cfg = CouplingConfig(a.hidden, a.layers, a.ensemble)
+    log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
+    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, log=log)
+    fig = plot_coupling(rep, out.with_suffix(".png"))
+    rep.pop("_e"), rep.pop("_e_lpa")
+    card = {"certification": rep, "table": {"path": tp.name, "sha256": file_sha256(tp)}, "figure": fig.name,
+            "structure": "t = mean_i t_lib(w_i) + 1/4 sum_i [G(f_i, f_H, f_V, f_D) - G(f_i, f_i, f_i, f_i)]; "
+                         "t_y(w) = t_x(transpose(w))"}
+    save_coupling(out, model, lib_path, card)
+    rep["output"], rep["figure"] = str(out), str(fig)
+    m, l = rep["model"], rep["lpa"]
+    lines = [f"wrote {out} (+ .json card, {fig.name}): held-out |t - t_RCWA| / rms|t_i| on "
+             f"{rep['held_out_supercells']} supercells never fitted",
+             "                    x-pol mean / p90     y-pol mean / p90",
+             f"  coupling model    {m['mean'][0]:.4f} / {m['p90'][0]:.4f}      {m['mean'][1]:.4f} / {m['p90'][1]:.4f}",
+             f"  LPA               {l['mean'][0]:.4f} / {l['p90'][0]:.4f}      {l['mean'][1]:.4f} / {l['p90'][1]:.4f}",
+             f"  goal              <= {rep['goal']['mean']:g} / <= {rep['goal']['p90']:g}: "
+             + ("met" if rep["passed"] else "NOT met"),
+             "  learning curve: " + ", ".join(f"{c['supercells']}: {np.mean(c['held_out']['mean']):.4f}"
+                                               for c in rep["learning_curve"])]
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
 def register(sub, groups: dict) -> None:
     """Add the study commands: top-level ones to ``sub``, ``library lpa-check`` and ``dataset synth-captures``
     to the stage groups in ``groups``."""
@@ -401,6 +455,38 @@ def register(sub, groups: dict) -> None:
     workers_arg(lp)
     lp.add_argument("--json", action="store_true", help="print the report as JSON")
     lp.set_defaults(func=_cmd_lpa)
+    sc = lsub.add_parser(
+        "supercells", help="solve a design's 2 x 2 supercells with RCWA: the coupling model's table (resumable)",
+        description="Draw supercells from what the design uses (its layout's 4-tuples, a second design's, random "
+        "atom 4-tuples, jittered atoms; each row from its own seeded generator), solve each with supercell RCWA "
+        "at the harmonics matched to the library, and write the table (.npz, with provenance). Chunks are kept "
+        "in OUT.partial/ as they finish: run again after any interruption; --supercells N grows a table "
+        "without re-solving its rows. Same bytes on any worker count or scheduler.")
+    sc.add_argument("recipe", help="supercell recipe (TOML), e.g. library/paper-supercells.toml")
+    sc.add_argument("--supercells", type=integer(1, 10_000_000), help="rows (default: the recipe's)")
+    sc.add_argument("-o", "--output", help="table file (default: RECIPE with .npz)")
+    sc.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
+    workers_arg(sc)
+    sc.add_argument("--json", action="store_true", help="print the summary as JSON")
+    sc.set_defaults(func=_cmd_supercells)
+    cp = lsub.add_parser(
+        "coupling", help="fit and certify the supercell coupling model on a supercell table",
+        description="Fit the coupling model (LPA mean + a learned neighbour term, symmetric by construction) on "
+        "the first N fitting rows of TABLE for each N of --sizes (a learning curve), certify it on every held-out "
+        "row, and write the weights (.safetensors), the card (.json: certification, learning curve) and a "
+        "figure.")
+    cp.add_argument("table", help="supercell table (.npz) from `library supercells`")
+    cp.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")
+    cp.add_argument("--sizes", type=integer(10, 10_000_000), nargs="+", default=[250, 500, 1000],
+                    help="fitting rows of the learning curve (default 250 500 1000; the last is the model)")
+    cp.add_argument("--steps", type=integer(1, 10_000_000), default=4000, help="optimiser steps per fit (4000)")
+    cp.add_argument("--hidden", type=integer(4, 4096), default=96, help="hidden width of the network (96)")
+    cp.add_argument("--layers", type=integer(2, 16), default=3, help="layers of the network (3)")
+    cp.add_argument("--ensemble", type=integer(1, 64), default=1, help="networks averaged (1)")
+    cp.add_argument("--seed", type=integer(0, 2**31 - 1), default=0)
+    cp.add_argument("-o", "--output", help="weights file (default: TABLE's name with -coupling.safetensors)")
+    cp.add_argument("--json", action="store_true", help="print the report as JSON")
+    cp.set_defaults(func=_cmd_coupling)
     sy = dsub.add_parser(
         "synth-captures", help="synthetic camera captures from a dataset's phases through a (perturbed) device",
         description="The SLM shows the received phases of PHASES' samples; frames are rendered through DEVICE's "

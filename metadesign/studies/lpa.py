@@ -26,6 +26,7 @@ import numpy as np
 
 from ..library.rcwa import SolverSettings, Stack, solve_cell
 from ..library.supercell import solve_supercell
+from ..library.supercells import matched_unit_harmonics
 from ..parallel import WorkerPool
 from ..plotting import pyplot, save_figure
 from ..reconstruction.data import PSFDataset, apply_noise
@@ -41,27 +42,6 @@ from ..sensing.twin import crop_to_pupil
 
 __all__ = ["lpa_check", "matched_unit_harmonics", "sample_supercells", "perturbed_pupil", "lpa_downstream",
            "plot_lpa"]
-
-
-def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
-    """Requested harmonic counts ``(supercell, unit cell)`` whose sets match: the unit cell's harmonics are
-    the supercell's even ones, halved (circular truncation of the same radius in reciprocal space).  grcwa
-    keeps the whole shells below the first incomplete one, so a count that ends exactly on a shell loses
-    it: the requests returned are one more than the set sizes."""
-    import grcwa
-
-    def gset(n, L):
-        o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
-        o.Add_LayerUniform(0.0, 1.0)
-        o.Init_Setup(Gmethod=0)
-        return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
-
-    s, ns = gset(n_super, 2 * stack.period)
-    even = {(a // 2, b // 2) for a, b in s if a % 2 == 0 and b % 2 == 0}
-    u, nu = gset(len(even) + 1, stack.period)  # grcwa keeps whole shells below the first incomplete one
-    if u != even:
-        raise RuntimeError(f"no unit-cell truncation matches the supercell's even harmonics (nG {ns})")
-    return ns + 1, nu + 1
 
 
 def sample_supercells(index_map: np.ndarray, n: int, seed: int, mask: np.ndarray | None = None) -> np.ndarray:

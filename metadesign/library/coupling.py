@@ -1,0 +1,314 @@
+"""The supercell coupling model: a 2 x 2 supercell's 0th-order transmission beyond the local-periodic
+approximation, fitted to supercell RCWA (:mod:`metadesign.library.supercells`) and differentiable (torch).
+
+Structure (stated once).  In the periodic 2 x 2 lattice every pillar ``i`` has one environment: its row
+neighbour ``H(i)`` (both of them: left and right are the same pillar), its column neighbour ``V(i)`` and
+its diagonal neighbour ``D(i)``.  The model is
+
+    t_pol = mean_i t_lib,pol(w_i) + 1/4 sum_i [ G(f_i, f_H(i), f_V(i), f_D(i)) - G(f_i, f_i, f_i, f_i) ]
+
+with ``f`` a pillar's features (its widths and its library transmissions in both polarisations) and ``G``
+a small network (complex output as two reals).  Hence, by construction:
+
+* four identical pillars give the unit cell (the library) exactly: the bracket vanishes;
+* swapping the two rows or the two columns (a translation of the lattice by one pitch, which leaves the
+  normally incident 0th order unchanged) permutes the terms of the sum: ``t`` is invariant;
+* the mirror ``x <-> y`` maps x-polarised light on a supercell to y-polarised light on its transpose
+  (pillar ``(r, c) -> (c, r)``, ``wx <-> wy``): ``t_y(w) = t_x(w^T)``, so one ``G`` serves both
+  polarisations (and each solved row teaches it twice).
+
+``G`` sees the library's ``t`` of each pillar because the near-field coupling follows the pillars' own
+resonances, which the library resolves; fab perturbations that the library models (etch depth, sidewall)
+enter through those ``t``, width perturbations through both.  Widths are normalised as
+``(w - 0.3 um) / 0.2 um``.  Weights ship as safetensors with a JSON card (:func:`save_coupling`)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io import atomic_path, atomic_write_text
+from ..validation import ValidationError
+from .locate import file_sha256
+from .store import UnitCellLibrary
+
+__all__ = ["CouplingConfig", "build_coupling", "coupling_t", "lpa_t", "save_coupling", "load_coupling",
+           "is_coupling", "CARD_FORMAT", "transpose_supercells", "unit_rms", "relative_error", "fit_coupling", "pillar_terms", "find_coupling"]
+
+CARD_FORMAT = "metadesign.coupling/1"
+W0, WS = 0.3e-6, 0.2e-6
+
+
+@dataclass(frozen=True)
+class CouplingConfig:
+    hidden: int = 96
+    layers: int = 3
+    ensemble: int = 1
+
+
+def transpose_supercells(widths: np.ndarray) -> np.ndarray:
+    """The x <-> y mirror image of supercells (n, 2, 2, 2): pillar (r, c) -> (c, r), (wx, wy) -> (wy, wx)."""
+    return np.asarray(widths)[:, :, :, ::-1].transpose(0, 2, 1, 3)
+
+
+def _torch_model(cfg: CouplingConfig, lib: UnitCellLibrary):
+    import torch
+    from torch import nn
+
+    class Coupling(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.cfg = cfg
+            self.nets = nn.ModuleList()
+            for _ in range(cfg.ensemble):
+                mods, d = [], 24
+                for _ in range(cfg.layers - 1):
+                    mods += [nn.Linear(d, cfg.hidden), nn.SiLU()]
+                    d = cfg.hidden
+                mods.append(nn.Linear(d, 2))
+                self.nets.append(nn.Sequential(*mods))
+            tab = np.stack([lib.t_x, lib.t_y], -1)  # (nx, ny, 2) complex
+            self.register_buffer("gx", torch.tensor(lib.wx, dtype=torch.float64), persistent=False)
+            self.register_buffer("gy", torch.tensor(lib.wy, dtype=torch.float64), persistent=False)
+            self.register_buffer("tab", torch.tensor(np.stack([tab.real, tab.imag], -1), dtype=torch.float32),
+                                 persistent=False)  # (nx, ny, 2 pol, 2 re/im)
+
+        def unit_t(self, widths):
+            """Library ``t`` of each pillar, bilinear as :func:`metadesign.library.store.interpolate_t`:
+            (n, 2, 2, 2 pol, 2 re/im); differentiable in the widths."""
+            w = widths.to(torch.float64)
+
+            def frac(v, g):
+                step = g[1] - g[0]
+                f = ((v - g[0]) / step).clamp(0, len(g) - 1)
+                i0 = f.detach().floor().long().clamp(max=len(g) - 2)
+                return i0, (f - i0).to(torch.float32)[..., None, None]
+
+            i, ax = frac(w[..., 0], self.gx)
+            j, ay = frac(w[..., 1], self.gy)
+            T = self.tab
+            return ((1 - ax) * (1 - ay) * T[i, j] + ax * (1 - ay) * T[i + 1, j] + (1 - ax) * ay * T[i, j + 1]
+                    + ax * ay * T[i + 1, j + 1])
+
+        @staticmethod
+        def features(widths, tu, pol: int):
+            """(n, 2, 2, 6) per-pillar features for polarisation ``pol`` (y: the transposed supercell)."""
+            u = (widths.to(torch.float32) - W0) / WS
+            if pol == 0:
+                return torch.cat([u, tu[..., 0, :], tu[..., 1, :]], -1)
+            f = torch.cat([u.flip(-1), tu[..., 1, :], tu[..., 0, :]], -1)
+            return f.transpose(1, 2)
+
+        @staticmethod
+        def environments(f):
+            """(n, 4, 24) [f_i, f_H(i), f_V(i), f_D(i)] and (n, 4, 24) [f_i] * 4."""
+            H, V, D = f.flip(2), f.flip(1), f.flip(1).flip(2)
+            env = torch.cat([f, H, V, D], -1).reshape(f.shape[0], 4, 24)
+            own = f.reshape(f.shape[0], 4, 6).repeat(1, 1, 4)
+            return env, own
+
+        def pillar_terms(self, widths, tu):
+            """(n, 2, 2, 2 pol, 2 re/im): each pillar's coupling term ``G(env) - G(own)`` (the supercell's
+            correction is their mean), at the pillar's own place ``[r, c]``."""
+            out = []
+            for pol in (0, 1):
+                env, own = self.environments(self.features(widths, tu, pol))
+                x = torch.cat([env, own], 1)  # (n, 8, 24)
+                g = sum(net(x) for net in self.nets) / len(self.nets)
+                d = (g[:, :4] - g[:, 4:]).reshape(-1, 2, 2, 2)
+                out.append(d if pol == 0 else d.transpose(1, 2))  # y: back from the transposed supercell
+            return torch.stack(out, 3)
+
+        def delta(self, widths, tu):
+            """(n, 2 pol, 2 re/im) coupling correction."""
+            return self.pillar_terms(widths, tu).mean((1, 2))
+
+        def forward(self, widths, tu=None):
+            """(n, 2 pol, 2 re/im) supercell ``t`` of widths (n, 2, 2, 2) m; ``tu`` the pillars' library ``t``
+            (default: this model's bilinear look-up)."""
+            if tu is None:
+                tu = self.unit_t(widths)
+            return tu.mean((1, 2)) + self.delta(widths, tu)
+
+    return Coupling()
+
+
+def build_coupling(cfg: CouplingConfig, lib: UnitCellLibrary):
+    """A fresh (untrained) coupling model for library ``lib``."""
+    return _torch_model(cfg, lib)
+
+
+def _tu_tensor(t_units: np.ndarray):
+    import torch
+
+    t = np.asarray(t_units)
+    return torch.from_numpy(np.stack([t.real, t.imag], -1).astype(np.float32))
+
+
+def pillar_terms(model, widths: np.ndarray, t_units: np.ndarray, batch: int = 65536) -> np.ndarray:
+    """(n, 2, 2, 2 pol) complex64: each pillar's coupling term in its supercell; the pillar's effective
+    transmission is its library ``t`` plus this, and the supercell's ``t`` their mean."""
+    import torch
+
+    w = np.asarray(widths)
+    out = np.empty((len(w), 2, 2, 2), np.complex64)
+    with torch.no_grad():
+        for a in range(0, len(w), batch):
+            wt = torch.from_numpy(np.ascontiguousarray(w[a:a + batch], np.float64))
+            r = model.pillar_terms(wt, _tu_tensor(t_units[a:a + batch])).numpy()
+            out[a:a + batch] = r[..., 0] + 1j * r[..., 1]
+    return out
+
+
+def lpa_t(t_units: np.ndarray) -> np.ndarray:
+    """The LPA's supercell ``t``: the mean of its four pillars' (n, 2, 2, 2 pol) complex -> (n, 2)."""
+    return np.asarray(t_units).mean((1, 2))
+
+
+def coupling_t(model, widths: np.ndarray, t_units: np.ndarray | None = None, batch: int = 65536) -> np.ndarray:
+    """(n, 2) complex64 supercell ``t`` of widths (n, 2, 2, 2) m, evaluated in batches without gradients;
+    ``t_units`` (n, 2, 2, 2 pol) complex: the pillars' library ``t`` (as the as-fabricated model looked them
+    up, e.g. with etch and sidewall), default the model's own look-up."""
+    import torch
+
+    w = np.asarray(widths)
+    out = np.empty((len(w), 2), np.complex64)
+    with torch.no_grad():
+        for a in range(0, len(w), batch):
+            wt = torch.from_numpy(np.ascontiguousarray(w[a:a + batch], np.float64))
+            tu = None if t_units is None else _tu_tensor(t_units[a:a + batch])
+            r = model(wt, tu).numpy()
+            out[a:a + batch] = r[..., 0] + 1j * r[..., 1]
+    return out
+
+
+def save_coupling(path: str | Path, model, lib_path: str | Path, card: dict) -> Path:
+    """Weights (safetensors) at ``path`` and the card beside it (``.json``): the config, the library it
+    was fitted against (name + sha256) and whatever ``card`` adds (certification, learning curve)."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(tmp))
+    full = {"format": CARD_FORMAT, "config": asdict(model.cfg), "weights": path.name,
+            "weights_sha256": file_sha256(path),
+            "library": {"path": Path(lib_path).name, "sha256": file_sha256(lib_path)}, **card}
+    atomic_write_text(path.with_suffix(".json"), json.dumps(full, indent=1))
+    return path
+
+
+def is_coupling(path: str | Path) -> bool:
+    p = Path(path).with_suffix(".json")
+    try:
+        return json.loads(p.read_text()).get("format") == CARD_FORMAT
+    except (OSError, ValueError):
+        return False
+
+
+def load_coupling(path: str | Path, lib: UnitCellLibrary, check_library: bool = True):
+    """The model at ``path`` (safetensors + card) for library ``lib`` (its sha256 must match the card's
+    unless ``check_library`` is off); returns ``(model, card)``."""
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if not is_coupling(path):
+        raise ValidationError(f"{path}: not a coupling model (no {CARD_FORMAT} card beside it)")
+    card = json.loads(path.with_suffix(".json").read_text())
+    if file_sha256(path) != card.get("weights_sha256"):
+        raise ValidationError(f"{path}: the weights' sha256 differs from the card's (damaged or replaced)")
+    if check_library and lib.identity and lib.identity != card["library"]["sha256"]:
+        raise ValidationError(f"{path}: fitted against library {card['library']['path']} "
+                              f"(sha256 {card['library']['sha256'][:12]}), not this one ({lib.identity[:12]})")
+    model = _torch_model(CouplingConfig(**card["config"]), lib)
+    model.load_state_dict(load_file(str(path)))
+    model.eval()
+    return model, card
+
+
+def unit_rms(t_units: np.ndarray) -> np.ndarray:
+    """(n, 2) the four pillars' rms |t| per polarisation: the scale every coupling error is quoted in."""
+    return np.sqrt((np.abs(np.asarray(t_units)) ** 2).mean((1, 2)))
+
+
+def relative_error(t_model: np.ndarray, t_ref: np.ndarray, t_units: np.ndarray) -> np.ndarray:
+    """(n, 2) ``|t_model - t_ref| / rms_i |t_i|`` (the certification metric of issue #25)."""
+    return np.abs(np.asarray(t_model) - np.asarray(t_ref)) / unit_rms(t_units)
+
+
+def fit_coupling(lib: UnitCellLibrary, widths: np.ndarray, t_ref: np.ndarray, cfg: CouplingConfig = CouplingConfig(),
+                 *, steps: int = 4000, lr: float = 3e-3, weight_decay: float = 1e-5, val_fraction: float = 0.1,
+                 seed: int = 0, log=lambda s: None) -> tuple[object, dict]:
+    """Fit a coupling model to solved supercells ``widths`` (n, 2, 2, 2) m, ``t_ref`` (n, 2) complex.
+    Full-batch Adam with a cosine schedule on the squared error in units of the pillars' rms |t|; a
+    seeded ``val_fraction`` of the rows picks the best step (none of the caller's held-out rows are
+    passed here).  Deterministic for a seed (one thread)."""
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    n = len(widths)
+    perm = rng.permutation(n)
+    n_val = max(1, int(round(val_fraction * n))) if n >= 10 else 0
+    va, tr = perm[:n_val], perm[n_val:]
+    model = _torch_model(cfg, lib)
+    W = torch.from_numpy(np.ascontiguousarray(widths, np.float64))
+    with torch.no_grad():
+        tu = model.unit_t(W)
+    T = torch.from_numpy(np.stack([t_ref.real, t_ref.imag], -1).astype(np.float32))
+    scale = (tu ** 2).sum(-1).mean((1, 2)).sqrt()[..., None]  # (n, 2, 1) rms |t_i| per pol
+    opt = torch.optim.Adam(model.nets.parameters(), lr=lr, weight_decay=weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    itr, iva = torch.from_numpy(tr), torch.from_numpy(va)
+
+    def err(idx):
+        p = model(W[idx], tu[idx])
+        return ((p - T[idx]) ** 2).sum(-1).sqrt() / scale[idx][..., 0]
+
+    best, best_state, hist = np.inf, None, []
+    for s in range(steps):
+        model.train()
+        opt.zero_grad()
+        loss = (err(itr) ** 2).mean()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if s % 50 == 0 or s == steps - 1:
+            with torch.no_grad():
+                e_tr = float(err(itr).mean())
+                e_va = float(err(iva).mean()) if n_val else e_tr
+            hist.append((s, e_tr, e_va))
+            if e_va < best:
+                best = e_va
+                best_state = {k: v.clone() for k, v in model.state_dict().items()}
+            if s % 1000 == 0:
+                log(f"    step {s}: train {e_tr:.4f}, val {e_va:.4f} (mean |dt| / rms|t_i|)")
+    model.load_state_dict(best_state)
+    model.eval()
+    return model, {"steps": steps, "lr": lr, "weight_decay": weight_decay, "rows_fitted": len(tr),
+                   "rows_validation": len(va), "best_validation_error": best,
+                   "history": [list(h) for h in hist]}
+
+
+def find_coupling(lib: UnitCellLibrary, path: str | Path | None = None):
+    """``(model, card, path)``: the coupling model at ``path``, else the one fitted against ``lib`` (its
+    sha256) among the cards in the products' ``library/`` folder and the working directory."""
+    from ..paths import repo_root
+
+    if path is not None:
+        m, card = load_coupling(path, lib)
+        return m, card, Path(path)
+    for folder in (repo_root() / "library", Path.cwd()):
+        for card_path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+            try:
+                card = json.loads(card_path.read_text())
+            except (OSError, ValueError):
+                continue
+            if card.get("format") == CARD_FORMAT and card.get("library", {}).get("sha256") == lib.identity:
+                w = card_path.with_name(card["weights"])
+                m, card = load_coupling(w, lib)
+                return m, card, w
+    raise ValidationError(f"no supercell coupling model fitted against this library (sha256 {lib.identity[:12]}) "
+                          "was found in library/; fit one (metadesign library coupling) or pass its path")

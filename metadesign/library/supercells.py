@@ -1,0 +1,167 @@
+"""A table of 2 x 2 supercells solved with supercell RCWA: the data the coupling model is fitted to.
+
+A row is one supercell, ``widths[r, c] = (wx, wy)`` (m) of the pillar at ``x = c p, y = r p`` (the layout
+of :func:`metadesign.library.supercell.supercell_rects`), and its 0th-order transmission ``t`` for x- and
+y-polarised light (the Jones diagonal; the sector solve has no cross terms).  The supercell's harmonic set
+is matched to the unit-cell library's: its even harmonics, halved, are the library's set
+(:func:`matched_unit_harmonics`), so four identical pillars give the library's own ``t`` and the difference
+is the coupling alone, not a truncation mismatch.
+
+:func:`solve_table` is the library build's engine for this table: rows in chunks, each finished chunk
+written atomically into ``<output>.partial/`` under a name that hashes its widths and the solver settings,
+so a killed build resumes from what is on disk, a larger build reuses a smaller one's chunks, and the
+table is the same bytes whatever the worker count or scheduler (each row depends on its widths alone)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..io import atomic_write_text, read_npz, write_npz
+from ..parallel import run_tasks
+from ..validation import ValidationError
+from .rcwa import Stack
+from .supercell import solve_supercell
+
+__all__ = ["SupercellTable", "matched_unit_harmonics", "solve_table", "load_table", "save_table", "TABLE_FORMAT"]
+
+TABLE_FORMAT = "metadesign.supercells/1"
+
+
+def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
+    """Requested harmonic counts ``(supercell, unit cell)`` whose sets match: the unit cell's harmonics are
+    the supercell's even ones, halved (circular truncation of the same radius in reciprocal space).  grcwa
+    keeps the whole shells below the first incomplete one, so a count that ends exactly on a shell loses
+    it: the requests returned are one more than the set sizes."""
+    import grcwa
+
+    def gset(n, L):
+        o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
+        o.Add_LayerUniform(0.0, 1.0)
+        o.Init_Setup(Gmethod=0)
+        return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
+
+    s, ns = gset(n_super, 2 * stack.period)
+    even = {(a // 2, b // 2) for a, b in s if a % 2 == 0 and b % 2 == 0}
+    u, nu = gset(len(even) + 1, stack.period)  # grcwa keeps whole shells below the first incomplete one
+    if u != even:
+        raise RuntimeError(f"no unit-cell truncation matches the supercell's even harmonics (nG {ns})")
+    return ns + 1, nu + 1
+
+
+@dataclass(frozen=True)
+class SupercellTable:
+    """Solved supercells: ``widths`` (n, 2, 2, 2) m, ``t`` (n, 2) complex (x-pol, y-pol), ``source`` (n,)
+    int (index into ``meta["sources"]``), ``test`` (n,) bool (held out of every fit), ``meta`` (provenance)."""
+
+    widths: np.ndarray
+    t: np.ndarray
+    source: np.ndarray
+    test: np.ndarray
+    meta: dict
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def head(self, n: int) -> "SupercellTable":
+        return SupercellTable(self.widths[:n], self.t[:n], self.source[:n], self.test[:n], self.meta)
+
+
+def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(widths, "<f8").tobytes())
+    h.update(json.dumps([n_harmonics, stack.wavelength, stack.period, stack.height, stack.n_pillar,
+                         stack.n_substrate, stack.n_superstrate, __version__]).encode())
+    return f"chunk-{h.hexdigest()[:20]}.npz"
+
+
+def _solve_rows(args) -> tuple[str, dict]:
+    name, widths, stack, n_harmonics = args
+    res = [solve_supercell(w, stack, n_harmonics) for w in widths]
+    return name, {"t": np.array([r.jones[[0, 1], [0, 1]] for r in res]),
+                  "n_harmonics": np.array([r.n_harmonics for r in res])}
+
+
+def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str | Path, *, workers: int = 1,
+                scheduler: str | None = None, chunk_size: int = 8,
+                progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] = lambda s: None,
+                _stop_after_chunks: int | None = None) -> tuple[np.ndarray, int, float]:
+    """``t`` (n, 2) of the supercells ``widths`` (n, 2, 2, 2), solved at ``n_harmonics`` (requested), chunks
+    kept in the folder ``partial`` (resumable; the caller removes it once the table is saved).  Returns
+    ``(t, nG, seconds spent solving)``."""
+    widths = np.asarray(widths, float)
+    if widths.ndim != 4 or widths.shape[1:] != (2, 2, 2):
+        raise ValueError(f"widths must be (n, 2, 2, 2), got {widths.shape}")
+    part = Path(partial)
+    part.mkdir(parents=True, exist_ok=True)
+    chunks = [(k, min(k + chunk_size, len(widths))) for k in range(0, len(widths), chunk_size)]
+    names = [_chunk_name(widths[a:b], n_harmonics, stack) for a, b in chunks]
+    done: dict[str, dict] = {}
+    for nm in set(names):
+        f = part / nm
+        if f.exists():
+            try:
+                done[nm] = read_npz(f, "chunk")
+            except ValidationError:  # a damaged chunk is solved again
+                f.unlink()
+    n_done = sum(b - a for (a, b), nm in zip(chunks, names) if nm in done)
+    if n_done:
+        log(f"resuming: {n_done}/{len(widths)} supercells already solved in {part}")
+    if progress:
+        progress(n_done, len(widths))
+    jobs, seen = [], set()
+    for (a, b), nm in zip(chunks, names):
+        if nm not in done and nm not in seen:
+            seen.add(nm)
+            jobs.append((nm, widths[a:b], stack, n_harmonics))
+    size = {nm: b - a for (a, b), nm in zip(chunks, names)}
+    t0 = time.perf_counter()
+    it = (run_tasks(_solve_rows, jobs, scheduler=scheduler, key="supercells") if scheduler is not None
+          else run_tasks(_solve_rows, jobs, workers=workers))
+    for count, (nm, res) in enumerate(it, 1):
+        write_npz(part / nm, res)
+        done[nm] = res
+        n_done += size[nm]
+        if progress:
+            progress(n_done, len(widths))
+        if _stop_after_chunks is not None and count >= _stop_after_chunks:
+            raise KeyboardInterrupt("simulated kill")
+    seconds = time.perf_counter() - t0
+    t = np.concatenate([done[nm]["t"] for nm in names])
+    nGs = {int(v) for nm in names for v in done[nm]["n_harmonics"]}
+    if len(nGs) != 1:
+        raise RuntimeError(f"the chunks were solved at different truncations: {sorted(nGs)}")
+    return t, nGs.pop(), seconds
+
+
+def save_table(path: str | Path, table: SupercellTable) -> None:
+    meta = {"format": TABLE_FORMAT, **table.meta}
+    write_npz(path, {"widths_m": table.widths, "t": table.t.astype(np.complex128), "source": table.source,
+                     "test": table.test, "meta": np.array(json.dumps(meta, sort_keys=True))})
+
+
+def load_table(path: str | Path) -> SupercellTable:
+    d = read_npz(path, "supercell table")
+    need = ("widths_m", "t", "source", "test", "meta")
+    missing = [k for k in need if k not in d]
+    meta = json.loads(str(d["meta"])) if "meta" in d else {}
+    if missing or meta.get("format") != TABLE_FORMAT:
+        raise ValidationError(f"{path}: not a supercell table ({TABLE_FORMAT}"
+                              + (f"; missing {', '.join(missing)})" if missing else ")"))
+    return SupercellTable(d["widths_m"], d["t"], d["source"], d["test"].astype(bool), meta)
+
+
+def remove_partial(partial: str | Path) -> None:
+    shutil.rmtree(partial, ignore_errors=True)
+
+
+def write_json(path: str | Path, obj) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=1))

@@ -1,0 +1,290 @@
+"""The supercell table of a design (``library/paper-supercells.toml``): which supercells to solve, and the
+resumable build.
+
+Rows are drawn from what the design actually uses and around it, each row from its own generator
+(``SeedSequence(seed, spawn_key=(k,))``), so the first ``n`` rows of a larger table are the rows of the
+smaller one (a table grows without re-solving what it has) and the held-out rows (every
+``test_every``-th) are the same whatever the size:
+
+* ``design``: a supercell of the main design at a random place (its four atoms, as the layout places them);
+* ``extra_design``: the same on a second design (the demo);
+* ``atom_tuples``: four atoms of the main design's table drawn independently (the compensating
+  discretizer's search space);
+* ``jittered_atoms``: four atoms, each width moved by a uniform draw in ``+-jitter_nm`` (the fab studies'
+  perturbed widths), kept inside the library's width range.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..config import ConfigError, Param, Section, load_toml, parse
+from ..design.recipe import load_design_recipe
+from ..design.store import Design, load_design, run_design
+from ..library.coupling import CouplingConfig, coupling_t, fit_coupling, lpa_t, relative_error
+from ..library.locate import file_sha256
+from ..library.rcwa import Stack
+from ..library.store import interpolate_t, load_library
+from ..library.supercells import (
+    SupercellTable,
+    matched_unit_harmonics,
+    remove_partial,
+    save_table,
+    solve_table,
+)
+from ..plotting import pyplot, save_figure
+
+__all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "SOURCES", "certify_coupling",
+           "plot_coupling"]
+
+SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
+
+SUPERCELL_SECTIONS = (
+    Section("table", (
+        Param("library", str, help="the unit-cell library (relative to the recipe)"),
+        Param("design", str, help="the main design: a design recipe (.toml) or store (relative to the recipe)"),
+        Param("extra_design", str, None, help="a second design sampled too (optional)"),
+        Param("supercells", int, 1000, lo=1, hi=10_000_000),
+        Param("seed", int, 0, lo=0, hi=2**63 - 1),
+        Param("test_every", int, 5, lo=2, hi=1000, help="every k-th row is held out of every fit"),
+        Param("n_harmonics", int, 800, lo=20, hi=5000, help="requested supercell harmonics (matched to the library)"),
+        Param("chunk", int, 8, lo=1, hi=10000),
+    )),
+    Section("mix", (
+        Param("design", float, 0.5, lo=0, hi=1),
+        Param("extra_design", float, 0.1, lo=0, hi=1),
+        Param("atom_tuples", float, 0.2, lo=0, hi=1),
+        Param("jittered_atoms", float, 0.2, lo=0, hi=1),
+        Param("jitter_nm", float, 15.0, lo=0, hi=100),
+    )),
+)
+
+
+@dataclass(frozen=True)
+class SupercellRecipe:
+    source: Path
+    library: Path
+    design: Path
+    extra_design: Path | None
+    supercells: int
+    seed: int
+    test_every: int
+    n_harmonics: int
+    chunk: int
+    mix: tuple[float, float, float, float]
+    jitter: float  # m
+
+    def default_output(self) -> Path:
+        return self.source.with_suffix(".npz")
+
+
+def load_supercell_recipe(path: str | Path) -> SupercellRecipe:
+    path = Path(path)
+    v = parse(load_toml(path), SUPERCELL_SECTIONS, str(path))
+    t, m = v["table"], v["mix"]
+    mix = tuple(float(m[k]) for k in SOURCES)
+    if abs(sum(mix) - 1) > 1e-9:
+        raise ConfigError("mix", f"the four fractions must add up to 1, got {sum(mix):g}")
+    if t["extra_design"] is None and mix[1] > 0:
+        raise ConfigError("mix.extra_design", "must be 0 without table.extra_design")
+    base = path.parent
+    return SupercellRecipe(path, base / t["library"], base / t["design"],
+                           None if t["extra_design"] is None else base / t["extra_design"], t["supercells"],
+                           t["seed"], t["test_every"], t["n_harmonics"], t["chunk"], mix, m["jitter_nm"])
+
+
+def _load(path: Path, log) -> tuple[Design, str]:
+    """A design from a store, or from a recipe: its store if one is beside it, else built in a temporary
+    folder."""
+    if path.suffix == ".toml":
+        rec = load_design_recipe(path)
+        store = rec.default_output()
+        if (store / "design.npz").exists():
+            return load_design(store), file_sha256(store / "design.npz")
+        log(f"  designing {path.name} (no store at {store}) ...")
+        with tempfile.TemporaryDirectory() as tmp:
+            d, out = run_design(rec, Path(tmp) / "d")
+            return d, file_sha256(Path(out) / "design.npz" if Path(out).is_dir() else out)
+    p = path / "design.npz" if path.is_dir() else path
+    return load_design(p), file_sha256(p)
+
+
+def _design_widths(d: Design) -> tuple[np.ndarray, np.ndarray]:
+    return np.stack([d.atoms.wx, d.atoms.wy], 1), d.index_map
+
+
+def sample_rows(n: int, seed: int, mix, main: tuple, extra: tuple | None, w_range: tuple[float, float],
+                jitter: float, test_every: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(widths (n, 2, 2, 2) m, source (n,), test (n,))``; ``main``/``extra`` = (atom widths (m, 2), index map
+    [iy, ix] with the no-pillar sentinel outside the atom range)."""
+    aw, im = main
+    cdf = np.cumsum(mix)
+    widths = np.empty((n, 2, 2, 2))
+    source = np.empty(n, np.int8)
+    for k in range(n):
+        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(k,)))
+        s = int(np.searchsorted(cdf, rng.random(), side="right"))
+        s = min(s, 3)
+        if s in (0, 1):
+            w_atoms, imap = (aw, im) if s == 0 else extra
+            H, W = imap.shape[0] // 2, imap.shape[1] // 2
+            for _ in range(100000):
+                I, J = int(rng.integers(H)), int(rng.integers(W))
+                blk = imap[2 * I:2 * I + 2, 2 * J:2 * J + 2].astype(np.int64)
+                if (blk < len(w_atoms)).all():
+                    break
+            else:
+                raise ValueError("no supercell with four pillars found in the design")
+            widths[k] = w_atoms[blk]
+        else:
+            a = rng.integers(len(aw), size=(2, 2))
+            w = aw[a]
+            if s == 3:
+                w = np.clip(w + rng.uniform(-jitter, jitter, size=w.shape), *w_range)
+            widths[k] = w
+        source[k] = s
+    test = (np.arange(n) % test_every) == test_every - 1
+    return widths, source, test
+
+
+def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None = None, workers: int = 1,
+                scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
+                log: Callable[[str], None] = lambda s: None, _stop_after_chunks: int | None = None) -> dict:
+    """Solve (or resume, or extend) the table of ``recipe`` into ``output`` (written atomically at the end;
+    the solved chunks stay in ``<output>.partial/`` until then)."""
+    n = int(supercells or recipe.supercells)
+    lib = load_library(recipe.library)
+    st = lib.meta["stack"]
+    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
+                  st["n_superstrate"])
+    ns, nu = matched_unit_harmonics(recipe.n_harmonics, stack)
+    lib_nG = lib.meta.get("solver", {}).get("n_harmonics")
+    if lib_nG is not None and nu - 1 != lib_nG:
+        raise ConfigError("table.n_harmonics", f"the supercell's even harmonics ({nu - 1}) do not match the "
+                                               f"library's {lib_nG}: request {ns - 1} -> pick one whose matched "
+                                               f"unit set is the library's (800 for a 197-harmonic library)")
+    d_main, sha_main = _load(recipe.design, log)
+    main = _design_widths(d_main)
+    extra, sha_extra = (None, None)
+    if recipe.extra_design is not None:
+        d_x, sha_extra = _load(recipe.extra_design, log)
+        extra = _design_widths(d_x)
+    w_range = (float(lib.wx.min()), float(lib.wx.max()))
+    widths, source, test = sample_rows(n, recipe.seed, recipe.mix, main, extra, w_range, recipe.jitter,
+                                       recipe.test_every)
+    partial = output.parent / (output.name + ".partial")
+    log(f"solving {n} supercells (nG {ns - 1}, matched to the library's {nu - 1}) -> {output}")
+    t, nG, seconds = solve_table(widths, stack, ns, partial, workers=workers, scheduler=scheduler,
+                                 chunk_size=recipe.chunk, progress=progress, log=log,
+                                 _stop_after_chunks=_stop_after_chunks)
+    meta = {
+        "version": __version__, "recipe": str(recipe.source.name), "seed": recipe.seed, "supercells": n,
+        "test_every": recipe.test_every, "n_harmonics": nG, "unit_n_harmonics": nu - 1,
+        "sources": list(SOURCES), "mix": dict(zip(SOURCES, recipe.mix)), "jitter_m": recipe.jitter,
+        "library": {"path": recipe.library.name, "sha256": file_sha256(recipe.library)},
+        "design": {"path": recipe.design.name, "sha256": sha_main},
+        "extra_design": None if recipe.extra_design is None else {"path": recipe.extra_design.name,
+                                                                  "sha256": sha_extra},
+        "stack": st, "solver": "grcwa, 2 x 2 supercell, two mirror-symmetry sectors, Li's staircase rule",
+        "layout": "widths_m[k, r, c] = (wx, wy) of the pillar at x = c p, y = r p; t[k] = (t_x, t_y)",
+        "convention": lib.meta.get("convention", {}),
+    }
+    save_table(output, SupercellTable(widths, t, source, test, meta))
+    remove_partial(partial)
+    return {"output": str(output), "supercells": n, "held_out": int(test.sum()), "n_harmonics": nG,
+            "solve_seconds": seconds, "workers": workers,
+            "seconds_per_supercell_core": seconds * max(1, workers) / max(1, n)}
+
+
+def _stats(e: np.ndarray) -> dict:
+    """Mean, median, 90th percentile and max per polarisation of errors (n, 2)."""
+    return {"mean": e.mean(0).tolist(), "median": np.median(e, 0).tolist(), "p90": np.percentile(e, 90, 0).tolist(),
+            "max": e.max(0).tolist()}
+
+
+def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: CouplingConfig = CouplingConfig(),
+                     steps: int = 4000, seed: int = 0, goal=(0.05, 0.1), log=lambda s: None) -> tuple[object, dict]:
+    """Fit the coupling model on the first ``n`` fitting rows of the table for each ``n`` in ``sizes``
+    (a learning curve) and certify each fit on every held-out row (never fitted, never used to pick a
+    step); returns the model of the largest size and the report.  Error: ``|t - t_RCWA| / rms_i |t_i|``."""
+    import torch
+
+    torch.set_num_threads(1)
+    fit_rows = np.flatnonzero(~table.test)
+    test_rows = np.flatnonzero(table.test)
+    if not len(test_rows):
+        raise ValueError("the table has no held-out rows")
+    sizes = sorted({min(int(n), len(fit_rows)) for n in sizes})
+    w_te, t_te = table.widths[test_rows], table.t[test_rows]
+    tu_te = interpolate_t(lib, w_te[..., 0], w_te[..., 1])[0]
+    e_lpa = relative_error(lpa_t(tu_te), t_te, tu_te)
+    curve, model = [], None
+    for n in sizes:
+        rows = fit_rows[:n]
+        t0 = time.perf_counter()
+        log(f"  fitting on {n} supercells ...")
+        model, info = fit_coupling(lib, table.widths[rows], table.t[rows], cfg, steps=steps, seed=seed, log=log)
+        e = relative_error(coupling_t(model, w_te, tu_te), t_te, tu_te)
+        curve.append({"supercells": n, "held_out": _stats(e), "fit_seconds": time.perf_counter() - t0,
+                      "best_validation_error": info["best_validation_error"], "_e": e, "_info": info})
+        log(f"    held-out |dt|/rms|t_i| mean {e.mean():.4f} (x {e[:, 0].mean():.4f}, y {e[:, 1].mean():.4f}), "
+            f"p90 {np.percentile(e, 90):.4f}; LPA {e_lpa.mean():.4f}")
+    last = curve[-1]
+    e = last.pop("_e")
+    info = last.pop("_info")
+    for c in curve:
+        c.pop("_e", None), c.pop("_info", None)
+    by_source = {}
+    for s, name in enumerate(SOURCES):
+        sel = table.source[test_rows] == s
+        if sel.any():
+            by_source[name] = {"n": int(sel.sum()), "model": _stats(e[sel]), "lpa": _stats(e_lpa[sel])}
+    m, p90 = float(e.mean()), float(np.percentile(e, 90))
+    report = {
+        "metric": "|t_model - t_RCWA| / rms_i |t_i| (the four pillars' rms library |t|), per polarisation",
+        "held_out_supercells": int(len(test_rows)), "fitted_supercells": int(sizes[-1]),
+        "model": _stats(e), "lpa": _stats(e_lpa), "by_source": by_source,
+        "goal": {"mean": goal[0], "p90": goal[1]},
+        "passed": bool(m <= goal[0] and p90 <= goal[1]), "mean_both": m, "p90_both": p90,
+        "lpa_mean_both": float(e_lpa.mean()), "lpa_p90_both": float(np.percentile(e_lpa, 90)),
+        "learning_curve": curve, "fit": {k: v for k, v in info.items() if k != "history"},
+        "table": {"supercells": len(table), "n_harmonics": table.meta.get("n_harmonics"),
+                  "seed": table.meta.get("seed")},
+        "_e": e, "_e_lpa": e_lpa,
+    }
+    return model, report
+
+
+def plot_coupling(rep: dict, out: Path) -> Path:
+    """Learning curve (held-out mean and p90 vs supercells fitted, the LPA and the goal as lines) and the
+    held-out error distributions of the model and the LPA."""
+    plt = pyplot()
+    fig, axs = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    c = rep["learning_curve"]
+    n = [r["supercells"] for r in c]
+    for k, ls in (("mean", "o-"), ("p90", "s--")):
+        axs[0].plot(n, [np.mean(r["held_out"][k]) for r in c], ls, color="C0", label=f"model, {k}")
+        axs[0].axhline(np.mean(rep["lpa"][k]), color="C3", ls=ls[1:], label=f"LPA, {k}")
+        axs[0].axhline(rep["goal"][k], color="0.5", ls=":", lw=1)
+        axs[0].annotate(f"goal {k} {rep['goal'][k]:g}", (n[-1], rep["goal"][k]), fontsize=8, color="0.4",
+                        ha="right", va="bottom")
+    axs[0].set(xscale="log", yscale="log", xlabel="supercells fitted (RCWA solves)",
+               ylabel="held-out |t - t_RCWA| / rms|t_i|",
+               title=f"learning curve ({rep['held_out_supercells']} held-out supercells)")
+    axs[0].set_xticks(n, [str(v) for v in n])
+    axs[0].legend(fontsize=8)
+    e, el = rep["_e"].ravel(), rep["_e_lpa"].ravel()
+    bins = np.linspace(0, max(el.max(), e.max()), 40)
+    axs[1].hist(el, bins, alpha=0.6, color="C3", label=f"LPA (mean {el.mean():.3f})")
+    axs[1].hist(e, bins, alpha=0.6, color="C0", label=f"coupling model (mean {e.mean():.3f})")
+    axs[1].set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
+               title="held-out error")
+    axs[1].legend(fontsize=8)
+    return save_figure(fig, out)

@@ -1,0 +1,246 @@
+"""The supercell coupling model and its table (issue #25): the model's structure against exact facts (four
+identical pillars are the unit cell; translating the lattice by one pitch or mirroring x <-> y maps t as
+the physics does; autograd against finite differences), the coupled forward path against the model
+(every supercell's pillars average to the model's t; the LPA path unchanged), and the table engine
+(resumable after SIGKILL, same bytes on 1 and 2 workers, a larger table reuses a smaller one's rows)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from metadesign.library.coupling import (
+    CouplingConfig,
+    build_coupling,
+    coupling_t,
+    fit_coupling,
+    load_coupling,
+    lpa_t,
+    pillar_terms,
+    relative_error,
+    save_coupling,
+    transpose_supercells,
+)
+from metadesign.library.rcwa import Stack
+from metadesign.library.store import interpolate_t
+
+
+def _rand_widths(n, seed=0, lo=0.12e-6, hi=0.48e-6):
+    return np.random.default_rng(seed).uniform(lo, hi, size=(n, 2, 2, 2))
+
+
+@pytest.fixture(scope="module")
+def model(paper_library):
+    import torch
+
+    torch.manual_seed(3)
+    m = build_coupling(CouplingConfig(hidden=16, layers=3), paper_library)
+    with torch.no_grad():  # a network far from zero, so every property below is tested on a real correction
+        for p in m.parameters():
+            p.mul_(3.0)
+    return m.eval()
+
+
+def test_identical_pillars_are_the_unit_cell(model, paper_library):
+    w = _rand_widths(20, 1)[:, :1, :1].repeat(2, 1).repeat(2, 2)  # four copies of one pillar per supercell
+    t = coupling_t(model, w)
+    ref, _, _ = interpolate_t(paper_library, w[:, 0, 0, 0], w[:, 0, 0, 1])
+    np.testing.assert_allclose(t, ref, atol=2e-6)
+
+
+def test_correction_is_not_trivially_zero(model, paper_library):
+    w = _rand_widths(50, 2)
+    tu, _, _ = interpolate_t(paper_library, w[..., 0], w[..., 1])
+    assert np.abs(coupling_t(model, w) - lpa_t(tu)).mean() > 1e-2
+
+
+def test_lattice_translations_leave_t_unchanged(model):
+    """Swapping the rows or the columns is a translation by one pitch: the 0th order is the same."""
+    w = _rand_widths(30, 4)
+    t = coupling_t(model, w)
+    for shifted in (w[:, ::-1], w[:, :, ::-1], w[:, ::-1, ::-1]):
+        np.testing.assert_allclose(coupling_t(model, shifted), t, atol=1e-6)
+    # a non-symmetry (swapping only two diagonal pillars' roles with the others) does change t
+    odd = w.copy()
+    odd[:, 0, 0], odd[:, 0, 1] = w[:, 0, 1], w[:, 0, 0]
+    assert np.abs(coupling_t(model, odd) - t).max() > 1e-3
+
+
+def test_mirror_x_y_swaps_the_polarisations(model):
+    w = _rand_widths(30, 5)
+    np.testing.assert_allclose(coupling_t(model, transpose_supercells(w))[:, ::-1], coupling_t(model, w), atol=1e-6)
+
+
+def test_gradient_matches_finite_differences(model):
+    import torch
+
+    w0 = (np.round(_rand_widths(4, 6) / 5e-9) + 0.5) * 5e-9  # mid-cell of the 5 nm library grid
+    W = torch.tensor(w0, dtype=torch.float64, requires_grad=True)
+    out = model(W)  # (n, 2, 2)
+    v = torch.tensor(np.random.default_rng(7).normal(size=tuple(out.shape)), dtype=torch.float32)
+    (out * v).sum().backward()
+    g = W.grad.numpy()
+    h = 2e-10  # inside a 5 nm library cell: the look-up is linear there; float32 network -> not smaller
+    for idx in [(0, 0, 0, 0), (1, 1, 0, 1), (2, 0, 1, 0), (3, 1, 1, 1)]:
+        wp, wm = w0.copy(), w0.copy()
+        wp[idx] += h
+        wm[idx] -= h
+        with torch.no_grad():
+            fp = (model(torch.tensor(wp)) * v).sum().double().item()
+            fm = (model(torch.tensor(wm)) * v).sum().double().item()
+        fd = (fp - fm) / (2 * h)
+        assert abs(fd - g[idx]) <= 2e-2 * abs(g[idx]) + 1e4, (idx, fd, g[idx])
+
+
+def test_pillar_terms_average_to_the_supercell(model, paper_library):
+    w = _rand_widths(25, 8)
+    tu, _, _ = interpolate_t(paper_library, w[..., 0], w[..., 1])
+    eff = tu + pillar_terms(model, w, tu)
+    np.testing.assert_allclose(eff.mean((1, 2)), coupling_t(model, w, tu), atol=2e-6)
+
+
+def test_coupled_pupil_rows_and_lpa_unchanged(model, paper_library):
+    """The forward path with coupling: every complete supercell's four pillars average to the model's t;
+    pillars of incomplete supercells (empty cells) keep the LPA's t; coupling=None is the LPA path."""
+    from metadesign.sensing.transmission import pillar_transmission
+
+    rng = np.random.default_rng(9)
+    atoms = rng.uniform(130, 470, size=(12, 2)).round()
+    im = rng.integers(0, 12, size=(6, 8)).astype(np.int32)
+    im[0, 0] = -1  # an empty cell: its supercell stays LPA
+    t0, _ = pillar_transmission(im, atoms, paper_library)
+    ref, _, _ = interpolate_t(paper_library, atoms[np.maximum(im, 0), 0] * 1e-9, atoms[np.maximum(im, 0), 1] * 1e-9)
+    np.testing.assert_array_equal(t0[im >= 0], ref[im >= 0])
+    t1, _ = pillar_transmission(im, atoms, paper_library, coupling=model)
+    np.testing.assert_array_equal(t1[:2, :2], t0[:2, :2])
+    w = atoms[np.maximum(im, 0)] * 1e-9
+    for I in range(3):
+        for J in range(4):
+            if I == 0 and J == 0:
+                continue
+            blk = (slice(2 * I, 2 * I + 2), slice(2 * J, 2 * J + 2))
+            want = coupling_t(model, w[blk][None])[0]
+            np.testing.assert_allclose(t1[blk].mean((0, 1)), want, atol=2e-6)
+            assert np.abs(t1[blk] - t0[blk]).max() > 1e-4
+    # row tiles on supercell rows give the same pillars
+    t2 = np.concatenate([pillar_transmission(im, atoms, paper_library, rows=slice(r, r + 2), coupling=model)[0]
+                         for r in (0, 2, 4)])
+    np.testing.assert_array_equal(t2, t1)
+    with pytest.raises(ValueError, match="supercell"):
+        pillar_transmission(im, atoms, paper_library, rows=slice(1, 3), coupling=model)
+
+
+def test_fit_recovers_a_known_coupling(paper_library, tmp_path):
+    """Data made by a known coupling model (a different seed) is learned by a fresh fit far below the LPA's
+    error on rows it never saw; the saved model reloads to the same predictions and refuses another
+    library."""
+    import torch
+
+    torch.manual_seed(11)
+    teacher = build_coupling(CouplingConfig(hidden=8, layers=2), paper_library).eval()
+    w = _rand_widths(500, 12)
+    t = coupling_t(teacher, w)
+    tu, _, _ = interpolate_t(paper_library, w[..., 0], w[..., 1])
+    fit, held = slice(0, 400), slice(400, 500)
+    m, info = fit_coupling(paper_library, w[fit], t[fit], CouplingConfig(hidden=24, layers=2), steps=600, lr=1e-2)
+    e = relative_error(coupling_t(m, w[held]), t[held], tu[held]).mean()
+    e_lpa = relative_error(lpa_t(tu[held]), t[held], tu[held]).mean()
+    assert e < 0.2 * e_lpa, (e, e_lpa)
+    from conftest import REPO
+
+    p = save_coupling(tmp_path / "c.safetensors", m, REPO / "library" / "paper.npz", {"note": "test"})
+    m2, card = load_coupling(p, paper_library, check_library=False)
+    np.testing.assert_array_equal(coupling_t(m2, w[held]), coupling_t(m, w[held]))
+    assert card["note"] == "test" and card["config"]["hidden"] == 24
+
+
+# ---------------------------------------------------------------- the table engine (tiny truncation: fast)
+
+def _tiny_widths(n=10):
+    return np.random.default_rng(1).uniform(0.15e-6, 0.45e-6, size=(n, 2, 2, 2))
+
+
+def test_table_same_bytes_any_workers_and_grows(tmp_path):
+    from metadesign.library.supercells import solve_table
+
+    w = _tiny_widths(10)
+    t1, nG, _ = solve_table(w, Stack(), 30, tmp_path / "a", workers=1, chunk_size=3)
+    t2, _, _ = solve_table(w, Stack(), 30, tmp_path / "b", workers=2, chunk_size=3)
+    assert t1.tobytes() == t2.tobytes() and nG < 30
+    # the first 6 rows' chunks are reused by the 10-row table in the same folder: nothing new to solve
+    part = tmp_path / "c"
+    solve_table(w[:6], Stack(), 30, part, chunk_size=3)
+    seen = []
+    t3, _, _ = solve_table(w, Stack(), 30, part, chunk_size=3, progress=lambda a, b: seen.append(a))
+    assert seen[0] == 6 and t3.tobytes() == t1.tobytes()
+
+
+def test_table_resumes_after_sigkill(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import REPO
+
+    from metadesign.library.supercells import solve_table
+
+    w = _tiny_widths(40)
+    np.save(tmp_path / "w.npy", w)
+    part = tmp_path / "part"
+    code = ("import numpy as np; from metadesign.library.supercells import solve_table; "
+            "from metadesign.library.rcwa import Stack; "
+            f"solve_table(np.load(r'{tmp_path / 'w.npy'}'), Stack(), 60, r'{part}', chunk_size=2)")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    t0 = time.time()
+    while len(list(part.glob("chunk-*.npz"))) < 2 and time.time() - t0 < 120:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = len(list(part.glob("chunk-*.npz")))
+    assert 2 <= done < 20
+    logs = []
+    t, _, _ = solve_table(w, Stack(), 60, part, chunk_size=2, log=logs.append)
+    assert any(f"resuming: {2 * done}/40" in s for s in logs)
+    clean, _, _ = solve_table(w, Stack(), 60, tmp_path / "clean", workers=2, chunk_size=2)
+    assert clean.tobytes() == t.tobytes()
+
+
+def test_table_rows_are_prefix_stable_and_hold_out_the_same_rows():
+    from metadesign.studies.supercells import sample_rows
+
+    aw = np.random.default_rng(0).uniform(0.1e-6, 0.5e-6, size=(16, 2))
+    im = np.random.default_rng(1).integers(0, 16, size=(20, 20)).astype(np.uint8)
+    mix = (0.4, 0.0, 0.3, 0.3)
+    a = sample_rows(30, 7, mix, (aw, im), None, (0.1e-6, 0.5e-6), 10e-9, 5)
+    b = sample_rows(12, 7, mix, (aw, im), None, (0.1e-6, 0.5e-6), 10e-9, 5)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x[:12], y)
+    assert list(np.flatnonzero(a[2])) == [4, 9, 14, 19, 24, 29]
+    # design rows are supercells of the map; atom rows are atoms; jittered rows stay within range and jitter
+    for k in range(30):
+        if a[1][k] == 0:
+            hits = [(I, J) for I in range(10) for J in range(10)
+                    if np.array_equal(aw[im[2 * I:2 * I + 2, 2 * J:2 * J + 2]], a[0][k])]
+            assert hits
+        elif a[1][k] == 2:
+            assert all(any(np.array_equal(p, q) for q in aw) for p in a[0][k].reshape(4, 2))
+        else:
+            d = np.min(np.abs(a[0][k].reshape(4, 1, 2) - aw[None]).max(-1), axis=1)
+            assert (d <= 10e-9 + 1e-15).all()
+
+
+def test_supercell_recipe_refuses_bad_mix(tmp_path, capsys):
+    from conftest import run_main
+
+    p = tmp_path / "r.toml"
+    p.write_text('[table]\nlibrary = "x.npz"\ndesign = "d.toml"\n[mix]\ndesign = 0.5\nextra_design = 0.0\n'
+                 'atom_tuples = 0.2\njittered_atoms = 0.2\n')
+    rc, out, err = run_main(["library", "supercells", p], capsys)
+    assert rc == 2 and len(err) == 1 and "mix" in err[0] and not list(tmp_path.glob("*.npz*"))
+    p.write_text('[table]\nlibrary = "x.npz"\ndesign = "d.toml"\nsupercells = nan\n')
+    rc, out, err = run_main(["library", "supercells", p], capsys)
+    assert rc == 2 and len(err) == 1 and "table.supercells" in err[0]
