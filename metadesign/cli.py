@@ -37,7 +37,7 @@ def _stage_modules():
 
 
 #: historical spellings: ``design RECIPE`` = ``design build RECIPE``, ``layout DESIGN`` = ``layout write DESIGN``
-_DEFAULT_ACTIONS = {"design": ("build", ("build", "plot", "show")),
+_DEFAULT_ACTIONS = {"design": ("build", ("build", "plot", "show", "compensate")),
                     "layout": ("write", ("write", "verify", "preview"))}
 
 

@@ -244,3 +244,81 @@ def test_supercell_recipe_refuses_bad_mix(tmp_path, capsys):
     p.write_text('[table]\nlibrary = "x.npz"\ndesign = "d.toml"\nsupercells = nan\n')
     rc, out, err = run_main(["library", "supercells", p], capsys)
     assert rc == 2 and len(err) == 1 and "table.supercells" in err[0]
+
+
+def test_pair_tables_reproduce_the_network(paper_library):
+    """The discretizer's look-up path (pair tables over an atom set) equals running the network."""
+    import torch
+
+    from metadesign.library.coupling import pair_tables, tuple_t
+
+    torch.manual_seed(5)
+    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.mul_(3.0)
+    aw = np.random.default_rng(2).uniform(0.12e-6, 0.48e-6, size=(9, 2))
+    ta, _, _ = interpolate_t(paper_library, aw[:, 0], aw[:, 1])
+    tab = pair_tables(m, aw, ta)
+    a = np.random.default_rng(3).integers(0, 9, size=(40, 2, 2))
+    want = coupling_t(m, aw[a], ta[a])
+    np.testing.assert_allclose(tuple_t(tab, ta, a), want, atol=3e-6)
+    assert np.abs(want - ta[a].mean((1, 2))).mean() > 1e-2
+
+
+def test_compensation_descends_and_its_updates_are_exact(paper_library):
+    """The discretizer's incremental look-ups give exactly the pair-table t of the atoms it ends on; no
+    supercell's cost rises; its cost never beats the brute-force optimum over every 4-tuple."""
+    import itertools
+
+    import torch
+
+    from metadesign.design.compensate import _descend, atom_neighbours
+    from metadesign.library.coupling import pair_tables, tuple_t
+
+    torch.manual_seed(8)
+    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.mul_(3.0)
+    rng = np.random.default_rng(4)
+    aw = rng.uniform(0.15e-6, 0.45e-6, size=(6, 2))
+    ta, _, _ = interpolate_t(paper_library, aw[:, 0], aw[:, 1])
+    ta = ta.astype(np.complex64)
+    tab = pair_tables(m, aw, ta)
+    a0 = rng.integers(0, 6, size=(30, 2, 2))
+    S = (np.exp(1j * rng.uniform(-np.pi, np.pi, size=(30, 2))) * 0.5).astype(np.complex64)
+    a = a0.copy()
+    t = _descend(a, S, tab, ta, atom_neighbours(np.angle(ta), 6), sweeps=3)
+    np.testing.assert_allclose(t, tuple_t(tab, ta, a), atol=1e-5)
+    cost = lambda tt: (np.abs(tt - S) ** 2).sum(-1)  # noqa: E731
+    assert (cost(t) <= cost(tuple_t(tab, ta, a0)) + 1e-6).all()
+    assert (a != a0).any()
+    every = np.array(list(itertools.product(range(6), repeat=4))).reshape(-1, 2, 2)
+    tt = tuple_t(tab, ta, every)
+    best = np.array([(np.abs(tt - S[k]) ** 2).sum(-1).min()
+                     for k in range(30)])
+    assert (cost(t) >= best - 1e-6).all()
+
+
+def test_pair_model_pupil_rows_by_tables_equal_the_network(paper_library):
+    """Without jitter the coupled rows come from pair tables over the atoms; with jitter 0 vs a jitter so
+    small it changes nothing, the network path gives the same pillars."""
+    import torch
+
+    from metadesign.sensing.transmission import Perturbation, couple_supercells, pillar_transmission
+
+    torch.manual_seed(6)
+    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.mul_(3.0)
+    rng = np.random.default_rng(10)
+    atoms = rng.uniform(130, 470, size=(10, 2)).round()
+    im = rng.integers(0, 10, size=(8, 8)).astype(np.int32)
+    t_tab, _ = pillar_transmission(im, atoms, paper_library, Perturbation(), coupling=m)
+    t0, _ = pillar_transmission(im, atoms, paper_library)
+    w = atoms[im] * 1e-9
+    t_net = couple_supercells(t0, w, im >= 0, m)  # no atom table: the network per supercell
+    np.testing.assert_allclose(t_tab, t_net, atol=3e-6)
+    assert np.abs(t_tab - t0).max() > 1e-3

@@ -36,7 +36,8 @@ from .locate import file_sha256
 from .store import UnitCellLibrary
 
 __all__ = ["CouplingConfig", "build_coupling", "coupling_t", "lpa_t", "save_coupling", "load_coupling",
-           "is_coupling", "CARD_FORMAT", "transpose_supercells", "unit_rms", "relative_error", "fit_coupling", "pillar_terms", "find_coupling"]
+           "is_coupling", "CARD_FORMAT", "transpose_supercells", "unit_rms", "relative_error", "fit_coupling", "pillar_terms", "find_coupling",
+           "pair_tables", "tuple_t"]
 
 CARD_FORMAT = "metadesign.coupling/1"
 W0, WS = 0.3e-6, 0.2e-6
@@ -47,6 +48,9 @@ class CouplingConfig:
     hidden: int = 96
     layers: int = 3
     ensemble: int = 1
+    #: "environment": G sees a pillar and its three neighbours at once; "pair": a sum of two-body terms
+    #: G(f_i, f_j, kind) over the row, column and diagonal neighbour (fewer inputs, less data needed)
+    interaction: str = "environment"
 
 
 def transpose_supercells(widths: np.ndarray) -> np.ndarray:
@@ -64,7 +68,7 @@ def _torch_model(cfg: CouplingConfig, lib: UnitCellLibrary):
             self.cfg = cfg
             self.nets = nn.ModuleList()
             for _ in range(cfg.ensemble):
-                mods, d = [], 24
+                mods, d = [], 24 if cfg.interaction == "environment" else 15
                 for _ in range(cfg.layers - 1):
                     mods += [nn.Linear(d, cfg.hidden), nn.SiLU()]
                     d = cfg.hidden
@@ -115,10 +119,24 @@ def _torch_model(cfg: CouplingConfig, lib: UnitCellLibrary):
             correction is their mean), at the pillar's own place ``[r, c]``."""
             out = []
             for pol in (0, 1):
-                env, own = self.environments(self.features(widths, tu, pol))
-                x = torch.cat([env, own], 1)  # (n, 8, 24)
-                g = sum(net(x) for net in self.nets) / len(self.nets)
-                d = (g[:, :4] - g[:, 4:]).reshape(-1, 2, 2, 2)
+                f = self.features(widths, tu, pol)
+                if self.cfg.interaction == "environment":
+                    env, own = self.environments(f)
+                    x = torch.cat([env, own], 1)  # (n, 8, 24)
+                    g = sum(net(x) for net in self.nets) / len(self.nets)
+                    d = (g[:, :4] - g[:, 4:]).reshape(-1, 2, 2, 2)
+                else:
+                    n = f.shape[0]
+                    fi = f.reshape(n, 4, 6)
+                    xs = []
+                    for kind, fj in enumerate((f.flip(2), f.flip(1), f.flip(1).flip(2))):
+                        oh = torch.zeros(n, 4, 3, dtype=f.dtype)
+                        oh[..., kind] = 1
+                        xs += [torch.cat([fi, fj.reshape(n, 4, 6), oh], -1), torch.cat([fi, fi, oh], -1)]
+                    x = torch.cat(xs, 1)  # (n, 24, 15): [pair, own] for each kind
+                    g = sum(net(x) for net in self.nets) / len(self.nets)
+                    g = g.reshape(n, 3, 2, 4, 2)
+                    d = (g[:, :, 0] - g[:, :, 1]).sum(1).reshape(-1, 2, 2, 2)
                 out.append(d if pol == 0 else d.transpose(1, 2))  # y: back from the transposed supercell
             return torch.stack(out, 3)
 
@@ -312,3 +330,46 @@ def find_coupling(lib: UnitCellLibrary, path: str | Path | None = None):
                 return m, card, w
     raise ValidationError(f"no supercell coupling model fitted against this library (sha256 {lib.identity[:12]}) "
                           "was found in library/; fit one (metadesign library coupling) or pass its path")
+
+
+def pair_tables(model, widths: np.ndarray, t_atoms: np.ndarray) -> np.ndarray:
+    """For a pair model and a finite set of pillars (an atom table: widths (A, 2) m, library ``t`` (A, 2)):
+    ``P[kind, pol, a, b]`` (3, 2, A, A) complex64, the term of pillar ``a`` from neighbour ``b`` in the
+    supercell's frame (kind 0: the other pillar of its row, 1: of its column, 2: the diagonal one), so that
+    any supercell of those pillars is a few look-ups (:func:`tuple_t`): a discretizer searches atom
+    4-tuples without running the network."""
+    import torch
+
+    if model.cfg.interaction != "pair":
+        raise ValueError("pair tables need a pair-interaction coupling model")
+    A = len(widths)
+    u = torch.from_numpy(((np.asarray(widths) - W0) / WS).astype(np.float32))
+    t = np.asarray(t_atoms)
+    tt = torch.from_numpy(np.stack([t.real, t.imag], -1).astype(np.float32))  # (A, 2 pol, 2)
+    out = np.zeros((3, 2, A, A), np.complex64)
+    with torch.no_grad():
+        for pol in (0, 1):
+            f = (torch.cat([u, tt[:, 0], tt[:, 1]], -1) if pol == 0
+                 else torch.cat([u.flip(-1), tt[:, 1], tt[:, 0]], -1))  # (A, 6)
+            for kind in range(3):
+                oh = torch.zeros(A, A, 3)
+                oh[..., kind] = 1
+                fa, fb = f[:, None].expand(A, A, 6), f[None, :].expand(A, A, 6)
+                own = torch.cat([fa, fa, oh], -1)
+                pair = torch.cat([fa, fb, oh], -1)
+                g = sum(net(pair) - net(own) for net in model.nets) / len(model.nets)
+                # the y-polarised term was computed on the transposed supercell: its row is our column
+                k_orig = kind if pol == 0 or kind == 2 else 1 - kind
+                out[k_orig, pol] = (g[..., 0] + 1j * g[..., 1]).numpy()
+    return out
+
+
+def tuple_t(tables: np.ndarray, t_atoms: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """(n, 2) supercell ``t`` of atom 4-tuples ``a`` (n, 2, 2) int (``a[:, r, c]``) from :func:`pair_tables`."""
+    a = np.asarray(a)
+    a00, a01, a10, a11 = a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1]
+    out = (t_atoms[a00] + t_atoms[a01] + t_atoms[a10] + t_atoms[a11]).astype(np.complex64)
+    for i, h, v, d in ((a00, a01, a10, a11), (a01, a00, a11, a10), (a10, a11, a00, a01), (a11, a10, a01, a00)):
+        for p in (0, 1):
+            out[:, p] += tables[0, p, i, h] + tables[1, p, i, v] + tables[2, p, i, d]
+    return out / 4

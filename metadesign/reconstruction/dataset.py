@@ -94,6 +94,10 @@ SECTIONS = (
         Param("height_gradient_nm", float, 0.0, lo=-500, hi=500),
         Param("sidewall_gradient_deg", float, 0.0, lo=-30, hi=30),
         Param("fab_library", str, None, help="library with height / sidewall axes (relative to the recipe)"),
+        Param("coupling", str, None, choices=("lpa", "supercell"),
+              help="supercell coupling of the pillars (default: the sensing recipe's pupil.coupling)"),
+        Param("coupling_model", str, None, help="the coupling model (relative to the recipe; default: the one "
+                                                "fitted against the layout's library)"),
     ), optional=True),
 )
 
@@ -535,8 +539,15 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     layout = ensure_layout(recipe, log)
     layout_sha = file_sha256(layout)
     fab = AsFabricated.from_files(layout)
-    if sensing.coupling != "lpa":
-        fab = fab.with_coupling(sensing.coupling, sensing.coupling_model)
+    kind = f["coupling"] or sensing.coupling
+    cmodel = sensing.coupling_model
+    if f["coupling_model"]:
+        if kind != "supercell":
+            raise ValidationError('fabrication.coupling_model: needs coupling = "supercell"')
+        cmodel = Path(f["coupling_model"])
+        cmodel = cmodel if cmodel.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / cmodel
+    if kind != "lpa":
+        fab = fab.with_coupling(kind, cmodel)
     check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
     if pert.has_fab_axes:
         if not f["fab_library"]:

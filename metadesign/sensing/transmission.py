@@ -183,20 +183,24 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     if want and rows is not None and (rows.start or 0) % 2:
         raise ValueError("coupled transmission needs row tiles that start on a supercell (even) row")
     if pert.has_fab_axes:
-        t, clamped, w = _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng, fab_lib,
-                                                 want)
+        t, clamped, w, atoms = _pillar_transmission_fab(im, index_map.shape[1], atom_widths_nm, lib, pert, rng,
+                                                        fab_lib, want)
     else:
-        t, clamped, w = _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want)
+        t, clamped, w, atoms = _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want)
     if want:
-        t = couple_supercells(t, w, im >= 0, coupling)
+        t = couple_supercells(t, w, im >= 0, coupling, atoms=atoms)
     return t, clamped
 
 
-def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batch: int = 65536) -> np.ndarray:
+def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batch: int = 65536,
+                      atoms: tuple | None = None) -> np.ndarray:
     """``t`` (R, C, 2) of pillars with widths ``w`` (R, C, 2) m, plus each pillar's coupling term where its
     whole 2 x 2 supercell (rows 2I, 2I+1; columns 2J, 2J+1) has pillars; elsewhere (an aperture's edge,
-    empty cells) the LPA's ``t`` stays.  Supercells are evaluated in batches (bounded memory)."""
-    from ..library.coupling import pillar_terms
+    empty cells) the LPA's ``t`` stays.  Supercells are evaluated in batches (bounded memory).
+    ``atoms = (index (R, C), widths (A, 2), t (A, 2))``: the pillars are drawn from a finite table (no
+    jitter), so a pair model's terms are table look-ups (:func:`metadesign.library.coupling.pair_tables`,
+    the same numbers without running the network per supercell)."""
+    from ..library.coupling import pair_tables, pillar_terms
 
     R2, C2 = t.shape[0] // 2, t.shape[1] // 2
 
@@ -209,13 +213,35 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     if not len(idx):
         return t
     terms = np.zeros((R2 * C2, 2, 2, 2), np.complex64)
-    wb, tb = blocks(w), blocks(t)
-    for a in range(0, len(idx), batch):
-        k = idx[a:a + batch]
-        terms[k] = pillar_terms(model, wb[k], tb[k], batch)
+    if atoms is not None and getattr(model.cfg, "interaction", None) == "pair":
+        k_at, w_at, t_at = atoms
+        tab = _pair_table_cache(model, w_at, t_at, pair_tables)
+        ab = blocks(np.asarray(k_at))[idx]  # (n, 2, 2) atom of each pillar
+        for r in range(2):
+            for c in range(2):
+                own = ab[:, r, c]
+                for kind, (rr, cc) in enumerate(((r, 1 - c), (1 - r, c), (1 - r, 1 - c))):
+                    terms[idx, r, c] += tab[kind][:, own, ab[:, rr, cc]].T
+    else:
+        wb, tb = blocks(w), blocks(t)
+        for a in range(0, len(idx), batch):
+            k = idx[a:a + batch]
+            terms[k] = pillar_terms(model, wb[k], tb[k], batch)
     out = t.copy()
     out[:2 * R2, :2 * C2] += terms.reshape(R2, C2, 2, 2, 2).swapaxes(1, 2).reshape(2 * R2, 2 * C2, 2)
     return out
+
+
+_TABLES: dict = {}
+
+
+def _pair_table_cache(model, w_at, t_at, make):
+    """The pair tables of ``model`` over an atom table, kept for the row tiles of one pupil."""
+    key = (id(model), np.asarray(w_at).tobytes(), np.asarray(t_at).tobytes())
+    if key not in _TABLES:
+        _TABLES.clear()
+        _TABLES[key] = make(model, np.asarray(w_at), np.asarray(t_at))
+    return _TABLES[key]
 
 
 def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bool):
@@ -235,13 +261,13 @@ def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bo
             bad[:-1] = ((wx < lib.wx[0]) | (wx > lib.wx[-1]) | (wy < lib.wy[0]) | (wy > lib.wy[-1]))
             clamped = int(bad[k].sum())
         widths = np.stack([np.append(wx, 0.0)[k], np.append(wy, 0.0)[k]], -1) if want_widths else None
-        return t, clamped, widths
+        return t, clamped, widths, (k, np.stack([wx, wy], -1), t_atoms) if want_widths else None
     has = im >= 0
     k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng)
     t, _, clamped = interpolate_t(lib, np.where(has, wx, lib.wx[0]), np.where(has, wy, lib.wy[0]))
     t[~has] = bare
-    return t, clamped, (np.stack([wx, wy], -1) if want_widths else None)
+    return t, clamped, (np.stack([wx, wy], -1) if want_widths else None), None
 
 
 def _fab_t(lib: UnitCellLibrary, F: UnitCellLibrary, wx, wy, h, a):
@@ -276,11 +302,12 @@ def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=N
         table = np.concatenate([t_atoms.astype(np.complex64), np.full((1, 2), bare, np.complex64)])
         k = np.where(has, im, len(w))
         widths = np.stack([np.append(ax, 0.0)[k], np.append(ay, 0.0)[k]], -1) if want_widths else None
-        return table[k], int(np.append(bad, False)[k].sum()), widths
+        atoms = (k, np.stack([ax, ay], -1), t_atoms.astype(np.complex64)) if want_widths else None
+        return table[k], int(np.append(bad, False)[k].sum()), widths, atoms
     k = np.where(has, im, 0)
     wx, wy = perturb_widths(w[k, 0], w[k, 1], pert, rng if pert.jitter else None)
     h, a = _fab_axes_of(pert, lib, im.shape, cols)
     t = np.full((*im.shape, 2), bare, np.complex64)
     tt, bad = _fab_t(lib, F, wx[has], wy[has], h[has], a[has])
     t[has] = tt
-    return t, int(bad.sum()), (np.stack([wx, wy], -1) if want_widths else None)
+    return t, int(bad.sum()), (np.stack([wx, wy], -1) if want_widths else None), None

@@ -40,7 +40,7 @@ from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import interpolate_t
 from ..sensing.twin import crop_to_pupil
 
-__all__ = ["lpa_check", "matched_unit_harmonics", "sample_supercells", "perturbed_pupil", "lpa_downstream",
+__all__ = ["lpa_check", "sample_supercells", "perturbed_pupil", "lpa_downstream", "pupil_downstream",
            "plot_lpa"]
 
 
@@ -175,17 +175,27 @@ def perturbed_pupil(cp, eps: np.ndarray, model: str, seed: int = 0, supercells_p
 def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
                    seed: int = 0, log=lambda s: None) -> dict:
     """Channel metrics and the model's NPiB with the device pupil of ``dataset`` (nominal LPA) and with the
-    measured LPA error applied (both bounding models); the test samples are re-rendered from their received
-    fields through each pupil (same path, same noise draws) and corrected through their own screens."""
-    import torch
-
-    dev = load_device(dataset)
-    cp, sensor = dev.pupil, dev.sensor
-    c0, a, ng, dx, d2 = dev.geometry
+    measured LPA error applied (both bounding models)."""
+    cp = load_device(dataset).pupil
     per_block = max(1, (cp.block // 2) ** 2)
     pupils = {"nominal": cp,
               "independent": perturbed_pupil(cp, eps, "independent", seed, per_block),
               "correlated": perturbed_pupil(cp, eps, "correlated", seed)}
+    out = pupil_downstream(pupils, dataset, model_path, fab, samples, noise_percent, seed, log)
+    out["supercells_per_block"] = per_block
+    return out
+
+
+def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
+                     seed: int = 0, log=lambda s: None) -> dict:
+    """Channel metrics and the U-Net's NPiB through each of ``pupils`` (name -> coarse pupil on the grid of
+    ``dataset``'s device): the test samples are re-rendered from their received fields through each pupil
+    (same path, same noise draws) and corrected through their own screens."""
+    import torch
+
+    dev = load_device(dataset)
+    sensor = dev.sensor
+    c0, a, ng, dx, d2 = dev.geometry
     model, _ = load_model(model_path)
     model.eval()
     ds = PSFDataset(dataset, "test", limit=samples, screens=True)
@@ -194,10 +204,13 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
         ds = PSFDataset(dataset, "all", limit=samples, screens=True)
     pib = PiB(ds.scenario(), c0, a)
     items = [ds.get(j) for j in range(len(ds))]
-    e_in = [crop_to_pupil(s["received"], ng, dx, d2, c0, cp.G.shape[-1]) for s in items]
+    N = dev.pupil.G.shape[-1]
+    e_in = [crop_to_pupil(s["received"], ng, dx, d2, c0, N) for s in items]
     scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
-    out = {"samples": len(items), "noise_percent": noise_percent, "supercells_per_block": per_block}
+    out = {"samples": len(items), "noise_percent": noise_percent}
     for name, p in pupils.items():
+        if p.G.shape[-1] != N:
+            raise ValueError(f"pupil {name}: grid {p.G.shape[-1]} differs from the dataset's {N}")
         log(f"  downstream: {name} pupil ...")
         m = channel_metrics(p, sensor, fab)
         x = []
@@ -209,8 +222,8 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
             phi = model(torch.from_numpy(np.stack(x)))
             npib = pib.npib_phase(phi, scr).numpy()
         out[name] = {"npib_unet": float(npib.mean()),
-                     "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk")}
-                                  for r in m]}
+                     "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk",
+                                                     "focal_shift_mm")} for r in m]}
     rec = torch.from_numpy(np.stack([s["received"] for s in items]))
     ref = npib_rows(pib, torch.zeros(len(items), a, a), scr, rec)
     out["npib_none"] = float(ref["none"].mean())

@@ -46,6 +46,8 @@ TOLERANCE_SECTIONS = (
               help="across-wafer etch depth gradients: the error at the aperture's +x edge (need fab_library)"),
         Param("sidewall_gradient_deg", list, [], lo=-30, hi=30, help="across-wafer sidewall gradients"),
         Param("fab_library", str, None, help="library with height / sidewall axes (relative to the recipe)"),
+        Param("supercell", bool, False, help="add the case 'supercell': the nominal widths with the pillars' "
+                                             "supercell coupling (the model fitted against the library)"),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
     )),
     Section("evaluate", (
@@ -100,6 +102,8 @@ def load_tolerance_recipe(path: str | Path) -> ToleranceRecipe:
               for g in c["height_gradient_nm"] if g != 0]
     cases += [(f"sidewallgrad{g:+g}deg", 0.0, 0.0, 0.0, 0.0, 90.0, 0.0, float(g))
               for g in c["sidewall_gradient_deg"] if g != 0]
+    if c["supercell"]:
+        cases.append(("supercell", 0.0, 0.0, 0.0, *z))
     if any(x[4] or x[5] != 90 or x[6] or x[7] for x in cases) and not c["fab_library"]:
         raise ConfigError("cases.fab_library", "missing: height_nm / sidewall_deg cases need a library with fab axes")
     base = path.parent
@@ -144,6 +148,8 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
             continue
         case.mkdir(exist_ok=True)
         fab = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
+        if label == "supercell":
+            fab["coupling"] = "supercell"
         if hh or sw != 90 or hg or sg:
             fab.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg,
                         "fab_library": recipe.fab_library})
@@ -152,11 +158,13 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
         build_dataset(ds_rec, case / "dataset", workers=workers, log=log)
         res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
         key = next(iter(res["rows"]))
-        row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key)}
+        row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key),
+               "coupling": "supercell" if label == "supercell" else "lpa"}
         if hh or sw != 90 or hg or sg:
             row.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg})
         log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} (captured {row['before']['captured_fraction']:.2f})")
-        fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias)
+        fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias
+                                                             or label == "supercell")
         if fine:
             tr_rec = base_train.derive(f"finetune-{label}", {"noise_percent": recipe.noise_percent, "val_limit": 0},
                                        epochs=recipe.epochs, lr=recipe.lr, lr_halve_every=max(1, recipe.epochs),
@@ -198,8 +206,8 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
                                  gridspec_kw={"width_ratios": [3, 2]})
-    bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0 and "height_nm" not in r],
-                  key=lambda r: r["bias_nm"])
+    bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0 and "height_nm" not in r
+                   and r["case"] != "supercell"], key=lambda r: r["bias_nm"])
     x = [r["bias_nm"] for r in bias]
     a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
     fx = [r["bias_nm"] for r in bias if "after" in r or r["case"] == "nominal"]
@@ -210,7 +218,7 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
     a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
            title=f"reconstruction-level fab tolerance (noise {noise:g} %)")
     a1.legend(fontsize=8)
-    other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or "height_nm" in r]
+    other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or "height_nm" in r or r["case"] == "supercell"]
     if other:
         lab = [r["case"] for r in other]
         xx = np.arange(len(other))
@@ -220,7 +228,7 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
         if nom:
             a2.axhline(nom["before"]["npib_unet"], color="k", ls="--", lw=1, label="nominal device")
         a2.set_xticks(xx, lab, rotation=20)
-        a2.set(ylabel="mean NPiB", title="jitter, corner rounding, etch depth, sidewall")
+        a2.set(ylabel="mean NPiB", title="jitter, corner rounding, etch depth, sidewall, coupling")
         a2.legend(fontsize=8)
     else:
         a2.axis("off")
