@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_path, atomic_write_text
+from ..paths import repo_root
 from ..validation import ValidationError
 from .locate import file_sha256
 from .store import UnitCellLibrary
@@ -313,8 +314,6 @@ def fit_coupling(lib: UnitCellLibrary, widths: np.ndarray, t_ref: np.ndarray, cf
 def find_coupling(lib: UnitCellLibrary, path: str | Path | None = None):
     """``(model, card, path)``: the coupling model at ``path``, else the one fitted against ``lib`` (its
     sha256) among the cards in the products' ``library/`` folder and the working directory."""
-    from ..paths import repo_root
-
     if path is not None:
         m, card = load_coupling(path, lib)
         return m, card, Path(path)

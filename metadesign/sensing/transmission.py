@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..library.coupling import pair_tables, pillar_terms
 from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
@@ -200,8 +201,6 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     ``atoms = (index (R, C), widths (A, 2), t (A, 2))``: the pillars are drawn from a finite table (no
     jitter), so a pair model's terms are table look-ups (:func:`metadesign.library.coupling.pair_tables`,
     the same numbers without running the network per supercell)."""
-    from ..library.coupling import pair_tables, pillar_terms
-
     R2, C2 = t.shape[0] // 2, t.shape[1] // 2
 
     def blocks(a):  # (R, C, ...) -> (R2 * C2, 2, 2, ...) as [supercell, r, c]
