@@ -345,9 +345,9 @@ def _cmd_coupling(a: argparse.Namespace) -> int:
     lib = load_library(lib_path)
     out = Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-coupling.safetensors")
     log = log_to(a.json)
-    cfg = CouplingConfig(a.hidden, a.layers, a.ensemble)
+    cfg = CouplingConfig(a.hidden, a.layers, a.ensemble, a.interaction)
     log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
-    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, log=log)
+    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, weight_decay=a.weight_decay, log=log)
     fig = plot_coupling(rep, out.with_suffix(".png"))
     rep.pop("_e"), rep.pop("_e_lpa")
     card = {"certification": rep, "table": {"path": tp.name, "sha256": file_sha256(tp)}, "figure": fig.name,
@@ -537,6 +537,11 @@ def register(sub, groups: dict) -> None:
     cp.add_argument("--hidden", type=integer(4, 4096), default=96, help="hidden width of the network (96)")
     cp.add_argument("--layers", type=integer(2, 16), default=3, help="layers of the network (3)")
     cp.add_argument("--ensemble", type=integer(1, 64), default=1, help="networks averaged (1)")
+    cp.add_argument("--interaction", choices=("pair", "environment"), default="pair",
+                    help="pair: two-body terms over the row, column and diagonal neighbour (a design's pupil "
+                    "becomes table look-ups, and `design compensate` needs it); environment: one term sees all "
+                    "three neighbours (default pair)")
+    cp.add_argument("--weight-decay", type=num(0, 1), default=1e-3, help="Adam weight decay (1e-3)")
     cp.add_argument("--seed", type=integer(0, 2**31 - 1), default=0)
     cp.add_argument("-o", "--output", help="weights file (default: TABLE's name with -coupling.safetensors)")
     cp.add_argument("--json", action="store_true", help="print the report as JSON")

@@ -210,7 +210,8 @@ def _stats(e: np.ndarray) -> dict:
 
 
 def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: CouplingConfig = CouplingConfig(),
-                     steps: int = 4000, seed: int = 0, goal=(0.05, 0.1), log=lambda s: None) -> tuple[object, dict]:
+                     steps: int = 4000, seed: int = 0, goal=(0.05, 0.1), weight_decay: float = 1e-3,
+                     log=lambda s: None) -> tuple[object, dict]:
     """Fit the coupling model on the first ``n`` fitting rows of the table for each ``n`` in ``sizes``
     (a learning curve) and certify each fit on every held-out row (never fitted, never used to pick a
     step); returns the model of the largest size and the report.  Error: ``|t - t_RCWA| / rms_i |t_i|``."""
@@ -230,7 +231,8 @@ def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: Co
         rows = fit_rows[:n]
         t0 = time.perf_counter()
         log(f"  fitting on {n} supercells ...")
-        model, info = fit_coupling(lib, table.widths[rows], table.t[rows], cfg, steps=steps, seed=seed, log=log)
+        model, info = fit_coupling(lib, table.widths[rows], table.t[rows], cfg, steps=steps, seed=seed,
+                                   weight_decay=weight_decay, log=log)
         e = relative_error(coupling_t(model, w_te, tu_te), t_te, tu_te)
         curve.append({"supercells": n, "held_out": _stats(e), "fit_seconds": time.perf_counter() - t0,
                       "best_validation_error": info["best_validation_error"], "_e": e, "_info": info})
