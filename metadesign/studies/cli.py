@@ -533,8 +533,8 @@ def register(sub, groups: dict) -> None:
     cp.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")
     cp.add_argument("--sizes", type=integer(10, 10_000_000), nargs="+", default=[250, 500, 1000],
                     help="fitting rows of the learning curve (default 250 500 1000; the last is the model)")
-    cp.add_argument("--steps", type=integer(1, 10_000_000), default=4000, help="optimiser steps per fit (4000)")
-    cp.add_argument("--hidden", type=integer(4, 4096), default=96, help="hidden width of the network (96)")
+    cp.add_argument("--steps", type=integer(1, 10_000_000), default=2000, help="optimiser steps per fit (2000)")
+    cp.add_argument("--hidden", type=integer(4, 4096), default=32, help="hidden width of the network (32)")
     cp.add_argument("--layers", type=integer(2, 16), default=3, help="layers of the network (3)")
     cp.add_argument("--ensemble", type=integer(1, 64), default=1, help="networks averaged (1)")
     cp.add_argument("--interaction", choices=("pair", "environment"), default="pair",
