@@ -23,13 +23,14 @@ import os
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
 
 from .config import InputError
 
-__all__ = ["atomic_path", "atomic_write_text", "write_npz", "read_npz", "read_product", "json_array",
+__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "iter_npz_rows", "read_npz", "read_product", "json_array",
            "from_json_array", "output_lock", "check_replaceable", "check_not_input", "lock_path"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -78,23 +79,77 @@ def from_json_array(arr: np.ndarray):
     return json.loads(str(arr.reshape(-1)[0]))
 
 
-def write_npz(target: str | Path, arrays: Mapping[str, np.ndarray], compress: bool = True) -> None:
-    """Atomically write ``arrays`` as a byte-reproducible ``.npz``."""
+@dataclass(frozen=True)
+class StreamedArray:
+    """An array :func:`write_npz` writes from ``chunks`` (C-order blocks along axis 0, in order) without
+    holding it: the same bytes as the whole array (the zip entry's sizes are planned from ``shape``)."""
+
+    shape: tuple
+    dtype: object
+    chunks: Iterable
+
+
+def write_npz(target: str | Path, arrays: Mapping[str, object], compress: bool = True) -> None:
+    """Atomically write ``arrays`` as a byte-reproducible ``.npz``.  A value may be a
+    :class:`StreamedArray` (written block by block) or a callable returning the array (called when its
+    turn comes, in name order: metadata made while an earlier array streams)."""
     comp = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with atomic_path(target) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=comp) as zf:
             for name in sorted(arrays):
-                arr = np.asarray(arrays[name])
+                arr = arrays[name]
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+                info.compress_type = comp
+                info.external_attr = 0o644 << 16
+                if isinstance(arr, StreamedArray):
+                    _write_streamed(zf, info, arr)
+                    continue
+                arr = np.asarray(arr() if callable(arr) else arr)
                 if arr.dtype == object:
                     raise TypeError(f"array {name!r} has dtype object (would need pickle)")
                 buf = io.BytesIO()
                 if not arr.flags.c_contiguous:  # (ascontiguousarray would make 0-d arrays 1-d)
                     arr = np.ascontiguousarray(arr)
                 np.lib.format.write_array(buf, arr, allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-                info.compress_type = comp
-                info.external_attr = 0o644 << 16
                 zf.writestr(info, buf.getvalue())
+
+
+def _write_streamed(zf: zipfile.ZipFile, info: zipfile.ZipInfo, sa: StreamedArray) -> None:
+    dt = np.dtype(sa.dtype)
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": np.lib.format.dtype_to_descr(dt),
+                                                "fortran_order": False, "shape": tuple(sa.shape)})
+    total = int(np.prod(sa.shape, dtype=np.int64)) * dt.itemsize
+    info.file_size = len(head.getvalue()) + total  # what writestr sets: the same zip64 choice, same bytes
+    written = 0
+    with zf.open(info, "w") as dest:
+        dest.write(head.getvalue())
+        for blk in sa.chunks:
+            b = np.ascontiguousarray(blk, dtype=dt)
+            if b.shape[1:] != tuple(sa.shape[1:]):
+                raise ValueError(f"{info.filename}: block of shape {b.shape} in an array of shape {sa.shape}")
+            dest.write(b.tobytes())
+            written += b.nbytes
+    if written != total:
+        raise ValueError(f"{info.filename}: streamed {written} bytes of {total}")
+
+
+def iter_npz_rows(path: str | Path, name: str, rows: int) -> Iterator[tuple[int, np.ndarray]]:
+    """``(row0, block)`` of array ``name`` of a ``.npz``, ``rows`` rows at a time, read sequentially
+    (memory: one block, whatever the array's size; never unpickles)."""
+    with zipfile.ZipFile(path) as zf, zf.open(f"{name}.npy") as fh:
+        version = np.lib.format.read_magic(fh)
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = reader(fh)
+        if fortran or dtype.hasobject or not shape:
+            raise InputError(f"{path}: {name} is not a C-order numeric array")
+        row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
+        for r0 in range(0, shape[0], rows):
+            r1 = min(shape[0], r0 + rows)
+            buf = fh.read((r1 - r0) * row_bytes)
+            if len(buf) != (r1 - r0) * row_bytes:
+                raise InputError(f"{path}: {name} is truncated")
+            yield r0, np.frombuffer(buf, dtype).reshape((r1 - r0, *shape[1:]))
 
 
 def read_npz(path: str | Path, what: str = "file") -> dict[str, np.ndarray]:

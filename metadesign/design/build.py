@@ -9,9 +9,9 @@ from typing import Callable
 import numpy as np
 
 from .discretize import AtomTable, Metric, NearestAtom, optimal_offsets
-from .phase import SupercellSpec, aperture_mask, aperture_mask_rows, design_phase, design_phase_rows, wrap
+from .phase import SupercellSpec, aperture_mask, design_phase, wrap
 
-__all__ = ["DesignResult", "discretize_design", "empty_index", "OFFSET_GRID"]
+__all__ = ["DesignResult", "DesignStream", "map_rows", "accumulate", "discretize_design", "empty_index", "OFFSET_GRID"]
 
 OFFSET_GRID = 256  # resolution of the constant-offset search (2 pi / 256 = 0.025 rad)
 
@@ -51,6 +51,133 @@ def _phase_sample(spec: SupercellSpec, idx: np.ndarray):
             design_phase(spec, 1, idx, idx, wrapped=False)[keep])
 
 
+def map_rows(spec: SupercellSpec, atoms: AtomTable, mapper, offsets, dtype, empty, r0: int, r1: int,
+             c0: int = 0, c1: int | None = None):
+    """Rows ``r0:r1`` (columns ``c0:c1``) of the index map and their error sums ``(sse, peak, eff,
+    count, used)``: the kernel of the discretizer, whole-array or tiled."""
+    c1 = spec.n_cells if c1 is None else c1
+    iy, ix = np.arange(r0, r1), np.arange(c0, c1)
+    ax = design_phase(spec, 0, iy, ix, offsets[0])
+    ay = design_phase(spec, 1, iy, ix, offsets[1])
+    k = mapper(ax, ay)
+    mask = aperture_mask(spec, iy, ix)
+    if mask is not None:
+        k_in, ax, ay = k[mask], ax[mask], ay[mask]
+    else:
+        k_in = k.ravel()
+        ax, ay = ax.ravel(), ay.ravel()
+    ph = atoms.phase
+    sse, peak, eff = np.zeros(2), np.zeros(2), np.zeros(2)
+    for p, a in ((0, ax), (1, ay)):
+        e = wrap(ph[k_in, p] - a)
+        sse[p] = float(np.dot(e, e))
+        if e.size:
+            peak[p] = float(np.abs(e).max())
+        eff[p] = float(atoms.T0[k_in, p].sum())
+    used = np.bincount(k_in, minlength=len(atoms))[:len(atoms)]
+    blk = k.astype(dtype)
+    if mask is not None:
+        blk[~mask] = empty
+    return blk, (sse, peak, eff, int(k_in.size), used)
+
+
+def accumulate(total, part):
+    """Sum two ``(sse, peak, eff, count, used)`` in order (the same floats, whatever the tiling of the
+    rows into tasks: sums run in row order)."""
+    sse, peak, eff, count, used = total
+    s2, p2, e2, c2, u2 = part
+    return sse + s2, np.maximum(peak, p2), eff + e2, count + c2, used + u2
+
+
+class DesignStream:
+    """The discretization of a design as a stream of ``tile_rows``-row blocks of the index map
+    (iterate once): peak memory is one block, whatever the aperture.  After the iteration
+    :meth:`result` has the metrics; :func:`discretize_design` is this stream collected."""
+
+    def __init__(self, spec: SupercellSpec, atoms: AtomTable, metric: Metric = Metric.PHASE,
+                 optimise_offsets: bool = True, tile_rows: int = 256,
+                 progress: Callable[[int, int], None] | None = None):
+        t0 = time.perf_counter()
+        self.t0, self.spec, self.atoms, self.metric = t0, spec, atoms, metric
+        self.tile_rows, self.progress = tile_rows, progress
+        n = spec.n_cells
+        self.mapper = mapper = NearestAtom(atoms, metric)
+        self.t_lut = time.perf_counter() - t0
+        # --- constant offsets (one FFT correlation on a sub-sampled histogram)
+        idx = _sample_rows(n)
+        spx, spy = _phase_sample(spec, idx)
+        offsets = (0.0, 0.0)
+        G = OFFSET_GRID
+        if optimise_offsets:
+            hx = np.floor((wrap(spx) + np.pi) * (G / (2 * np.pi))).astype(np.int64) % G
+            hy = np.floor((wrap(spy) + np.pi) * (G / (2 * np.pi))).astype(np.int64) % G
+            hist = np.bincount(hx * G + hy, minlength=G * G).reshape(G, G).astype(np.float64)
+            cx, cy, _ = optimal_offsets(hist, mapper.min_cost_grid(G))
+            offsets = (cx, cy)  # adding i * step to every phase moves bin u to bin u + i
+        self.offsets = offsets
+        # --- the other metric's figures on the same sample, for comparison
+        comparison = {}
+        for m in Metric:
+            mp = mapper if m is metric else NearestAtom(atoms, m)
+            ax, ay = wrap(spx + offsets[0]), wrap(spy + offsets[1])
+            k = mp(ax, ay)
+            ph = atoms.phase
+            ex, ey = wrap(ph[k, 0] - ax), wrap(ph[k, 1] - ay)
+            comparison[m.value] = {
+                "rmse_rad": [float(np.sqrt(np.mean(ex**2))), float(np.sqrt(np.mean(ey**2)))],
+                "mean_T0": [float(atoms.T0[k, 0].mean()), float(atoms.T0[k, 1].mean())],
+                "sampled_cells": int(ax.size),
+            }
+        self.comparison = comparison
+        self.dtype, self.empty = empty_index(len(atoms), spec.bounded)
+        self.shape = (n, n)
+        self._done = False
+
+    def __iter__(self):
+        if self._done:
+            raise RuntimeError("a DesignStream is iterated once")
+        spec, atoms, n = self.spec, self.atoms, self.spec.n_cells
+        sse, peak, eff = np.zeros(2), np.zeros(2), np.zeros(2)
+        used = np.zeros(len(atoms), np.int64)
+        count = 0
+        offsets, empty = self.offsets, self.empty
+        self.t_map = time.perf_counter()
+        for r0 in range(0, n, self.tile_rows):
+            r1 = min(n, r0 + self.tile_rows)
+            blk, st = map_rows(spec, atoms, self.mapper, offsets, self.dtype, empty, r0, r1)
+            sse, peak, eff, count, used = accumulate((sse, peak, eff, count, used), st)
+            yield r0, blk
+            if self.progress:
+                self.progress(r1, n)
+        self._stats = (sse, peak, eff, count, used)
+        self._done = True
+
+    def result(self, index_map: np.ndarray | None = None) -> DesignResult:
+        if not self._done:
+            raise RuntimeError("iterate the DesignStream before asking for its result")
+        sse, peak, eff, count, used = self._stats
+        atoms = self.atoms
+        metrics = {
+            "metric": self.metric.value,
+            "n_cells": int(self.spec.n_cells ** 2),
+            "n_cells_in_aperture": int(count),
+            "rmse_rad": (np.sqrt(sse / max(count, 1))).tolist(),
+            "peak_error_rad": peak.tolist(),
+            "mean_T0": (eff / max(count, 1)).tolist(),
+            "phase_offsets_rad": list(self.offsets),
+            "n_atoms": int(len(atoms)),
+            "n_atoms_used": int((used > 0).sum()),
+            "n_empty_bins": atoms.n_empty_bins,
+            "n_kept_library_cells": atoms.n_kept_cells,
+            "lut_unsafe_fraction": self.mapper.unsafe_fraction,
+            "comparison_on_sample": self.comparison,
+        }
+        now = time.perf_counter()
+        seconds = {"lookup_table": self.t_lut, "mapping": now - self.t_map, "total": now - self.t0}
+        return DesignResult(index_map=index_map, offsets=self.offsets, empty=self.empty, metrics=metrics,
+                            seconds=seconds)
+
+
 def discretize_design(
     spec: SupercellSpec,
     atoms: AtomTable,
@@ -59,88 +186,13 @@ def discretize_design(
     tile_rows: int = 256,
     progress: Callable[[int, int], None] | None = None,
 ) -> DesignResult:
-    """Map every cell's design pair to an atom; accumulate error metrics."""
-    t0 = time.perf_counter()
-    n = spec.n_cells
-    mapper = NearestAtom(atoms, metric)
-    t_lut = time.perf_counter() - t0
-    # --- constant offsets (one FFT correlation on a sub-sampled histogram)
-    idx = _sample_rows(n)
-    spx, spy = _phase_sample(spec, idx)
-    offsets = (0.0, 0.0)
-    G = OFFSET_GRID
-    if optimise_offsets:
-        hx = np.floor((wrap(spx) + np.pi) * (G / (2 * np.pi))).astype(np.int64) % G
-        hy = np.floor((wrap(spy) + np.pi) * (G / (2 * np.pi))).astype(np.int64) % G
-        hist = np.bincount(hx * G + hy, minlength=G * G).reshape(G, G).astype(np.float64)
-        cx, cy, _ = optimal_offsets(hist, mapper.min_cost_grid(G))
-        offsets = (cx, cy)  # adding i * step to every phase moves bin u to bin u + i
-    # --- the other metric's figures on the same sample, for comparison
-    comparison = {}
-    for m in Metric:
-        mp = mapper if m is metric else NearestAtom(atoms, m)
-        ax, ay = wrap(spx + offsets[0]), wrap(spy + offsets[1])
-        k = mp(ax, ay)
-        ph = atoms.phase
-        ex, ey = wrap(ph[k, 0] - ax), wrap(ph[k, 1] - ay)
-        comparison[m.value] = {
-            "rmse_rad": [float(np.sqrt(np.mean(ex**2))), float(np.sqrt(np.mean(ey**2)))],
-            "mean_T0": [float(atoms.T0[k, 0].mean()), float(atoms.T0[k, 1].mean())],
-            "sampled_cells": int(ax.size),
-        }
-
-    dtype, empty = empty_index(len(atoms), spec.bounded)
-    index_map = np.empty((n, n), dtype)
-    sse = np.zeros(2)
-    peak = np.zeros(2)
-    eff = np.zeros(2)
-    count = 0
-    ph = atoms.phase
-    t_map = time.perf_counter()
-    for r0 in range(0, n, tile_rows):
-        r1 = min(n, r0 + tile_rows)
-        ax = design_phase_rows(spec, 0, r0, r1, offset=offsets[0])
-        ay = design_phase_rows(spec, 1, r0, r1, offset=offsets[1])
-        k = mapper(ax, ay)
-        mask = aperture_mask_rows(spec, r0, r1)
-        if mask is not None:
-            k_in, ax, ay = k[mask], ax[mask], ay[mask]
-        else:
-            k_in = k.ravel()
-            ax, ay = ax.ravel(), ay.ravel()
-        for p, a in ((0, ax), (1, ay)):
-            e = wrap(ph[k_in, p] - a)
-            sse[p] += float(np.dot(e, e))
-            if e.size:
-                peak[p] = max(peak[p], float(np.abs(e).max()))
-            eff[p] += float(atoms.T0[k_in, p].sum())
-        count += k_in.size
-        blk = k.astype(dtype)
-        if mask is not None:
-            blk[~mask] = empty
-        index_map[r0:r1] = blk
-        if progress:
-            progress(r1, n)
-    elapsed = time.perf_counter() - t0
-    used = np.bincount(index_map[index_map != empty].ravel() if empty is not None else index_map.ravel(),
-                       minlength=len(atoms))
-    metrics = {
-        "metric": metric.value,
-        "n_cells": int(n * n),
-        "n_cells_in_aperture": int(count),
-        "rmse_rad": (np.sqrt(sse / max(count, 1))).tolist(),
-        "peak_error_rad": peak.tolist(),
-        "mean_T0": (eff / max(count, 1)).tolist(),
-        "phase_offsets_rad": list(offsets),
-        "n_atoms": int(len(atoms)),
-        "n_atoms_used": int((used > 0).sum()),
-        "n_empty_bins": atoms.n_empty_bins,
-        "n_kept_library_cells": atoms.n_kept_cells,
-        "lut_unsafe_fraction": mapper.unsafe_fraction,
-        "comparison_on_sample": comparison,
-    }
-    seconds = {"lookup_table": t_lut, "mapping": time.perf_counter() - t_map, "total": elapsed}
-    return DesignResult(index_map=index_map, offsets=offsets, empty=empty, metrics=metrics, seconds=seconds)
+    """Map every cell's design pair to an atom; accumulate error metrics (the whole index map in memory;
+    :class:`DesignStream` for one block at a time)."""
+    st = DesignStream(spec, atoms, metric, optimise_offsets, tile_rows, progress)
+    index_map = np.empty(st.shape, st.dtype)
+    for r0, blk in st:
+        index_map[r0:r0 + len(blk)] = blk
+    return st.result(index_map)
 
 
 def discretized_phase(index_map: np.ndarray, atoms: AtomTable, pol: int, empty: int | None = None) -> np.ndarray:
