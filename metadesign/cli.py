@@ -38,7 +38,7 @@ def _stage_modules():
 
 #: historical spellings: ``design RECIPE`` = ``design build RECIPE``, ``layout DESIGN`` = ``layout write DESIGN``
 _DEFAULT_ACTIONS = {"design": ("build", ("build", "plot", "show", "compensate")),
-                    "layout": ("write", ("write", "verify", "preview"))}
+                    "layout": ("write", ("write", "verify", "preview", "tiled"))}
 
 
 def _legacy(argv: list[str]) -> list[str]:

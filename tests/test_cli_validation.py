@@ -60,6 +60,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("design", "plot"): [d, "-o", str(out / "s2.png")],
         ("layout", "write"): [d, "-o", str(out / "lay")],
         ("layout", "verify"): [lay],
+        ("layout", "tiled"): [str(REPO / "layouts" / "demo.toml"), "-o", str(out / "tl"), "--tile", "256", "-j", "1"],
         ("layout", "preview"): [lay, "-o", str(out / "prev.png")],
         ("psf",): [lay, "--sensor", sen, "-o", str(out / "psf")],
         ("fab-study",): [lay, "--sensor", sen, "--bias-nm", "0", "-o", str(out / "fs")],

@@ -31,7 +31,8 @@ from .discretize import AtomTable, select_atoms
 from .phase import LensChannel, SupercellSpec
 from .recipe import DesignRecipe
 
-__all__ = ["Design", "run_design", "save_design", "load_design", "DESIGN_FORMAT", "check_library"]
+__all__ = ["Design", "run_design", "save_design", "load_design", "DESIGN_FORMAT", "check_library", "design_meta",
+           "select_recipe_atoms", "design_memory_bytes"]
 
 DESIGN_FORMAT = "metadesign.design/1"
 
@@ -81,24 +82,21 @@ def _spec_from_dict(d: dict) -> SupercellSpec:
                          d.get("aperture_wkt"))
 
 
-def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
-               progress: Callable[[int, int], None] | None = None) -> tuple[Design, Path]:
-    """Validate against the library, select atoms, discretize, write the design."""
-    out = Path(out_dir or recipe.default_output())
-    check_memory("this design", design_memory_bytes(recipe.spec.n_cells),
-                 "lower design.aperture_mm or raise design.period_um")
-    lib = load_library(recipe.library_path)
-    check_library(recipe, lib)
+def select_recipe_atoms(recipe: DesignRecipe, lib: UnitCellLibrary) -> AtomTable:
+    """The recipe's atom table: the library's cells above the threshold, binned on the phase torus."""
     n_sup = lib.meta["stack"]["n_superstrate"]
     n_sub = lib.meta["stack"]["n_substrate"]
     try:
-        atoms = select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, recipe.threshold, recipe.bins,
-                             tn_scale=float(np.sqrt(n_sup / n_sub)))
+        return select_atoms(lib.t_x, lib.t_y, lib.T0, lib.wx, lib.wy, recipe.threshold, recipe.bins,
+                            tn_scale=float(np.sqrt(n_sup / n_sub)))
     except ValueError as exc:
         raise ConfigError("discretizer.transmission_threshold", str(exc)) from None
-    res: DesignResult = discretize_design(recipe.spec, atoms, recipe.metric, recipe.optimise_offsets,
-                                          recipe.tile_rows, progress)
-    meta = {
+
+
+def design_meta(recipe: DesignRecipe, lib: UnitCellLibrary, atoms: AtomTable, offsets, empty, metrics,
+                out: Path) -> dict:
+    """The design file's metadata (``metrics`` may be filled in later, by a streamed build)."""
+    return {
         "format": DESIGN_FORMAT,
         "version": __version__,
         "name": recipe.name,
@@ -109,9 +107,9 @@ def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
                     "n_harmonics": lib.meta["solver"]["n_harmonics"]},
         "discretizer": {"threshold": recipe.threshold, "bins": recipe.bins, "metric": recipe.metric.value,
                         "tn_scale": atoms.tn_scale},
-        "phase_offsets_rad": list(res.offsets),
-        "empty_index": res.empty,
-        "metrics": res.metrics,
+        "phase_offsets_rad": list(offsets),
+        "empty_index": empty,
+        "metrics": metrics,
         "conventions": {
             "index_map": "[iy, ix]; cell (ix, iy) at x = (ix - (n-1)/2) p, y = (iy - (n-1)/2) p",
             "channel": "k = 1 + (ix mod m) + m (iy mod m); PSF of channel k at (offset_x_k, offset_y_k)",
@@ -119,6 +117,21 @@ def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
             "phase": "exp(+i phi), exp(-i omega t); converging lens phi <= 0 away from its axis",
         },
     }
+
+
+def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
+               progress: Callable[[int, int], None] | None = None) -> tuple[Design, Path]:
+    """Validate against the library, select atoms, discretize, write the design."""
+    out = Path(out_dir or recipe.default_output())
+    check_memory("this design", design_memory_bytes(recipe.spec.n_cells),
+                 "lower design.aperture_mm or raise design.period_um, or use the tiled path "
+                 "(metadesign design build --tiled)")
+    lib = load_library(recipe.library_path)
+    check_library(recipe, lib)
+    atoms = select_recipe_atoms(recipe, lib)
+    res: DesignResult = discretize_design(recipe.spec, atoms, recipe.metric, recipe.optimise_offsets,
+                                          recipe.tile_rows, progress)
+    meta = design_meta(recipe, lib, atoms, res.offsets, res.empty, res.metrics, out)
     design = Design(recipe.spec, atoms, res.index_map, res.offsets, res.metrics, meta, res.empty, res.seconds)
     save_design(out, design)
     return design, out

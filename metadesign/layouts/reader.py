@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import json
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..config import InputError
+from ..io import from_json_array, iter_npz_rows
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
 __all__ = ["LayoutContents", "read_layout", "read_layout_klayout", "verify_against_design", "drc_check",
-           "check_file"]
+           "check_file", "verify_tiled"]
 
 _OASIS_MAGIC = b"%SEMI-OASIS\r\n"
 _GDS_MAGIC = b"\x00\x06\x00\x02"
@@ -129,7 +131,16 @@ def read_layout(path: str | Path) -> LayoutContents:
     dup = off = count = 0
     # GDSII stores one SREF per pillar: group them per atom cell first
     groups: dict[int, list] = {}
-    for ref in top.references:
+    refs = []
+    for ref in top.references:  # a tiled layout (layouts.tiled) places tile cells, once each, at the origin
+        name = ref.cell.name if hasattr(ref.cell, "name") else str(ref.cell)
+        if name.startswith("TILE_") and name in cells:
+            if ref.repetition.size > 1 or tuple(ref.origin) != (0, 0):
+                raise InputError(f"{path}: tile cell {name!r} placed off the origin or repeated")
+            refs += cells[name].references
+        else:
+            refs.append(ref)
+    for ref in refs:
         name = ref.cell.name if hasattr(ref.cell, "name") else str(ref.cell)
         if not name.startswith("ATOM_"):
             raise InputError(f"{path}: unexpected reference to cell {name!r}")
@@ -205,7 +216,16 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
     xs = {a: array("q") for a in range(n_atoms)}  # compact: paper scale is 51 M instances
     ys = {a: array("q") for a in range(n_atoms)}
     count = 0
-    for inst in top.each_inst():
+    insts = []
+    for inst in top.each_inst():  # a tiled layout's tile cells, placed once each at the origin
+        name = ly.cell(inst.cell_index).name
+        if name.startswith("TILE_"):
+            if inst.size() != 1 or inst.trans.disp != kdb.Vector(0, 0):
+                raise InputError(f"{path}: tile cell {name!r} placed off the origin or repeated")
+            insts += list(ly.cell(inst.cell_index).each_inst())
+        else:
+            insts.append(inst)
+    for inst in insts:
         a = index_of.get(inst.cell_index)
         if a is None:
             raise InputError(f"{path}: unexpected instance of cell {ly.cell(inst.cell_index).name!r}")
@@ -316,3 +336,168 @@ def drc_check(lc: LayoutContents, min_feature_nm: int, min_gap_nm: int, window_c
               >= min_gap_nm and geo["width_violations"] == 0 and geo["space_violations"] == 0)
     return {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm}, "from_atom_table": table,
             "geometric_window": geo, "passed": passed}
+
+
+def _window_drc(block: np.ndarray, r0: int, c0: int, widths: np.ndarray, centres2: np.ndarray, p_nm: int,
+                x0: int, min_feature_nm: int, min_gap_nm: int) -> dict:
+    """Geometric width and space checks (KLayout regions, merged semantics off) on the pillars of
+    ``block`` (an index-map window read back from the file, -1 = none) at cell origin ``(r0, c0)``."""
+    import klayout.db as kdb
+
+    region = kdb.Region()
+    for j, i in zip(*np.nonzero(block >= 0)):
+        a = int(block[j, i])
+        cx2 = 2 * ((c0 + int(i)) * p_nm + x0) + int(centres2[a, 0])
+        cy2 = 2 * ((r0 + int(j)) * p_nm + x0) + int(centres2[a, 1])
+        ww, hh = int(widths[a, 0]), int(widths[a, 1])
+        region.insert(kdb.Box((cx2 - ww) // 2, (cy2 - hh) // 2, (cx2 - ww) // 2 + ww, (cy2 - hh) // 2 + hh))
+    region.merged_semantics = False
+    return {"pillars": region.count(), "width_violations": region.width_check(min_feature_nm).count(),
+            "space_violations": region.space_check(min_gap_nm).count()}
+
+
+def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 8, seed: int = 0,
+                 min_feature_nm: int = 100, min_gap_nm: int = 150, window_cells: int = 64,
+                 progress=None) -> dict:
+    """Verification that scales, for a tiled layout (:mod:`metadesign.layouts.tiled`, ``hierarchy =
+    "tiles"``): KLayout (viewer mode: repetitions stay arrays) counts every pillar, per atom, through the
+    hierarchy; ``sample_tiles`` tiles drawn with ``seed`` are expanded pillar by pillar and compared
+    exactly with the design's index map (streamed from ``design.npz``, one stripe at a time); the
+    geometric design rules run on a window at the centre of each sampled tile.  The report says which
+    fraction of the pillars was compared exactly."""
+    import klayout.db as kdb
+
+    path, design_path = Path(path), Path(design_path)
+    t0 = time.perf_counter()
+    check_file(path)
+    ly = kdb.Layout(False)
+    try:
+        ly.read(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: KLayout cannot read the layout ({exc})") from None
+    t_read = time.perf_counter() - t0
+    top = ly.cell(TOP_CELL)
+    if top is None:
+        raise InputError(f"{path}: no top cell {TOP_CELL!r}")
+    prop = top.property(PROPERTY)
+    if not prop:
+        raise InputError(f"{path}: no provenance: not written by metadesign")
+    prov = json.loads(prop)
+    tiling = prov.get("tiling")
+    if not tiling or tiling.get("hierarchy") != "tiles":
+        raise InputError(f"{path}: not a tiled layout with tile cells (use layout verify without --sample-tiles)")
+    n, tile = int(prov["n_cells"]), int(tiling["tile_cells"])
+    nt = -(-n // tile)
+    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
+    n_atoms = int(prov["n_atoms"])
+    layer = ly.find_layer(prov["layer"][0], prov["layer"][1])
+    widths = np.zeros((n_atoms, 2), np.int64)
+    centres2 = np.zeros((n_atoms, 2), np.int64)
+    index_of = {}
+    for a in range(n_atoms):
+        c = ly.cell(f"ATOM_{a:03d}")
+        if c is None:
+            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
+            continue
+        shapes = list(c.shapes(layer).each())
+        if len(shapes) != 1:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
+        b = shapes[0].bbox()
+        widths[a] = b.width(), b.height()
+        centres2[a] = b.left + b.right, b.bottom + b.top
+        index_of[c.cell_index()] = a
+    # --- every pillar counted through the hierarchy (KLayout's arrays)
+    counts = np.zeros(n_atoms, np.int64)
+    tiles = {}
+    problems = []
+    for inst in top.each_inst():
+        name = ly.cell(inst.cell_index).name
+        if not name.startswith("TILE_"):
+            problems.append(f"top cell places {name!r}, expected tile cells only")
+            continue
+        if inst.size() != 1 or inst.trans.disp != kdb.Vector(0, 0):
+            problems.append(f"tile cell {name!r} placed off the origin or repeated")
+        tiles[name] = inst.cell_index
+        for ti in ly.cell(inst.cell_index).each_inst():
+            a = index_of.get(ti.cell_index)
+            if a is None:
+                problems.append(f"{name} places {ly.cell(ti.cell_index).name!r}, expected atom cells only")
+                continue
+            counts[a] += ti.size()
+    t_count = time.perf_counter() - t0
+    # --- the design, streamed: its per-atom counts and the sampled tiles' blocks
+    try:
+        with zipfile.ZipFile(design_path) as zf, zf.open("meta.npy") as fh:
+            dmeta = from_json_array(np.load(fh, allow_pickle=False))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{design_path}: not a design file ({exc})") from None
+    empty = dmeta.get("empty_index")
+    rng = np.random.default_rng(seed)
+    k = min(sample_tiles, nt * nt)
+    picks = sorted(rng.choice(nt * nt, size=k, replace=False).tolist()) if k else []
+    want_rows = {}
+    for t in picks:
+        want_rows.setdefault(t // nt, []).append(t % nt)
+    want = np.zeros(n_atoms + 1, np.int64)
+    blocks = {}
+    stripe = tile
+    for r0, blk in iter_npz_rows(design_path, "index_map", stripe):
+        if blk.shape[1] != n:
+            raise InputError(f"{design_path}: index map of {blk.shape[1]} columns, layout has {n}")
+        b = np.bincount(blk.ravel(), minlength=max(n_atoms + 1, int(blk.max()) + 1))
+        want += b[:n_atoms + 1] if empty is None else np.append(b[:n_atoms], 0)
+        for tc in want_rows.get(r0 // tile, []):
+            blocks[(r0 // tile, tc)] = blk[:, tc * tile:(tc + 1) * tile].copy()
+        if progress:
+            progress(min(n, r0 + stripe), n)
+    want = want[:n_atoms]
+    if not np.array_equal(counts, want):
+        bad = np.flatnonzero(counts != want)
+        problems.append(f"per-atom pillar counts differ from the design for {bad.size} atoms "
+                        f"(layout {int(counts.sum()):,}, design {int(want.sum()):,})")
+    # --- sampled tiles, pillar by pillar
+    sampled, mismatched, drc = 0, 0, []
+    for (tr, tc), blk in sorted(blocks.items()):
+        name = f"TILE_{tr:03d}_{tc:03d}"
+        r0, c0 = tr * tile, tc * tile
+        got = np.full(blk.shape, -1, np.int64)
+        dup = off = 0
+        ci = tiles.get(name)
+        if ci is None:
+            problems.append(f"tile cell {name} missing")
+            continue
+        for ti in ly.cell(ci).each_inst():
+            a = index_of[ti.cell_index]
+            pts = np.array([(tt.disp.x, tt.disp.y) for tt in ti.cell_inst.each_trans()], np.int64).reshape(-1, 2)
+            ix, rx = np.divmod(pts[:, 0] - x0, p_nm)
+            iy, ry = np.divmod(pts[:, 1] - x0, p_nm)
+            ok = (rx == 0) & (ry == 0) & (ix >= c0) & (ix < c0 + blk.shape[1]) & (iy >= r0) & (iy < r0 + blk.shape[0])
+            off += int((~ok).sum())
+            ix, iy = ix[ok] - c0, iy[ok] - r0
+            dup += int((got[iy, ix] >= 0).sum())
+            got[iy, ix] = a
+        ref = blk.astype(np.int64)
+        if empty is not None:
+            ref = np.where(blk == empty, -1, ref)
+        mm = int(np.count_nonzero(got != ref))
+        sampled += int((ref >= 0).sum())
+        mismatched += mm
+        if mm or dup or off:
+            problems.append(f"{name}: {mm} cells differ from the design, {dup} duplicates, {off} off the tile")
+        h = min(window_cells, blk.shape[0], blk.shape[1])
+        s0, s1 = (blk.shape[0] - h) // 2, (blk.shape[1] - h) // 2
+        drc.append({"tile": name, **_window_drc(got[s0:s0 + h, s1:s1 + h], r0 + s0, c0 + s1, widths, centres2,
+                                                p_nm, x0, min_feature_nm, min_gap_nm)})
+    total = int(want.sum())
+    table = {"min_feature_nm": int(widths.min()), "min_gap_x_nm": int(p_nm - widths[:, 0].max()),
+             "min_gap_y_nm": int(p_nm - widths[:, 1].max())}
+    drc_ok = (table["min_feature_nm"] >= min_feature_nm and min(table["min_gap_x_nm"], table["min_gap_y_nm"])
+              >= min_gap_nm and all(d["width_violations"] == 0 and d["space_violations"] == 0 for d in drc))
+    return {"file": str(path), "design": str(design_path), "exact": not problems, "problems": problems,
+            "pillars_klayout": int(counts.sum()), "pillars_design": total, "tiles": nt * nt,
+            "sampled_tiles": [f"TILE_{t // nt:03d}_{t % nt:03d}" for t in picks], "seed": seed,
+            "sampled_pillars": sampled, "sampled_fraction": sampled / max(total, 1),
+            "mismatched_cells": mismatched,
+            "drc": {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm},
+                    "from_atom_table": table, "windows": drc, "window_cells": window_cells, "passed": drc_ok},
+            "read_seconds": t_read, "count_seconds": t_count - t_read, "seconds": time.perf_counter() - t0}

@@ -29,7 +29,8 @@ from ..config import InputError
 from ..io import atomic_path, atomic_write_text
 from ..library.locate import relative_to_product
 
-__all__ = ["LayoutOptions", "write_layout", "snap_widths", "layout_geometry", "TOP_CELL", "PROPERTY"]
+__all__ = ["LayoutOptions", "write_layout", "snap_widths", "layout_geometry", "outline_polygons", "provenance_of",
+           "TOP_CELL", "PROPERTY"]
 
 TOP_CELL = "METASURFACE"
 PROPERTY = "metadesign"
@@ -125,22 +126,7 @@ def build_gdstk_library(design, opts: LayoutOptions, provenance: dict):
             ref.repetition = gdstk.Repetition(offsets=d.tolist())
         top.add(ref)
     if opts.outline_layer is not None:
-        half = (n * p_nm) // 2
-        if spec.aperture_wkt:
-            outline = gdstk.boolean(gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000)),
-                                    _wkt_polygons_nm(spec.aperture_wkt), "not", layer=opts.outline_layer,
-                                    datatype=opts.datatype)
-            top.add(*outline)
-        elif spec.circular_aperture:
-            o = gdstk.ellipse((0, 0), half, tolerance=10, layer=opts.outline_layer, datatype=opts.datatype)
-            outline = gdstk.boolean(gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000)), o,
-                                    "not", layer=opts.outline_layer, datatype=opts.datatype)
-            top.add(*outline)
-        else:
-            ring = gdstk.boolean(gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000)),
-                                 gdstk.rectangle((-half, -half), (half, half)), "not",
-                                 layer=opts.outline_layer, datatype=opts.datatype)
-            top.add(*ring)
+        top.add(*outline_polygons(spec, p_nm, opts))
     if opts.label_layer is not None:
         half = (n * p_nm) // 2
         text = opts.label or design.meta.get("name", "metadesign")
@@ -151,6 +137,22 @@ def build_gdstk_library(design, opts: LayoutOptions, provenance: dict):
     snapping = {"grid_nm": opts.grid_nm, "max_error_nm": max(ex, ey),
                 "odd_width_atoms": int(np.sum((wx % 2) | (wy % 2)))}
     return lib, snapping
+
+
+def outline_polygons(spec, p_nm: int, opts: LayoutOptions) -> list:
+    """The aperture outline (gdstk polygons, nm) on ``opts.outline_layer``: a 1 um frame around the
+    array minus the clear aperture (circle, polygon, or the full square)."""
+    import gdstk
+
+    half = (spec.n_cells * p_nm) // 2
+    frame = gdstk.rectangle((-half - 1000, -half - 1000), (half + 1000, half + 1000))
+    if spec.aperture_wkt:
+        hole = _wkt_polygons_nm(spec.aperture_wkt)
+    elif spec.circular_aperture:
+        hole = gdstk.ellipse((0, 0), half, tolerance=10)
+    else:
+        hole = gdstk.rectangle((-half, -half), (half, half))
+    return gdstk.boolean(frame, hole, "not", layer=opts.outline_layer, datatype=opts.datatype)
 
 
 def _wkt_polygons_nm(wkt: str) -> list:
