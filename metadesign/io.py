@@ -30,7 +30,7 @@ import numpy as np
 
 from .config import InputError
 
-__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "iter_npz_rows", "read_npz",
+__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "NpzRows", "iter_npz_rows", "read_npz",
            "read_product", "json_array", "from_json_array", "output_lock", "check_replaceable", "check_not_input", "lock_path"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -132,6 +132,73 @@ def _write_streamed(zf: zipfile.ZipFile, info: zipfile.ZipInfo, sa: StreamedArra
             written += b.nbytes
     if written != total:
         raise ValueError(f"{info.filename}: streamed {written} bytes of {total}")
+
+
+class NpzRows:
+    """Read-only row access to array ``name`` of a ``.npz`` without loading it: ``rows[r0:r1]`` reads
+    forward from the current position (a sequential consumer reads the entry once; going back reopens
+    it), so memory is one request, whatever the array's size."""
+
+    def __init__(self, path: str | Path, name: str):
+        self.path, self.name = Path(path), name
+        with zipfile.ZipFile(self.path) as zf, zf.open(f"{name}.npy") as fh:
+            self.shape, self.dtype, _ = self._header(fh)
+        self._fh = self._zf = None
+        self._pos = 0
+
+    def _header(self, fh):
+        version = np.lib.format.read_magic(fh)
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = reader(fh)
+        if fortran or dtype.hasobject or not shape:
+            raise InputError(f"{self.path}: {self.name} is not a C-order numeric array")
+        return tuple(shape), dtype, fh
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def _open(self) -> None:
+        self.close()
+        self._zf = zipfile.ZipFile(self.path)
+        self._fh = self._zf.open(f"{self.name}.npy")
+        self._header(self._fh)
+        self._pos = 0
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, slice) or key.step not in (None, 1):
+            raise TypeError("NpzRows supports row slices rows[r0:r1] only")
+        r0, r1, _ = key.indices(self.shape[0])
+        r1 = max(r0, r1)
+        if self._fh is None or r0 < self._pos:
+            self._open()
+        row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        if r0 > self._pos:
+            skip = (r0 - self._pos) * row
+            while skip:
+                got = len(self._fh.read(min(skip, 1 << 26)))
+                if not got:
+                    raise InputError(f"{self.path}: {self.name} is truncated")
+                skip -= got
+        buf = self._fh.read((r1 - r0) * row)
+        if len(buf) != (r1 - r0) * row:
+            raise InputError(f"{self.path}: {self.name} is truncated")
+        self._pos = r1
+        return np.frombuffer(buf, self.dtype).reshape((r1 - r0, *self.shape[1:]))
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._zf.close()
+        self._fh = self._zf = None
+
+    def __getstate__(self):  # picklable (a worker reopens the file)
+        return {"path": self.path, "name": self.name, "shape": self.shape, "dtype": self.dtype}
+
+    def __setstate__(self, d):
+        self.__dict__.update(d)
+        self._fh = self._zf = None
+        self._pos = 0
 
 
 def iter_npz_rows(path: str | Path, name: str, rows: int) -> Iterator[tuple[int, np.ndarray]]:
