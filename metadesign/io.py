@@ -31,7 +31,8 @@ import numpy as np
 from .config import InputError
 
 __all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "NpzRows", "iter_npz_rows", "read_npz",
-           "read_product", "json_array", "from_json_array", "output_lock", "check_replaceable", "check_not_input", "lock_path"]
+           "read_product", "json_array", "from_json_array", "output_lock", "check_replaceable", "check_not_input",
+           "lock_path"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 

@@ -87,8 +87,8 @@ def test_streamed_oasis_reads_back_in_klayout_and_gdstk(tmp_path):
 def test_streamed_npz_has_the_bytes_of_the_whole_array(tmp_path):
     a = np.random.default_rng(2).integers(0, 250, (301, 77)).astype(np.uint8)
     write_npz(tmp_path / "a.npz", {"index_map": a, "meta": np.arange(3)})
-    write_npz(tmp_path / "b.npz", {"index_map": StreamedArray(a.shape, a.dtype, (a[i:i + 40] for i in range(0, 301, 40))),
-                                   "meta": lambda: np.arange(3)})
+    blocks = (a[i:i + 40] for i in range(0, 301, 40))
+    write_npz(tmp_path / "b.npz", {"index_map": StreamedArray(a.shape, a.dtype, blocks), "meta": lambda: np.arange(3)})
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
     back = np.concatenate([b for _, b in iter_npz_rows(tmp_path / "b.npz", "index_map", 64)])
     np.testing.assert_array_equal(back, a)

@@ -23,9 +23,8 @@ from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields,
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
-__all__ = ["SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics", "spot_metrics",
-           "render_frames",
-           "SENSING_SECTIONS"]
+__all__ = ["SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics",
+           "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "tiled_layout", "read_tiled_contents"]
 
 SENSING_SECTIONS = (
     Section("sensor", (
