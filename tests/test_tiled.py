@@ -145,16 +145,22 @@ def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, hierarch
     assert [c.name for c in lib.top_level()] == ["METASURFACE"]
 
 
-def test_tiled_bytes_do_not_depend_on_the_worker_count(tiled_case):
+def test_tiled_bytes_do_not_depend_on_the_worker_count_or_the_scheduler(tiled_case):
+    from dask.distributed import LocalCluster
+
     tmp, recipe, _ = tiled_case
     build_tiled(recipe, tmp / "w1", tile=32, workers=1)
     build_tiled(recipe, tmp / "w2", tile=32, workers=2)
-    for f in ("design.npz", "layout.oas", "metrics.json"):
-        assert (tmp / "w1" / f).read_bytes() == (tmp / "w2" / f).read_bytes(), f
-    side = [json.loads((tmp / w / "layout.oas.json").read_text()) for w in ("w1", "w2")]
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}) as cl:
+        build_tiled(recipe, tmp / "dask", tile=32, scheduler=cl.scheduler_address)
+    for w in ("w2", "dask"):
+        for f in ("design.npz", "layout.oas", "metrics.json"):
+            assert (tmp / "w1" / f).read_bytes() == (tmp / w / f).read_bytes(), (w, f)
+    side = [json.loads((tmp / w / "layout.oas.json").read_text()) for w in ("w1", "w2", "dask")]
     for s in side:
         s.pop("file"), s.pop("design")
-    assert side[0] == side[1]
+    assert side[0] == side[1] == side[2]
 
 
 def test_sampled_verification_passes_and_catches_a_changed_tile(tiled_case):

@@ -125,7 +125,7 @@ def run_design(recipe: DesignRecipe, out_dir: Path | None = None,
     out = Path(out_dir or recipe.default_output())
     check_memory("this design", design_memory_bytes(recipe.spec.n_cells),
                  "lower design.aperture_mm or raise design.period_um, or use the tiled path "
-                 "(metadesign design build --tiled)")
+                 "(metadesign layout tiled RECIPE)")
     lib = load_library(recipe.library_path)
     check_library(recipe, lib)
     atoms = select_recipe_atoms(recipe, lib)
