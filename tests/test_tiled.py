@@ -225,3 +225,21 @@ def test_tiled_device_pupil_equals_the_whole_layouts(tiled_case):
     pa, pb = whole.pupil(0.05, 32), tiled.pupil(0.05, 32)
     np.testing.assert_array_equal(pa.G, pb.G)
     np.testing.assert_array_equal(whole.layout.index_map, tiled.layout.index_map[0:d.spec.n_cells])
+
+
+def test_a_failed_tiled_build_leaves_the_previous_files(tiled_case, monkeypatch):
+    import metadesign.layouts.tiled as T
+
+    tmp, recipe, _ = tiled_case
+    out = tmp / "fail"
+    build_tiled(recipe, out, tile=64)
+    before = {f: (out / f).read_bytes() for f in ("design.npz", "layout.oas")}
+
+    def boom(*a, **k):
+        raise RuntimeError("worker died")
+
+    monkeypatch.setattr(T, "encode_stripe", boom)
+    with pytest.raises(RuntimeError):
+        build_tiled(recipe, out, tile=64)
+    assert {f: (out / f).read_bytes() for f in before} == before
+    assert sorted(p.name for p in out.iterdir()) == ["design.npz", "layout.oas", "layout.oas.json", "metrics.json"]

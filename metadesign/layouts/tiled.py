@@ -17,6 +17,7 @@ provenance property, the outline and the labels are those of :mod:`metadesign.la
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -173,63 +174,72 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     total = [np.zeros(2), np.zeros(2), np.zeros(2), 0, np.zeros(A, np.int64)]
     oas = out_dir / "layout.oas"
     state = {}
-    with atomic_path(oas) as tmp, open(tmp, "wb") as fh:
-        w = O.OasisWriter(fh)
-        for a in range(A):
-            w.cellname(f"ATOM_{a:03d}")
-        w.cellname(TOP_CELL)
-        for r in range(nt):
-            for c in range(nt):
-                w.cellname(f"TILE_{r:03d}_{c:03d}")
-        prov_json = json.dumps(prov, sort_keys=True).encode()
-        if hierarchy == "flat":
-            w.cell(TOP_CELL)
-            w.raw(O.property_record(b"metadesign", prov_json))
+    # both files appear together: the design goes to a hidden name first and replaces design.npz once the
+    # layout is complete (a failure leaves neither, never a new design beside an old layout)
+    design_tmp = out_dir / ".design.npz.tiled-partial"
+    try:
+        with atomic_path(oas) as tmp, open(tmp, "wb") as fh:
+            w = O.OasisWriter(fh)
+            for a in range(A):
+                w.cellname(f"ATOM_{a:03d}")
+            w.cellname(TOP_CELL)
+            for r in range(nt):
+                for c in range(nt):
+                    w.cellname(f"TILE_{r:03d}_{c:03d}")
+            prov_json = json.dumps(prov, sort_keys=True).encode()
+            if hierarchy == "flat":
+                w.cell(TOP_CELL)
+                w.raw(O.property_record(b"metadesign", prov_json))
 
-        def stripes():
-            done = 0
-            for res in run_ordered(_stripe, range(0, n, tile), workers, plan, scheduler):
-                w.raw(res["oasis"])
-                for part in res["stats"]:
-                    total[:] = accumulate(tuple(total), part)
-                yield res["block"]
-                done += len(res["block"])
-                if progress:
-                    progress(done, n)
+            def stripes():
+                done = 0
+                for res in run_ordered(_stripe, range(0, n, tile), workers, plan, scheduler):
+                    w.raw(res["oasis"])
+                    for part in res["stats"]:
+                        total[:] = accumulate(tuple(total), part)
+                    yield res["block"]
+                    done += len(res["block"])
+                    if progress:
+                        progress(done, n)
 
-        def meta_array():
-            st.finish(total)
-            res = st.result()
-            meta["metrics"] = res.metrics
-            state["result"] = res
-            return json_array(meta)
+            def meta_array():
+                st.finish(total)
+                res = st.result()
+                meta["metrics"] = res.metrics
+                state["result"] = res
+                return json_array(meta)
 
-        t_stream = time.perf_counter()
-        write_npz(out_dir / "design.npz", {
-            "index_map": StreamedArray((n, n), np.dtype(st.dtype), stripes()), "atom_wx_m": atoms.wx,
-            "atom_wy_m": atoms.wy, "atom_t": atoms.t, "atom_T0": atoms.T0, "atom_lib_index": atoms.lib_index,
-            "meta": meta_array})
-        t_stream = time.perf_counter() - t_stream
-        used = total[4]
-        tail = []
-        if hierarchy == "tiles":
-            w.cell(TOP_CELL)
-            w.raw(O.property_record(b"metadesign", prov_json))
-            tail += [O.placement_head(A + 1 + k, 0, 0, False) for k in range(nt * nt)]
-        if opts.outline_layer is not None:
-            for poly in outline_polygons(spec, p_nm, opts):
-                tail.append(O.polygon_record(opts.outline_layer, opts.datatype, np.rint(poly.points).astype(np.int64)))
-        if opts.label_layer is not None:
-            half = (n * p_nm) // 2
-            text = (opts.label or recipe.name).encode()
-            tail.append(O.text_record(text, opts.label_layer, 0, -half, -half - 5000))
-            tail.append(O.text_record(prov_json, opts.label_layer, 1, -half, -half - 10000))
-        w.records(b"".join(tail), opts.compression_level)
-        for a in np.flatnonzero(used):  # only the atoms placed: an unreferenced cell would be a top cell
-            w.cell(f"ATOM_{a:03d}")
-            ww, hh = int(wx[a]), int(wy[a])
-            w.raw(O.rectangle_record(opts.layer, opts.datatype, ww, hh, -(ww // 2) - (ww % 2), -(hh // 2) - (hh % 2)))
-        w.close()
+            t_stream = time.perf_counter()
+            write_npz(design_tmp, {
+                "index_map": StreamedArray((n, n), np.dtype(st.dtype), stripes()), "atom_wx_m": atoms.wx,
+                "atom_wy_m": atoms.wy, "atom_t": atoms.t, "atom_T0": atoms.T0, "atom_lib_index": atoms.lib_index,
+                "meta": meta_array})
+            t_stream = time.perf_counter() - t_stream
+            used = total[4]
+            tail = []
+            if hierarchy == "tiles":
+                w.cell(TOP_CELL)
+                w.raw(O.property_record(b"metadesign", prov_json))
+                tail += [O.placement_head(A + 1 + k, 0, 0, False) for k in range(nt * nt)]
+            if opts.outline_layer is not None:
+                for poly in outline_polygons(spec, p_nm, opts):
+                    pts = np.rint(poly.points).astype(np.int64)
+                    tail.append(O.polygon_record(opts.outline_layer, opts.datatype, pts))
+            if opts.label_layer is not None:
+                half = (n * p_nm) // 2
+                text = (opts.label or recipe.name).encode()
+                tail.append(O.text_record(text, opts.label_layer, 0, -half, -half - 5000))
+                tail.append(O.text_record(prov_json, opts.label_layer, 1, -half, -half - 10000))
+            w.records(b"".join(tail), opts.compression_level)
+            for a in np.flatnonzero(used):  # only the atoms placed: an unreferenced cell would be a top cell
+                w.cell(f"ATOM_{a:03d}")
+                ww, hh = int(wx[a]), int(wy[a])
+                x0a, y0a = -(ww // 2) - (ww % 2), -(hh // 2) - (hh % 2)  # centred as the gdstk writer centres
+                w.raw(O.rectangle_record(opts.layer, opts.datatype, ww, hh, x0a, y0a))
+            w.close()
+        os.replace(design_tmp, out_dir / "design.npz")
+    finally:
+        design_tmp.unlink(missing_ok=True)
     atomic_write_text(out_dir / "metrics.json", json.dumps(state["result"].metrics, indent=2, sort_keys=True))
     seconds = time.perf_counter() - t0
     pillars = int(total[3])
