@@ -31,7 +31,7 @@ def _find_design_for(layout: Path, given: str | None):
 
 def _cmd_write(a: argparse.Namespace) -> int:
     from ..design.store import load_design
-    from . import LayoutOptions, write_layout
+    from . import write_layout
 
     base = Path(a.design)
     folder = base if base.is_dir() else base.parent
@@ -42,9 +42,7 @@ def _cmd_write(a: argparse.Namespace) -> int:
     for fmt in fmts:
         out_file(stem.with_suffix("." + fmt))
     d = load_design(a.design)
-    opts = LayoutOptions(layer=a.layer, datatype=a.datatype, grid_nm=a.grid_nm,
-                         outline_layer=None if a.no_outline else a.outline_layer,
-                         label_layer=a.label_layer, label=a.label)
+    opts = _options(a)
     reports = []
     for fmt in fmts:
         if fmt == "gds" and d.index_map.size > 1_000_000:
@@ -182,6 +180,18 @@ def _cmd_preview(a: argparse.Namespace) -> int:
     return 0
 
 
+def _layout_option_args(p) -> None:
+    """The layer, snapping, outline and label options of every layout writer (see :func:`_options`)."""
+    p.add_argument("--layer", type=integer(0, 65535), default=1, help="pillar layer (default 1)")
+    p.add_argument("--datatype", type=integer(0, 65535), default=0, help="pillar datatype (default 0)")
+    p.add_argument("--grid-nm", type=integer(1, 100), default=1, help="width snapping grid in nm (default 1)")
+    p.add_argument("--outline-layer", type=integer(0, 65535), default=10, help="aperture outline layer (default 10)")
+    p.add_argument("--no-outline", action="store_true", help="no aperture outline")
+    p.add_argument("--label-layer", type=integer(0, 65535), default=11, help="text/provenance layer (default 11)")
+    p.add_argument("--label", help="label text written beside the aperture (default: the design name)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
 def register(sub) -> None:
     lay = sub.add_parser(
         "layout", help="stage 3: layout write DESIGN | layout verify LAYOUT | layout preview LAYOUT",
@@ -196,14 +206,7 @@ def register(sub) -> None:
     w.add_argument("design", help="design folder or design.npz")
     w.add_argument("-o", "--output", help="layout path without suffix (default DESIGN/layout)")
     w.add_argument("--format", default="oas", choices=["oas", "gds", "both"], help="oas (default), gds or both")
-    w.add_argument("--layer", type=integer(0, 65535), default=1, help="pillar layer (default 1)")
-    w.add_argument("--datatype", type=integer(0, 65535), default=0, help="pillar datatype (default 0)")
-    w.add_argument("--grid-nm", type=integer(1, 100), default=1, help="width snapping grid in nm (default 1)")
-    w.add_argument("--outline-layer", type=integer(0, 65535), default=10, help="aperture outline layer (default 10)")
-    w.add_argument("--no-outline", action="store_true", help="no aperture outline")
-    w.add_argument("--label-layer", type=integer(0, 65535), default=11, help="text/provenance layer (default 11)")
-    w.add_argument("--label", help="label text written beside the aperture (default: the design name)")
-    w.add_argument("--json", action="store_true", help="print the report as JSON")
+    _layout_option_args(w)
     w.set_defaults(func=_cmd_write)
 
     t = lsub.add_parser(
@@ -221,15 +224,7 @@ def register(sub) -> None:
                    help="tiles: one cell per tile placed by the top cell (default); flat: all in the top cell")
     workers_arg(t)
     t.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786) instead of local workers")
-    for arg, kw in ((("--layer",), dict(type=integer(0, 65535), default=1, help="pillar layer (default 1)")),
-                    (("--datatype",), dict(type=integer(0, 65535), default=0, help="pillar datatype (default 0)")),
-                    (("--grid-nm",), dict(type=integer(1, 100), default=1, help="width snapping grid, nm (1)")),
-                    (("--outline-layer",), dict(type=integer(0, 65535), default=10, help="outline layer (10)")),
-                    (("--no-outline",), dict(action="store_true", help="no aperture outline")),
-                    (("--label-layer",), dict(type=integer(0, 65535), default=11, help="text layer (11)")),
-                    (("--label",), dict(help="label text (default: the design name)")),
-                    (("--json",), dict(action="store_true", help="print the report as JSON"))):
-        t.add_argument(*arg, **kw)
+    _layout_option_args(t)
     t.set_defaults(func=_cmd_tiled)
 
     v = lsub.add_parser("verify", help="read every pillar back, compare with the design, design rules")

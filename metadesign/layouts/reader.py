@@ -195,22 +195,7 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
     n = int(prov["n_cells"])
     p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
     n_atoms = int(prov["n_atoms"])
-    layer = ly.find_layer(prov["layer"][0], prov["layer"][1])
-    widths = np.zeros((n_atoms, 2), np.int64)
-    centres2 = np.zeros((n_atoms, 2), np.int64)
-    index_of = {}
-    for a in range(n_atoms):
-        c = ly.cell(f"ATOM_{a:03d}")
-        if c is None:  # not placed (instances of it would name a cell that exists)
-            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
-            continue
-        shapes = list(c.shapes(layer).each())
-        if len(shapes) != 1:
-            raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
-        b = shapes[0].bbox()
-        widths[a] = b.width(), b.height()
-        centres2[a] = b.left + b.right, b.bottom + b.top
-        index_of[c.cell_index()] = a
+    widths, centres2, index_of = _klayout_atoms(ly, path, prov)
     from array import array
 
     xs = {a: array("q") for a in range(n_atoms)}  # compact: paper scale is 51 M instances
@@ -252,6 +237,29 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
             dup += d
             off += o
     return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
+
+
+def _klayout_atoms(ly, path: Path, prov: dict):
+    """Each atom's rectangle (size, doubled centre) from its cell in a KLayout layout (from the
+    provenance's table when the layout places none of it), and ``{cell index: atom}``."""
+    n_atoms = int(prov["n_atoms"])
+    layer = ly.find_layer(prov["layer"][0], prov["layer"][1])
+    widths = np.zeros((n_atoms, 2), np.int64)
+    centres2 = np.zeros((n_atoms, 2), np.int64)
+    index_of = {}
+    for a in range(n_atoms):
+        c = ly.cell(f"ATOM_{a:03d}")
+        if c is None:  # not placed (instances of it would name a cell that exists)
+            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
+            continue
+        shapes = list(c.shapes(layer).each())
+        if len(shapes) != 1:
+            raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
+        b = shapes[0].bbox()
+        widths[a] = b.width(), b.height()
+        centres2[a] = b.left + b.right, b.bottom + b.top
+        index_of[c.cell_index()] = a
+    return widths, centres2, index_of
 
 
 def _unplaced_atom(path: Path, prov: dict, a: int) -> tuple[list[int], list[int]]:
@@ -390,22 +398,7 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
     nt = -(-n // tile)
     p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
     n_atoms = int(prov["n_atoms"])
-    layer = ly.find_layer(prov["layer"][0], prov["layer"][1])
-    widths = np.zeros((n_atoms, 2), np.int64)
-    centres2 = np.zeros((n_atoms, 2), np.int64)
-    index_of = {}
-    for a in range(n_atoms):
-        c = ly.cell(f"ATOM_{a:03d}")
-        if c is None:
-            widths[a], centres2[a] = _unplaced_atom(path, prov, a)
-            continue
-        shapes = list(c.shapes(layer).each())
-        if len(shapes) != 1:
-            raise InputError(f"{path}: atom cell ATOM_{a:03d} holds {len(shapes)} shapes, expected 1")
-        b = shapes[0].bbox()
-        widths[a] = b.width(), b.height()
-        centres2[a] = b.left + b.right, b.bottom + b.top
-        index_of[c.cell_index()] = a
+    widths, centres2, index_of = _klayout_atoms(ly, path, prov)
     # --- every pillar counted through the hierarchy (KLayout's arrays)
     counts = np.zeros(n_atoms, np.int64)
     tiles = {}
