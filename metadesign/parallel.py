@@ -16,7 +16,7 @@ import os
 from .validation import ValidationError
 
 __all__ = ["THREAD_ENV", "spawn_pool", "single_thread_env", "keep_freed_memory", "WorkerPool", "run_tasks",
-           "run_ordered", "dask_client"]
+           "dask_client"]
 
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -156,38 +156,3 @@ def run_tasks(fn, tasks, workers: int = 1, shared=None, client=None, scheduler: 
         yield from pool.map(fn, tasks)
 
 
-
-def run_ordered(fn, tasks, workers: int = 1, shared=None, scheduler: str | None = None, window: int | None = None):
-    """Results of ``fn`` over ``tasks`` in task order, with at most ``window`` tasks in flight (default
-    twice the workers): a streamed writer consumes them in order while memory stays bounded.  On a Dask
-    ``scheduler`` when given (``shared`` scattered once), else on a local :class:`WorkerPool`."""
-    from collections import deque
-
-    tasks = iter(tasks)
-    if scheduler is not None:
-        client = dask_client(scheduler)
-        try:
-            n = sum(client.nthreads().values()) or 1
-            sf = client.scatter(shared, broadcast=True) if shared is not None else None
-            q = deque()
-            for t in tasks:
-                q.append(client.submit(_dask_call, fn, sf, t, pure=False))
-                if len(q) >= (window or 2 * n):
-                    yield q.popleft().result()
-            while q:
-                yield q.popleft().result()
-        finally:
-            client.close()
-        return
-    with WorkerPool(workers, shared) as pool:
-        if pool.pool is None:
-            yield from pool.map(fn, tasks, ordered=True)
-            return
-        q = deque()
-        call = _Call(fn)
-        for t in tasks:
-            q.append(pool.pool.apply_async(call, (t,)))
-            if len(q) >= (window or 2 * workers):
-                yield q.popleft().get()
-        while q:
-            yield q.popleft().get()

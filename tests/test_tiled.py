@@ -17,7 +17,6 @@ from metadesign.layouts import oasis as O
 from metadesign.layouts import read_layout, read_layout_klayout, verify_against_design
 from metadesign.layouts.reader import verify_tiled
 from metadesign.layouts.tiled import build_tiled
-from metadesign.parallel import run_ordered
 
 
 def leb128(v: int) -> bytes:  # the OASIS unsigned-integer, written out from the standard's definition
@@ -95,16 +94,6 @@ def test_streamed_npz_has_the_bytes_of_the_whole_array(tmp_path):
     with pytest.raises(ValueError):  # a stream shorter than its shape never becomes a file
         write_npz(tmp_path / "c.npz", {"x": StreamedArray((10, 3), np.uint8, [np.zeros((4, 3), np.uint8)])})
     assert not (tmp_path / "c.npz").exists()
-
-
-def _square(x):
-    return x * x
-
-
-def test_run_ordered_keeps_task_order_on_any_worker_count():
-    want = [i * i for i in range(23)]
-    assert list(run_ordered(_square, range(23), workers=1)) == want
-    assert list(run_ordered(_square, range(23), workers=2, window=3)) == want
 
 
 RECIPE = """
@@ -227,19 +216,30 @@ def test_tiled_device_pupil_equals_the_whole_layouts(tiled_case):
     np.testing.assert_array_equal(whole.layout.index_map, tiled.layout.index_map[0:d.spec.n_cells])
 
 
-def test_a_failed_tiled_build_leaves_the_previous_files(tiled_case, monkeypatch):
+def test_a_failed_tiled_build_leaves_the_previous_files_and_resumes(tiled_case, monkeypatch):
     import metadesign.layouts.tiled as T
 
     tmp, recipe, _ = tiled_case
     out = tmp / "fail"
     build_tiled(recipe, out, tile=64)
-    before = {f: (out / f).read_bytes() for f in ("design.npz", "layout.oas")}
+    before = {f: (out / f).read_bytes() for f in ("design.npz", "layout.oas", "layout.oas.json")}
+    assert sorted(p.name for p in out.iterdir()) == ["design.npz", "layout.oas", "layout.oas.json", "metrics.json"]
+    (out / "design.npz").unlink()  # a recipe change would rebuild: here the same recipe, interrupted
+    real = T._stripe
 
-    def boom(*a, **k):
-        raise RuntimeError("worker died")
+    def dies_at_the_third_stripe(plan, r0):
+        if r0 >= 128:
+            raise RuntimeError("worker killed")
+        return real(plan, r0)
 
-    monkeypatch.setattr(T, "encode_stripe", boom)
+    monkeypatch.setattr(T, "_stripe", dies_at_the_third_stripe)
     with pytest.raises(RuntimeError):
         build_tiled(recipe, out, tile=64)
-    assert {f: (out / f).read_bytes() for f in before} == before
-    assert sorted(p.name for p in out.iterdir()) == ["design.npz", "layout.oas", "layout.oas.json", "metrics.json"]
+    assert not (out / "design.npz").exists() and (out / "layout.oas").read_bytes() == before["layout.oas"]
+    part = [p for p in out.iterdir() if p.name.startswith(".tiled-partial-")]
+    assert len(part) == 1 and len(list(part[0].glob("stripe-*.npz"))) == 2  # rows 0 and 64 were kept
+    monkeypatch.setattr(T, "_stripe", real)
+    rep = build_tiled(recipe, out, tile=64)
+    assert rep["stripes_reused"] == 2
+    assert {f: (out / f).read_bytes() for f in before} == before  # the same bytes as the uninterrupted run
+    assert not any(p.name.startswith(".tiled-partial-") for p in out.iterdir())

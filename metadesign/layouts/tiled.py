@@ -16,8 +16,10 @@ provenance property, the outline and the labels are those of :mod:`metadesign.la
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,9 +32,10 @@ from ..design.discretize import AtomTable, Metric, NearestAtom
 from ..design.phase import SupercellSpec
 from ..design.recipe import DesignRecipe
 from ..design.store import Design, check_library, design_meta, select_recipe_atoms
-from ..io import StreamedArray, atomic_path, atomic_write_text, json_array, write_npz
+from .. import __version__
+from ..io import StreamedArray, atomic_path, atomic_write_text, json_array, read_npz, write_npz
 from ..library.store import load_library
-from ..parallel import run_ordered
+from ..parallel import run_tasks
 from ..validation import ValidationError
 from . import oasis as O
 from .writer import TOP_CELL, LayoutOptions, layout_geometry, outline_polygons, provenance_of, snap_widths
@@ -128,6 +131,22 @@ def _stripe(plan: TiledPlan, r0: int) -> dict:
     return {"r0": r0, "block": blk, "stats": parts, "oasis": encode_stripe(plan, blk, r0)}
 
 
+def _save_stripe(path: Path, res: dict) -> None:
+    """A finished stripe, atomically (uncompressed: the final design file compresses it once)."""
+    st = res["stats"]
+    write_npz(path, {"block": res["block"], "oasis": np.frombuffer(res["oasis"], np.uint8),
+                     "sse": np.array([p[0] for p in st]), "peak": np.array([p[1] for p in st]),
+                     "eff": np.array([p[2] for p in st]), "count": np.array([p[3] for p in st], np.int64),
+                     "used": np.array([p[4] for p in st], np.int64)}, compress=False)
+
+
+def _load_stripe(path: Path) -> dict:
+    z = read_npz(path, "stripe of an interrupted tiled build")
+    stats = [(z["sse"][k], z["peak"][k], z["eff"][k], int(z["count"][k]), z["used"][k])
+             for k in range(len(z["count"]))]
+    return {"block": z["block"], "oasis": z["oasis"].tobytes(), "stats": stats}
+
+
 def encode_stripe(plan: TiledPlan, blk: np.ndarray, r0: int) -> bytes:
     """The OASIS bytes of one stripe's tiles (a CELL record per tile with ``hierarchy="tiles"``)."""
     out = []
@@ -144,8 +163,13 @@ def encode_stripe(plan: TiledPlan, blk: np.ndarray, r0: int) -> bytes:
 def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, hierarchy: str = "tiles",
                 opts: LayoutOptions = LayoutOptions(), workers: int = 1, scheduler: str | None = None,
                 progress: Callable[[int, int], None] | None = None, log=lambda s: None) -> dict:
-    """Design ``recipe`` and write ``out_dir/design.npz`` and ``out_dir/layout.oas`` (+ ``.json``) in one
-    streamed pass; returns the report."""
+    """Design ``recipe`` and write ``out_dir/design.npz`` and ``out_dir/layout.oas`` (+ ``.json``);
+    returns the report.
+
+    Two phases, resumable after any interruption (SIGKILL included): the workers' stripes (index block,
+    OASIS bytes, error sums) are kept, each written atomically, in ``out_dir/.tiled-partial-<key>/``
+    (``key``: a hash of everything that shapes them), and a rerun computes only the missing ones; then
+    the stripes are streamed in order into the two files, and the folder is removed."""
     t0 = time.perf_counter()
     spec = recipe.spec
     n = spec.n_cells
@@ -172,6 +196,23 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     wx, ex = snap_widths(atoms.wx, opts.grid_nm)
     wy, ey = snap_widths(atoms.wy, opts.grid_nm)
     total = [np.zeros(2), np.zeros(2), np.zeros(2), 0, np.zeros(A, np.int64)]
+    key = hashlib.sha256(json.dumps({"recipe": recipe.raw, "library": lib.identity, "tile": tile,
+                                     "hierarchy": hierarchy, "compression": opts.compression_level,
+                                     "version": __version__}, sort_keys=True, default=str).encode()).hexdigest()
+    part = out_dir / f".tiled-partial-{key[:16]}"
+    part.mkdir(parents=True, exist_ok=True)
+    done = {int(f.stem.split("-")[1]) for f in part.glob("stripe-*.npz")}
+    todo = [r0 for r0 in range(0, n, tile) if r0 not in done]
+    if done:
+        log(f"resuming: {len(done)} of {len(done) + len(todo)} stripes kept from an interrupted run")
+    rows_done = sum(min(tile, n - r0) for r0 in done)
+    t_stripes = time.perf_counter()
+    for res in run_tasks(_stripe, todo, workers, plan, scheduler=scheduler):
+        _save_stripe(part / f"stripe-{res['r0']:07d}.npz", res)
+        rows_done += len(res["block"])
+        if progress:
+            progress(rows_done, n)
+    t_stripes = time.perf_counter() - t_stripes
     oas = out_dir / "layout.oas"
     state = {}
     # both files appear together: the design goes to a hidden name first and replaces design.npz once the
@@ -192,15 +233,12 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
                 w.raw(O.property_record(b"metadesign", prov_json))
 
             def stripes():
-                done = 0
-                for res in run_ordered(_stripe, range(0, n, tile), workers, plan, scheduler):
+                for r0 in range(0, n, tile):
+                    res = _load_stripe(part / f"stripe-{r0:07d}.npz")
                     w.raw(res["oasis"])
-                    for part in res["stats"]:
-                        total[:] = accumulate(tuple(total), part)
+                    for st_part in res["stats"]:
+                        total[:] = accumulate(tuple(total), st_part)
                     yield res["block"]
-                    done += len(res["block"])
-                    if progress:
-                        progress(done, n)
 
             def meta_array():
                 st.finish(total)
@@ -240,6 +278,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
         os.replace(design_tmp, out_dir / "design.npz")
     finally:
         design_tmp.unlink(missing_ok=True)
+    shutil.rmtree(part)
     atomic_write_text(out_dir / "metrics.json", json.dumps(state["result"].metrics, indent=2, sort_keys=True))
     seconds = time.perf_counter() - t0
     pillars = int(total[3])
@@ -254,5 +293,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     atomic_write_text(oas.with_suffix(".oas.json"), json.dumps(side, indent=2, sort_keys=True))
     report["seconds"] = seconds
     report["stream_seconds"] = t_stream
+    report["stripe_seconds"] = t_stripes
+    report["stripes_reused"] = len(done)
     report["pillars_per_second"] = pillars / seconds
     return report
