@@ -43,6 +43,15 @@ def _copy(ds: Path | None, to: Path) -> Path | None:
     return to
 
 
+def _tiny_recipe(out: Path) -> Path:
+    """A 0.1 mm design recipe (142 cells): the tiled build in a second."""
+    rec = out / "tiny-design.toml"
+    if not rec.exists():
+        rec.write_text(f'[design]\nlibrary = "{REPO / "library" / "paper.npz"}"\nwavelength_nm = 1550.0\n'
+                       'period_um = 0.7\naperture_mm = 0.1\n[discretizer]\ntile_rows = 32\n')
+    return rec
+
+
 def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str] | None:
     d, lay, sen = str(prod["design"]), str(prod["layout"]), str(prod["sensor"])
     return {
@@ -60,7 +69,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("design", "plot"): [d, "-o", str(out / "s2.png")],
         ("layout", "write"): [d, "-o", str(out / "lay")],
         ("layout", "verify"): [lay],
-        ("layout", "tiled"): [str(REPO / "layouts" / "demo.toml"), "-o", str(out / "tl"), "--tile", "256", "-j", "1"],
+        ("layout", "tiled"): [str(_tiny_recipe(out)), "-o", str(out / "tl"), "--tile", "64", "-j", "1"],
         ("layout", "preview"): [lay, "-o", str(out / "prev.png")],
         ("psf",): [lay, "--sensor", sen, "-o", str(out / "psf")],
         ("fab-study",): [lay, "--sensor", sen, "--bias-nm", "0", "-o", str(out / "fs")],

@@ -187,7 +187,8 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     nt = -(-n // tile)
     A = len(atoms)
     plan = TiledPlan(spec, atoms, recipe.metric, st.offsets, np.dtype(st.dtype).str, st.empty, recipe.tile_rows,
-                     tile, p_nm, x0, np.arange(A), A + 1, hierarchy, opts.compression_level)
+                     tile, p_nm, x0, np.arange(A), A + 1, hierarchy, opts.compression_level,
+                     _mapper=st.mapper)  # in process: the stream's look-up table (workers rebuild their own)
     meta = design_meta(recipe, lib, atoms, st.offsets, st.empty, None, out_dir)
     shell = Design(spec, atoms, None, st.offsets, {}, meta, st.empty)
     prov = provenance_of(shell, opts)
