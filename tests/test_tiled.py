@@ -118,11 +118,21 @@ def tiled_case(tmp_path_factory, repo):
     return tmp, recipe, d
 
 
+@pytest.fixture(scope="module")
+def tiled64(tiled_case):
+    """The small design built tiled (64-cell tiles, hierarchy "tiles", in process) once, with its report."""
+    tmp, recipe, _ = tiled_case
+    return tmp / "t64", build_tiled(recipe, tmp / "t64", tile=64)
+
+
 @pytest.mark.parametrize("hierarchy,workers", [("tiles", 1), ("flat", 2)])
-def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, hierarchy, workers):
+def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, tiled64, hierarchy, workers):
     tmp, recipe, d = tiled_case
-    out = tmp / f"{hierarchy}-{workers}"
-    rep = build_tiled(recipe, out, tile=64, hierarchy=hierarchy, workers=workers)
+    if (hierarchy, workers) == ("tiles", 1):
+        out, rep = tiled64
+    else:
+        out = tmp / f"{hierarchy}-{workers}"
+        rep = build_tiled(recipe, out, tile=64, hierarchy=hierarchy, workers=workers)
     assert (out / "design.npz").read_bytes() == (tmp / "whole" / "design.npz").read_bytes()
     assert rep["pillars"] == int(np.count_nonzero(d.index_map != d.empty)) == rep["metrics"]["n_cells_in_aperture"]
     n = d.spec.n_cells
@@ -134,28 +144,27 @@ def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, hierarch
     assert [c.name for c in lib.top_level()] == ["METASURFACE"]
 
 
-def test_tiled_bytes_do_not_depend_on_the_worker_count_or_the_scheduler(tiled_case):
+def test_tiled_bytes_do_not_depend_on_the_worker_count_or_the_scheduler(tiled_case, tiled64):
     from dask.distributed import LocalCluster
 
     tmp, recipe, _ = tiled_case
-    build_tiled(recipe, tmp / "w1", tile=32, workers=1)
-    build_tiled(recipe, tmp / "w2", tile=32, workers=2)
+    ref = tiled64[0]  # the in-process build
+    build_tiled(recipe, tmp / "w2", tile=64, workers=2)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                       env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}) as cl:
-        build_tiled(recipe, tmp / "dask", tile=32, scheduler=cl.scheduler_address)
+        build_tiled(recipe, tmp / "dask", tile=64, scheduler=cl.scheduler_address)
     for w in ("w2", "dask"):
         for f in ("design.npz", "layout.oas", "metrics.json"):
-            assert (tmp / "w1" / f).read_bytes() == (tmp / w / f).read_bytes(), (w, f)
-    side = [json.loads((tmp / w / "layout.oas.json").read_text()) for w in ("w1", "w2", "dask")]
+            assert (ref / f).read_bytes() == (tmp / w / f).read_bytes(), (w, f)
+    side = [json.loads((d / "layout.oas.json").read_text()) for d in (ref, tmp / "w2", tmp / "dask")]
     for s in side:
         s.pop("file"), s.pop("design")
     assert side[0] == side[1] == side[2]
 
 
-def test_sampled_verification_passes_and_catches_a_changed_tile(tiled_case):
+def test_sampled_verification_passes_and_catches_a_changed_tile(tiled_case, tiled64):
     tmp, recipe, d = tiled_case
-    out = tmp / "verify"
-    build_tiled(recipe, out, tile=64)
+    out = tiled64[0]
     rep = verify_tiled(out / "layout.oas", out / "design.npz", sample_tiles=25, seed=3)
     assert rep["exact"] and rep["drc"]["passed"], rep["problems"]
     assert rep["pillars_klayout"] == rep["pillars_design"] and rep["sampled_fraction"] == pytest.approx(1.0)
@@ -201,15 +210,14 @@ def test_npz_rows_reads_any_row_window():
         r.close()
 
 
-def test_tiled_device_pupil_equals_the_whole_layouts(tiled_case):
+def test_tiled_device_pupil_equals_the_whole_layouts(tiled_case, tiled64):
     from metadesign.layouts import write_layout
     from metadesign.sensing.model import AsFabricated, IndexRows
 
     tmp, recipe, d = tiled_case
     write_layout(d, tmp / "whole" / "layout.oas")
-    build_tiled(recipe, tmp / "pupil", tile=64)
     whole = AsFabricated.from_files(tmp / "whole" / "layout.oas")
-    tiled = AsFabricated.from_files(tmp / "pupil" / "layout.oas")
+    tiled = AsFabricated.from_files(tiled64[0] / "layout.oas")
     assert isinstance(tiled.layout.index_map, IndexRows)  # streamed, never loaded whole
     pa, pb = whole.pupil(0.05, 32), tiled.pupil(0.05, 32)
     np.testing.assert_array_equal(pa.G, pb.G)
