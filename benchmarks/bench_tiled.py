@@ -68,7 +68,7 @@ def kernels(recipe_path: Path, rows: int = 512) -> dict:
     n = rec.spec.n_cells
     p_nm, x0 = layout_geometry(n, rec.spec.period)
     plan = TiledPlan(rec.spec, atoms, rec.metric, st.offsets, np.dtype(st.dtype).str, st.empty, rec.tile_rows,
-                     rows, p_nm, x0, np.arange(len(atoms)), len(atoms) + 1, "tiles", 1)
+                     rows, p_nm, x0, "tiles", 1)
     r0 = (n // 2 // rows) * rows
     plan.mapper()  # the look-up table is built once per worker, not per stripe
     t = time.perf_counter()

@@ -143,7 +143,7 @@ class NpzRows:
     def __init__(self, path: str | Path, name: str):
         self.path, self.name = Path(path), name
         with zipfile.ZipFile(self.path) as zf, zf.open(f"{name}.npy") as fh:
-            self.shape, self.dtype, _ = self._header(fh)
+            self.shape, self.dtype = self._header(fh)
         self._fh = self._zf = None
         self._pos = 0
 
@@ -153,7 +153,7 @@ class NpzRows:
         shape, fortran, dtype = reader(fh)
         if fortran or dtype.hasobject or not shape:
             raise InputError(f"{self.path}: {self.name} is not a C-order numeric array")
-        return tuple(shape), dtype, fh
+        return tuple(shape), dtype
 
     @property
     def ndim(self) -> int:
@@ -205,19 +205,12 @@ class NpzRows:
 def iter_npz_rows(path: str | Path, name: str, rows: int) -> Iterator[tuple[int, np.ndarray]]:
     """``(row0, block)`` of array ``name`` of a ``.npz``, ``rows`` rows at a time, read sequentially
     (memory: one block, whatever the array's size; never unpickles)."""
-    with zipfile.ZipFile(path) as zf, zf.open(f"{name}.npy") as fh:
-        version = np.lib.format.read_magic(fh)
-        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran, dtype = reader(fh)
-        if fortran or dtype.hasobject or not shape:
-            raise InputError(f"{path}: {name} is not a C-order numeric array")
-        row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
-        for r0 in range(0, shape[0], rows):
-            r1 = min(shape[0], r0 + rows)
-            buf = fh.read((r1 - r0) * row_bytes)
-            if len(buf) != (r1 - r0) * row_bytes:
-                raise InputError(f"{path}: {name} is truncated")
-            yield r0, np.frombuffer(buf, dtype).reshape((r1 - r0, *shape[1:]))
+    r = NpzRows(path, name)
+    try:
+        for r0 in range(0, r.shape[0], rows):
+            yield r0, r[r0:r0 + rows]
+    finally:
+        r.close()
 
 
 def read_npz(path: str | Path, what: str = "file") -> dict[str, np.ndarray]:

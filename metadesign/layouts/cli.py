@@ -58,17 +58,6 @@ def _cmd_write(a: argparse.Namespace) -> int:
     return 0
 
 
-def _tiling(path: Path) -> dict | None:
-    """The tiling a tiled layout's side-car records (None for a whole-array layout)."""
-    import json
-
-    side = path.with_suffix(path.suffix + ".json")
-    try:
-        return json.loads(side.read_text()).get("provenance", {}).get("tiling")
-    except (OSError, ValueError):
-        return None
-
-
 def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
     from .reader import verify_tiled
 
@@ -100,9 +89,10 @@ def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
 
 def _cmd_verify(a: argparse.Namespace) -> int:
     from . import drc_check, read_layout, read_layout_klayout, verify_against_design
+    from .reader import layout_tiling
 
     path = Path(a.layout)
-    tiling = _tiling(path)
+    tiling = layout_tiling(path)
     if a.sample_tiles is not None or (tiling and tiling.get("hierarchy") == "tiles" and not a.all):
         if a.sample_tiles is None:
             a.sample_tiles = 8

@@ -127,15 +127,7 @@ def polygon_record(layer: int, datatype: int, pts: np.ndarray) -> bytes:
     pts = np.asarray(pts, np.int64)
     d = np.diff(pts, axis=0)
     return (bytes([21, 0x3B]) + uint(layer) + uint(datatype) + uint(4) + uint(len(d))
-            + gdelta_grid_general(d[:, 0], d[:, 1]) + sint(int(pts[0, 0])) + sint(int(pts[0, 1])))
-
-
-def gdelta_grid_general(dx: np.ndarray, dy: np.ndarray) -> bytes:
-    """g-deltas in form 2 only (any direction)."""
-    dx, dy = np.asarray(dx, np.int64), np.asarray(dy, np.int64)
-    first = (np.abs(dx) << 2) | ((dx < 0).astype(np.int64) << 1) | 1
-    second = (np.abs(dy) << 1) | (dy < 0)
-    return uints(np.stack([first, second], 1).astype(np.uint64))
+            + gdelta_grid(d[:, 0], d[:, 1]) + sint(int(pts[0, 0])) + sint(int(pts[0, 1])))
 
 
 def text_record(text: bytes, layer: int, texttype: int, x: int, y: int) -> bytes:

@@ -16,7 +16,7 @@ from ..io import from_json_array, iter_npz_rows
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
 __all__ = ["LayoutContents", "read_layout", "read_layout_klayout", "verify_against_design", "drc_check",
-           "check_file", "verify_tiled"]
+           "check_file", "verify_tiled", "layout_tiling"]
 
 _OASIS_MAGIC = b"%SEMI-OASIS\r\n"
 _GDS_MAGIC = b"\x00\x06\x00\x02"
@@ -71,8 +71,9 @@ def _provenance(top) -> dict:
     return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
 
 
-def _place(index_map, n, p_nm, x0, a, xs, ys):
-    """Scatter atom ``a`` at positions (nm); returns (duplicates, off-lattice).
+def _place(index_map, p_nm, x0, a, xs, ys, r0: int = 0, c0: int = 0):
+    """Scatter atom ``a`` at positions (nm) into ``index_map``, whose cell ``[0, 0]`` is lattice cell
+    ``(c0, r0)``; returns (duplicates, off-lattice or outside the map).
 
     Readers return float positions (gdstk accumulates the repetition deltas in
     doubles, ~1e-6 nm off); each must be within 0.01 nm of an integer nm,
@@ -81,7 +82,9 @@ def _place(index_map, n, p_nm, x0, a, xs, ys):
     near = (np.abs(xs - xi) < 0.01) & (np.abs(ys - yi) < 0.01)
     ix, rx = np.divmod(xi - x0, p_nm)
     iy, ry = np.divmod(yi - x0, p_nm)
-    bad = ~near | (rx != 0) | (ry != 0) | (ix < 0) | (ix >= n) | (iy < 0) | (iy >= n)
+    ix, iy = ix - c0, iy - r0
+    h, w = index_map.shape
+    bad = ~near | (rx != 0) | (ry != 0) | (ix < 0) | (ix >= w) | (iy < 0) | (iy >= h)
     ix, iy = ix[~bad], iy[~bad]
     dup = int(np.count_nonzero(index_map[iy, ix] >= 0))
     index_map[iy, ix] = a
@@ -159,7 +162,7 @@ def read_layout(path: str | Path) -> LayoutContents:
         xs = np.concatenate([p[0] for p in parts])
         ys = np.concatenate([p[1] for p in parts])
         count += xs.size
-        d, o = _place(im, n, p_nm, x0, a, xs, ys)
+        d, o = _place(im, p_nm, x0, a, xs, ys)
         dup += d
         off += o
     return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
@@ -171,27 +174,7 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
 
     path = Path(path)
     t0 = time.perf_counter()
-    check_file(path)
-    ly = kdb.Layout()
-    try:
-        ly.read(str(path))
-    except Exception as exc:
-        raise InputError(f"{path}: KLayout cannot read the layout ({exc})") from None
-    if abs(ly.dbu - 1e-3) > 1e-12:
-        raise InputError(f"{path}: database unit {ly.dbu} um, expected 0.001 um (1 nm)")
-    top = ly.cell(TOP_CELL)
-    if top is None:
-        raise InputError(f"{path}: no top cell {TOP_CELL!r}")
-    prov = None
-    for li in ly.layer_indexes():
-        for sh in top.shapes(li).each():
-            if sh.is_text() and sh.text.string.startswith("{"):
-                prov = json.loads(sh.text.string)
-    if prov is None:
-        prop = top.property(PROPERTY)
-        prov = json.loads(prop) if prop else None
-    if prov is None:
-        raise InputError(f"{path}: no provenance: not written by metadesign")
+    ly, top, prov = _klayout_open(path, editable=True)
     n = int(prov["n_cells"])
     p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
     n_atoms = int(prov["n_atoms"])
@@ -232,11 +215,49 @@ def read_layout_klayout(path: str | Path) -> LayoutContents:
     dup = off = 0
     for a in range(n_atoms):
         if len(xs[a]):
-            d, o = _place(im, n, p_nm, x0, a, np.frombuffer(xs[a], np.int64).astype(float),
+            d, o = _place(im, p_nm, x0, a, np.frombuffer(xs[a], np.int64).astype(float),
                           np.frombuffer(ys[a], np.int64).astype(float))
             dup += d
             off += o
     return LayoutContents(im, widths, centres2, prov, count, dup, off, p_nm, x0, time.perf_counter() - t0)
+
+
+def layout_tiling(path: str | Path) -> dict | None:
+    """The tiling a tiled layout's side-car (``LAYOUT.json``) records, None for a whole-array layout."""
+    side = Path(path).with_suffix(Path(path).suffix + ".json")
+    try:
+        return json.loads(side.read_text()).get("provenance", {}).get("tiling")
+    except (OSError, ValueError):
+        return None
+
+
+def _klayout_open(path: Path, editable: bool):
+    """``(layout, top cell, provenance)`` of a metadesign layout read by KLayout (``editable`` False:
+    viewer mode, where OASIS repetitions stay arrays instead of one instance per pillar)."""
+    import klayout.db as kdb
+
+    check_file(path)
+    ly = kdb.Layout(editable)
+    try:
+        ly.read(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: KLayout cannot read the layout ({exc})") from None
+    if abs(ly.dbu - 1e-3) > 1e-12:
+        raise InputError(f"{path}: database unit {ly.dbu} um, expected 0.001 um (1 nm)")
+    top = ly.cell(TOP_CELL)
+    if top is None:
+        raise InputError(f"{path}: no top cell {TOP_CELL!r}")
+    prov = None
+    for li in ly.layer_indexes():
+        for sh in top.shapes(li).each():
+            if sh.is_text() and sh.text.string.startswith("{"):
+                prov = json.loads(sh.text.string)
+    if prov is None:
+        prop = top.property(PROPERTY)
+        prov = json.loads(prop) if prop else None
+    if prov is None:
+        raise InputError(f"{path}: no provenance: not written by metadesign")
+    return ly, top, prov
 
 
 def _klayout_atoms(ly, path: Path, prov: dict):
@@ -315,35 +336,28 @@ def drc_check(lc: LayoutContents, min_feature_nm: int, min_gap_nm: int, window_c
     on a central window of the layout as read back from the file (merged
     semantics off, so abutting pillars are not fused; one window, no tiles, so
     no violation is counted twice)."""
-    import klayout.db as kdb
-
-    w = lc.atom_widths_nm
-    p_nm, x0 = lc.period_nm, lc.origin_nm
-    table = {
-        "min_feature_nm": int(w.min()),
-        "min_gap_x_nm": int(p_nm - w[:, 0].max()),
-        "min_gap_y_nm": int(p_nm - w[:, 1].max()),
-    }
+    table = _atom_table_rules(lc.atom_widths_nm, lc.period_nm)
     n = lc.index_map.shape[0]
     c = min(window_cells, n)
     s = (n - c) // 2
-    region = kdb.Region()
-    sub = lc.index_map[s:s + c, s:s + c]
-    for j, i in zip(*np.nonzero(sub >= 0)):
-        a = int(sub[j, i])
-        cx2 = 2 * ((s + int(i)) * p_nm + x0) + int(lc.atom_centres_nm[a, 0])
-        cy2 = 2 * ((s + int(j)) * p_nm + x0) + int(lc.atom_centres_nm[a, 1])
-        ww, hh = int(w[a, 0]), int(w[a, 1])
-        region.insert(kdb.Box((cx2 - ww) // 2, (cy2 - hh) // 2, (cx2 - ww) // 2 + ww, (cy2 - hh) // 2 + hh))
-    region.merged_semantics = False
-    width_v = region.width_check(min_feature_nm)
-    space_v = region.space_check(min_gap_nm)
-    geo = {"window_cells": c, "pillars_in_window": region.count(),
-           "width_violations": width_v.count(), "space_violations": space_v.count()}
-    passed = (table["min_feature_nm"] >= min_feature_nm and min(table["min_gap_x_nm"], table["min_gap_y_nm"])
-              >= min_gap_nm and geo["width_violations"] == 0 and geo["space_violations"] == 0)
+    win = _window_drc(lc.index_map[s:s + c, s:s + c], s, s, lc.atom_widths_nm, lc.atom_centres_nm, lc.period_nm,
+                      lc.origin_nm, min_feature_nm, min_gap_nm)
+    geo = {"window_cells": c, "pillars_in_window": win["pillars"], "width_violations": win["width_violations"],
+           "space_violations": win["space_violations"]}
+    passed = _rules_pass(table, [win], min_feature_nm, min_gap_nm)
     return {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm}, "from_atom_table": table,
             "geometric_window": geo, "passed": passed}
+
+
+def _atom_table_rules(widths: np.ndarray, p_nm: int) -> dict:
+    """Minimum feature and gaps from the atom rectangles alone (every pillar is one of them)."""
+    return {"min_feature_nm": int(widths.min()), "min_gap_x_nm": int(p_nm - widths[:, 0].max()),
+            "min_gap_y_nm": int(p_nm - widths[:, 1].max())}
+
+
+def _rules_pass(table: dict, windows: list[dict], min_feature_nm: int, min_gap_nm: int) -> bool:
+    return (table["min_feature_nm"] >= min_feature_nm and min(table["min_gap_x_nm"], table["min_gap_y_nm"])
+            >= min_gap_nm and all(w["width_violations"] == 0 and w["space_violations"] == 0 for w in windows))
 
 
 def _window_drc(block: np.ndarray, r0: int, c0: int, widths: np.ndarray, centres2: np.ndarray, p_nm: int,
@@ -377,20 +391,8 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
 
     path, design_path = Path(path), Path(design_path)
     t0 = time.perf_counter()
-    check_file(path)
-    ly = kdb.Layout(False)
-    try:
-        ly.read(str(path))
-    except Exception as exc:
-        raise InputError(f"{path}: KLayout cannot read the layout ({exc})") from None
+    ly, top, prov = _klayout_open(path, editable=False)
     t_read = time.perf_counter() - t0
-    top = ly.cell(TOP_CELL)
-    if top is None:
-        raise InputError(f"{path}: no top cell {TOP_CELL!r}")
-    prop = top.property(PROPERTY)
-    if not prop:
-        raise InputError(f"{path}: no provenance: not written by metadesign")
-    prov = json.loads(prop)
     tiling = prov.get("tiling")
     if not tiling or tiling.get("hierarchy") != "tiles":
         raise InputError(f"{path}: not a tiled layout with tile cells (use layout verify without --sample-tiles)")
@@ -420,8 +422,8 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
     t_count = time.perf_counter() - t0
     # --- the design, streamed: its per-atom counts and the sampled tiles' blocks
     try:
-        with zipfile.ZipFile(design_path) as zf, zf.open("meta.npy") as fh:
-            dmeta = from_json_array(np.load(fh, allow_pickle=False))
+        with np.load(design_path, allow_pickle=False) as z:  # an NpzFile reads only the entry asked for
+            dmeta = from_json_array(z["meta"])
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputError(f"{design_path}: not a design file ({exc})") from None
     empty = dmeta.get("empty_index")
@@ -460,15 +462,10 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
             problems.append(f"tile cell {name} missing")
             continue
         for ti in ly.cell(ci).each_inst():
-            a = index_of[ti.cell_index]
-            pts = np.array([(tt.disp.x, tt.disp.y) for tt in ti.cell_inst.each_trans()], np.int64).reshape(-1, 2)
-            ix, rx = np.divmod(pts[:, 0] - x0, p_nm)
-            iy, ry = np.divmod(pts[:, 1] - x0, p_nm)
-            ok = (rx == 0) & (ry == 0) & (ix >= c0) & (ix < c0 + blk.shape[1]) & (iy >= r0) & (iy < r0 + blk.shape[0])
-            off += int((~ok).sum())
-            ix, iy = ix[ok] - c0, iy[ok] - r0
-            dup += int((got[iy, ix] >= 0).sum())
-            got[iy, ix] = a
+            pts = np.array([(tt.disp.x, tt.disp.y) for tt in ti.cell_inst.each_trans()], np.float64).reshape(-1, 2)
+            d, o = _place(got, p_nm, x0, index_of[ti.cell_index], pts[:, 0], pts[:, 1], r0, c0)
+            dup += d
+            off += o
         ref = blk.astype(np.int64)
         if empty is not None:
             ref = np.where(blk == empty, -1, ref)
@@ -482,10 +479,8 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
         drc.append({"tile": name, **_window_drc(got[s0:s0 + h, s1:s1 + h], r0 + s0, c0 + s1, widths, centres2,
                                                 p_nm, x0, min_feature_nm, min_gap_nm)})
     total = int(want.sum())
-    table = {"min_feature_nm": int(widths.min()), "min_gap_x_nm": int(p_nm - widths[:, 0].max()),
-             "min_gap_y_nm": int(p_nm - widths[:, 1].max())}
-    drc_ok = (table["min_feature_nm"] >= min_feature_nm and min(table["min_gap_x_nm"], table["min_gap_y_nm"])
-              >= min_gap_nm and all(d["width_violations"] == 0 and d["space_violations"] == 0 for d in drc))
+    table = _atom_table_rules(widths, p_nm)
+    drc_ok = _rules_pass(table, drc, min_feature_nm, min_gap_nm)
     return {"file": str(path), "design": str(design_path), "exact": not problems, "problems": problems,
             "pillars_klayout": int(counts.sum()), "pillars_design": total, "tiles": nt * nt,
             "sampled_tiles": [f"TILE_{t // nt:03d}_{t % nt:03d}" for t in picks], "seed": seed,

@@ -3,11 +3,14 @@
 The aperture is cut into stripes of ``tile`` rows (a multiple of the design's ``tile_rows`` and of the
 supercell); a worker maps a stripe's cells to atoms (the discretizer's kernel, the same numbers as the
 whole-array path) and encodes each ``tile x tile`` square as OASIS placements: one per atom present,
-a type-11 repetition on the lattice pitch holding its pillars in raster order.  The main process
-writes the stripes in order into ``design.npz`` (the index map streamed into its zip entry: the same
-bytes as the whole-array design) and the tiles' compressed blocks into ``layout.oas``, so the peak
-memory is a few stripes whatever the aperture, and the bytes do not depend on the worker count or the
-scheduler.
+a type-11 repetition on the lattice pitch holding its pillars in raster order.  Finished stripes are
+kept on disk (resumable); the main process then streams them in order into ``design.npz`` (the index
+map streamed into its zip entry: the same bytes as the whole-array design) and the tiles' compressed
+blocks into ``layout.oas``, so the peak memory is a few stripes whatever the aperture, and the bytes do
+not depend on the worker count or the scheduler.
+
+OASIS reference numbers: atom ``a`` is ``a``, the top cell ``len(atoms)``, tile ``(r, c)``
+``len(atoms) + 1 + r * n_tiles + c`` (the order in which the names are declared).
 
 Hierarchy (``hierarchy``): ``"tiles"`` puts each tile in a cell ``TILE_<row>_<col>`` placed once by
 the top cell; ``"flat"`` writes every placement in the top cell.  The top cell, the atom cells, the
@@ -60,8 +63,6 @@ class TiledPlan:
     tile: int
     p_nm: int
     x0: int
-    atom_ref: np.ndarray  # atom -> OASIS reference number of its cell
-    tile_ref0: int  # reference number of TILE_0_0 (row-major after it)
     hierarchy: str
     compression: int
     _mapper: object = field(default=None, repr=False, compare=False)
@@ -69,6 +70,10 @@ class TiledPlan:
     @property
     def n_tiles(self) -> int:
         return -(-self.spec.n_cells // self.tile)
+
+    def tile_ref(self, r: int, c: int) -> int:
+        """OASIS reference number of cell ``TILE_<r>_<c>`` (after the atoms and the top cell)."""
+        return len(self.atoms) + 1 + r * self.n_tiles + c
 
     def mapper(self):
         if self._mapper is None:
@@ -85,7 +90,7 @@ def tile_records(blk: np.ndarray, r0: int, c0: int, plan: TiledPlan) -> bytes:
     """The placements of one tile (``blk``: its index map, global origin ``r0, c0``), uncompressed:
     per atom present, one PLACEMENT at its first pillar in raster order with a type-11 repetition on
     the lattice pitch through the others."""
-    h, w = blk.shape
+    w = blk.shape[1]
     flat = blk.ravel()
     order = np.argsort(flat, kind="stable")  # raster order within each atom
     counts = np.bincount(flat, minlength=len(plan.atoms) + 1)[:len(plan.atoms)]
@@ -109,7 +114,7 @@ def tile_records(blk: np.ndarray, r0: int, c0: int, plan: TiledPlan) -> bytes:
     p, x0 = plan.p_nm, plan.x0
     for j, a in enumerate(present):
         s, c = int(starts[j]), int(counts[a])
-        out.append(O.placement_head(int(plan.atom_ref[a]), int(ix[s]) * p + x0, int(iy[s]) * p + x0, c > 1))
+        out.append(O.placement_head(int(a), int(ix[s]) * p + x0, int(iy[s]) * p + x0, c > 1))
         if c > 1:
             out.append(O.repetition_head(c, p))
             out.append(gbytes[boff[doff[j]]:boff[doff[j + 1]]])
@@ -154,7 +159,7 @@ def encode_stripe(plan: TiledPlan, blk: np.ndarray, r0: int) -> bytes:
     for tc, c0 in enumerate(range(0, plan.spec.n_cells, plan.tile)):
         rec = tile_records(blk[:, c0:c0 + plan.tile], r0, c0, plan)
         if plan.hierarchy == "tiles":
-            out.append(bytes([13]) + O.uint(plan.tile_ref0 + tr * plan.n_tiles + tc))
+            out.append(bytes([13]) + O.uint(plan.tile_ref(tr, tc)))
         if rec:
             out.append(O.cblock(rec, plan.compression))
     return b"".join(out)
@@ -187,7 +192,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     nt = -(-n // tile)
     A = len(atoms)
     plan = TiledPlan(spec, atoms, recipe.metric, st.offsets, np.dtype(st.dtype).str, st.empty, recipe.tile_rows,
-                     tile, p_nm, x0, np.arange(A), A + 1, hierarchy, opts.compression_level,
+                     tile, p_nm, x0, hierarchy, opts.compression_level,
                      _mapper=st.mapper)  # in process: the stream's look-up table (workers rebuild their own)
     meta = design_meta(recipe, lib, atoms, st.offsets, st.empty, None, out_dir)
     shell = Design(spec, atoms, None, st.offsets, {}, meta, st.empty)
@@ -259,7 +264,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
             if hierarchy == "tiles":
                 w.cell(TOP_CELL)
                 w.raw(O.property_record(b"metadesign", prov_json))
-                tail += [O.placement_head(A + 1 + k, 0, 0, False) for k in range(nt * nt)]
+                tail += [O.placement_head(plan.tile_ref(r, c), 0, 0, False) for r in range(nt) for c in range(nt)]
             if opts.outline_layer is not None:
                 for poly in outline_polygons(spec, p_nm, opts):
                     pts = np.rint(poly.points).astype(np.int64)

@@ -14,7 +14,7 @@ from ..design.phase import LensChannel, cell_coordinates, polygon_mask
 from ..design.recipe import design_recipe_from_dict
 from ..design.store import design_library, load_design
 from ..io import NpzRows
-from ..layouts.reader import LayoutContents, read_layout
+from ..layouts.reader import LayoutContents, layout_tiling, read_layout
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
 from ..library.coupling import find_coupling
 from ..library.locate import find_library
@@ -24,7 +24,7 @@ from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
 __all__ = ["SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics",
-           "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "tiled_layout", "read_tiled_contents"]
+           "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "read_tiled_contents"]
 
 SENSING_SECTIONS = (
     Section("sensor", (
@@ -142,7 +142,7 @@ class AsFabricated:
         """Read a layout written by ``metadesign layout`` and find its library: ``lib_path`` if given, else
         the path recorded in the layout (relative to it), else any library with the recorded sha256."""
         layout_path = Path(layout_path)
-        lc = read_tiled_contents(layout_path) if tiled_layout(layout_path) else read_layout(layout_path)
+        lc = read_tiled_contents(layout_path) if layout_tiling(layout_path) else read_layout(layout_path)
         prov = lc.provenance
         if lib_path is not None:
             path = Path(lib_path)
@@ -220,15 +220,6 @@ class AsFabricated:
         block = block_size_for(self.n_cells, pupil_grid, self.supercell)
         return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
                             self.tn_scale, progress=progress)
-
-
-def tiled_layout(path: Path) -> bool:
-    """A layout written tile by tile (``layout tiled``: its side-car records the tiling)."""
-    side = Path(path).with_suffix(Path(path).suffix + ".json")
-    try:
-        return bool(json.loads(side.read_text()).get("provenance", {}).get("tiling"))
-    except (OSError, ValueError):
-        return False
 
 
 def read_tiled_contents(path: Path) -> LayoutContents:
