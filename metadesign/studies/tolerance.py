@@ -204,32 +204,38 @@ def _write_csv(rows, path: Path) -> None:
 
 def plot_tolerance(rows, out: Path, noise: float) -> Path:
     plt = pyplot()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
-                                 gridspec_kw={"width_ratios": [3, 2]})
     bias = sorted([r for r in rows if r["jitter_nm"] == 0 and r["corner_nm"] == 0 and "height_nm" not in r
                    and r["case"] != "supercell"], key=lambda r: r["bias_nm"])
-    x = [r["bias_nm"] for r in bias]
-    a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
-    fx = [r["bias_nm"] for r in bias if "after" in r or r["case"] == "nominal"]
-    fy = [(r["after"] if "after" in r else r["before"])["npib_unet"] for r in bias if "after" in r or r["case"] == "nominal"]
-    a1.plot(fx, fy, "s--", label="after fine-tuning on the perturbed device")
-    a1.plot(x, [r["before"]["npib_phase_conjugate"] for r in bias], "g:", label="phase conjugate")
-    a1.plot(x, [r["before"]["npib_none"] for r in bias], "k:", label="uncorrected")
-    a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
-           title=f"reconstruction-level fab tolerance (noise {noise:g} %)")
-    a1.legend(fontsize=8)
     other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or "height_nm" in r or r["case"] == "supercell"]
+    nom = next((r for r in rows if r["case"] == "nominal"), None)
+    if len(bias) < 2:  # no bias sweep to draw: the nominal device is one more bar
+        fig, a2 = plt.subplots(figsize=(1.6 * (len(bias) + len(other)) + 3, 4.5), constrained_layout=True)
+        other = bias + other
+    else:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
+                                     gridspec_kw={"width_ratios": [3, 2]})
+        x = [r["bias_nm"] for r in bias]
+        a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
+        fit = [r for r in bias if "after" in r or r["case"] == "nominal"]
+        a1.plot([r["bias_nm"] for r in fit], [r.get("after", r["before"])["npib_unet"] for r in fit], "s--",
+                label="after fine-tuning on the perturbed device")
+        a1.plot(x, [r["before"]["npib_phase_conjugate"] for r in bias], "g:", label="phase conjugate")
+        a1.plot(x, [r["before"]["npib_none"] for r in bias], "k:", label="uncorrected")
+        a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
+               title=f"reconstruction-level fab tolerance (noise {noise:g} %)")
+        a1.legend(fontsize=8)
     if other:
         lab = [r["case"] for r in other]
         xx = np.arange(len(other))
         a2.bar(xx - 0.2, [r["before"]["npib_unet"] for r in other], 0.4, label="nominal model")
         a2.bar(xx + 0.2, [r.get("after", r["before"])["npib_unet"] for r in other], 0.4, label="fine-tuned")
-        nom = next((r for r in rows if r["case"] == "nominal"), None)
         if nom:
             a2.axhline(nom["before"]["npib_unet"], color="k", ls="--", lw=1, label="nominal device")
+            a2.axhline(nom["before"]["npib_phase_conjugate"], color="g", ls=":", lw=1, label="phase conjugate")
+            a2.axhline(nom["before"]["npib_none"], color="k", ls=":", lw=1, label="uncorrected")
         a2.set_xticks(xx, lab, rotation=20)
-        a2.set(ylabel="mean NPiB", title="jitter, corner rounding, etch depth, sidewall, coupling")
-        a2.legend(fontsize=8)
+        a2.set(ylabel="mean NPiB (test split)", title=f"fab cases (noise {noise:g} %)")
+        a2.legend(fontsize=8, loc="lower right")
     else:
         a2.axis("off")
     return save_figure(fig, out)
