@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     a = parser.parse_args(_legacy(argv))
+    from .io import enforce_claims
+
+    enforce_claims(True)  # every write goes through the product layer (metadesign.products)
     try:
         return int(a.func(a) or 0)
     except ValidationError as exc:
@@ -82,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
         print("metadesign: interrupted; finished work is kept, rerun the same command to resume",
               file=sys.stderr)
         return 130
+    finally:
+        enforce_claims(False)
 
 
 if __name__ == "__main__":  # pragma: no cover

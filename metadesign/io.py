@@ -32,7 +32,7 @@ from .config import InputError
 
 __all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "NpzRows", "iter_npz_rows", "read_npz",
            "read_product", "json_array", "from_json_array", "output_lock", "check_replaceable", "check_not_input",
-           "lock_path"]
+           "lock_path", "claim", "enforce_claims", "claimed"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
@@ -47,6 +47,7 @@ def _umask() -> int:
 def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """Context manager: write to the yielded temp path; renamed on success."""
     target = Path(target)
+    _check_claimed(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
         prefix=f".{target.name}.", suffix=suffix if suffix is not None else target.suffix + ".tmp",
@@ -62,6 +63,41 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+#: outputs opened by the product layer (metadesign.products.product) in this process, and whether writes
+#: outside them are refused (the CLI turns this on: no command writes around the product layer)
+_CLAIMS: list[Path] = []
+_ENFORCE = [False]
+
+
+def enforce_claims(on: bool = True) -> None:
+    """Refuse (RuntimeError: a programming error, not a user's) any :func:`atomic_path` target outside the
+    outputs the product layer has open."""
+    _ENFORCE[0] = bool(on)
+
+
+def claimed(target: str | Path) -> bool:
+    t = Path(target).resolve()
+    return any(t == c or c in t.parents for c in _CLAIMS)
+
+
+def _check_claimed(target: Path) -> None:
+    if _ENFORCE[0] and not claimed(target):
+        raise RuntimeError(f"{target}: written outside any declared output (every output goes through "
+                           "metadesign.products.product)")
+
+
+@contextlib.contextmanager
+def claim(*paths: str | Path) -> Iterator[None]:
+    """Mark ``paths`` as declared outputs while the block runs (the product layer's use)."""
+    ps = [Path(p).resolve() for p in paths]
+    _CLAIMS.extend(ps)
+    try:
+        yield
+    finally:
+        for p in ps:
+            _CLAIMS.remove(p)
 
 
 def atomic_write_text(target: str | Path, text: str) -> None:
@@ -256,6 +292,10 @@ def read_product(path: str | Path, what: str, need: tuple[str, ...], fmt: str) -
     return z, meta
 
 
+#: locks this process holds (resolved lock path -> depth): output_lock is re-entrant within a process
+_HELD: dict[str, int] = {}
+
+
 def lock_path(out: str | Path) -> Path:
     """The lock file of an output: a hidden file beside it (inside, it would be removed with the output)."""
     out = Path(out)
@@ -270,6 +310,14 @@ def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
     a writer killed by SIGKILL leaves no stale lock (only the empty file, reused by the next writer)."""
     out = Path(out)
     lock = lock_path(out)
+    key = str(lock.resolve())
+    if key in _HELD:  # this process holds it already (an outer command writing the same output)
+        _HELD[key] += 1
+        try:
+            yield
+        finally:
+            _HELD[key] -= 1
+        return
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
@@ -291,8 +339,10 @@ def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
+        _HELD[key] = 1
         yield
     finally:
+        _HELD.pop(key, None)
         with contextlib.suppress(OSError):
             os.unlink(lock)
         fcntl.flock(fd, fcntl.LOCK_UN)

@@ -6,6 +6,9 @@ from pathlib import Path
 
 from .io import atomic_path
 
+#: the PNG text chunk that marks a figure as metadesign's (metadesign.products recognises it)
+PNG_KEY = "metadesign"
+
 __all__ = ["pyplot", "save_figure"]
 
 
@@ -24,6 +27,6 @@ def save_figure(fig, out: str | Path, dpi: int = 120) -> Path:
     with atomic_path(out) as tmp:
         # metadata without the creation date: same inputs, same bytes
         fig.savefig(tmp, dpi=dpi, format=out.suffix.lstrip(".") or "png",
-                    metadata={"Software": None} if out.suffix == ".png" else None)
+                    metadata={"Software": None, PNG_KEY: "figure"} if out.suffix == ".png" else None)
     plt.close(fig)
     return out

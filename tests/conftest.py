@@ -9,6 +9,10 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+# a plugin may have loaded numpy (and its BLAS, with one thread per core) before the variables above
+threadpool_limits(1)
 
 REPO = Path(__file__).resolve().parents[1]
 

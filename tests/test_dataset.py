@@ -95,11 +95,11 @@ def test_sigkilled_build_resumes_to_the_same_bytes(tiny_dataset, demo_products, 
     p = subprocess.Popen([sys.executable, "-m", "metadesign", "dataset", "build", str(rec), "-o", str(out), "-j", "1"],
                          env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     t0 = time.time()
-    while time.time() - t0 < 120 and not (out / ".shards" / "000000").exists():
+    while time.time() - t0 < 120 and not (out / ".shards" / "000000.json").exists():
         time.sleep(0.05)
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
-    assert (out / ".shards" / "000000").exists() and not (out / ".shards" / "000002").exists()
+    assert (out / ".shards" / "000000.json").exists() and not (out / ".shards" / "000002.json").exists()
     with pytest.raises(Exception, match="incomplete"):
         open_dataset(out)
     rep = build_dataset(load_dataset_recipe(rec), out, workers=1)

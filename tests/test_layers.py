@@ -11,7 +11,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "metadesign"
 
 #: the shared edges: used by everything, import only each other
-EDGES = {"conventions", "config", "io", "validation", "cliutil", "parallel", "paths", "plotting", "timing",
+EDGES = {"conventions", "config", "io", "validation", "products", "tasks", "cliutil", "parallel", "paths", "plotting", "timing",
          "determinism"}
 #: subpackages in pipeline order (a module may import its own level and those below)
 ORDER = ["optics", "library", "design", "layouts", "sensing", "turbulence", "reconstruction", "studies"]

@@ -58,3 +58,15 @@ split = "all"
     assert all(v["ran_seconds"] > 0 for v in again["stages"].values())
     html2 = (tmp_path / "out" / "report.html").read_text()
     assert "up to date, ran in" in html2
+    # the cache follows content, not where the files lie: a copied run folder is up to date ...
+    import shutil
+
+    shutil.copytree(tmp_path / "out", tmp_path / "copy")
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"]) == 0
+    assert all(v["skipped"] for v in json.loads(capsys.readouterr().out)["stages"].values())
+    # ... and more validation samples rerun the validation only (the dataset depends on the scenario alone)
+    (tmp_path / "p.toml").write_text((tmp_path / "p.toml").read_text().replace("turbulence_samples = 3",
+                                                                               "turbulence_samples = 4"))
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"]) == 0
+    st = json.loads(capsys.readouterr().out)["stages"]
+    assert [k for k, v in st.items() if not v["skipped"]] == ["turbulence"], st

@@ -104,11 +104,18 @@ def test_io_output_lock_is_exclusive_and_released(tmp_path):
     from metadesign.io import lock_path, output_lock
     from metadesign.validation import ValidationError
 
+    import fcntl
+    import os
+
     out = tmp_path / "x"
     with output_lock(out):
-        with pytest.raises(ValidationError, match="another metadesign process"):
-            with output_lock(out):
-                pass
+        fd = os.open(lock_path(out), os.O_RDWR)  # what another process sees: the lock is taken
+        with pytest.raises(BlockingIOError):
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.close(fd)
+        with output_lock(out):  # re-entrant in the holding process (a command and its own sub-products)
+            pass
+        assert lock_path(out).exists()
     assert not lock_path(out).exists()
     with output_lock(out):  # free again
         pass
@@ -194,6 +201,8 @@ def test_compare_with_no_model_and_only_model_methods_is_one_line(tiny_dataset, 
 # -- training -------------------------------------------------------------------------------------------
 
 def test_training_inputs_are_checked_before_an_epoch(tiny_dataset, demo_products, tmp_path, capsys):
+    from metadesign.products import write_marker
+
     tiny_model(tmp_path)
     rec = tmp_path / "t.toml"
     # no validation samples: refused before training
@@ -209,6 +218,7 @@ def test_training_inputs_are_checked_before_an_epoch(tiny_dataset, demo_products
     for kind in ("truncated", "empty", "folder", *blobs):
         run = tmp_path / f"r-{kind}"
         run.mkdir()
+        write_marker(run, "training-run")  # a run metadesign wrote, whose checkpoint was damaged since
         ck = run / "checkpoint.pt"
         if kind == "folder":
             ck.mkdir()

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from ..cliutil import emit, integer, out_dir, out_file, progress_bar
+from ..products import product
 
 __all__ = ["register", "SUBCOMMANDS", "DEFAULT"]
 
@@ -33,13 +34,20 @@ def design_text(d, out) -> str:
     ] + ([f"time           {d.seconds['total']:.1f} s"] if d.seconds else []))
 
 
+def design_file(path) -> Path:
+    """The file a design input names (a folder holds ``design.npz``)."""
+    p = Path(path)
+    return p / "design.npz" if p.is_dir() else p
+
+
 def _cmd_build(a: argparse.Namespace) -> int:
     from .recipe import load_design_recipe
     from .store import run_design
 
     recipe = load_design_recipe(a.recipe)
     out = out_dir(a.output) if a.output else out_dir(recipe.default_output())
-    d, out = run_design(recipe, out, progress=progress_bar("design", unit="row"))
+    with product(out, "design", {"recipe": a.recipe, "design.library": recipe.library_path}):
+        d, out = run_design(recipe, out, progress=progress_bar("design", unit="row"))
     emit(d.metrics | {"output": str(out), "seconds": d.seconds}, a.json, design_text(d, out))
     return 0
 
@@ -66,7 +74,8 @@ def _cmd_plot(a: argparse.Namespace) -> int:
         lib = design_library(d)
     except ValidationError:
         pass  # coverage dots need the library; the rest does not
-    plot_design(d, out, lib)
+    with product(out, "figure", {"design": design_file(base)}):
+        plot_design(d, out, lib)
     print(f"wrote {out}")
     return 0
 
@@ -86,9 +95,16 @@ def _cmd_compensate(a: argparse.Namespace) -> int:
         (src if src.is_dir() else src.parent).name + "-compensated"))
     lib = design_library(d)
     model, card, mpath = find_coupling(lib, a.coupling_model)
-    d2, rep = compensate_design(d, model, a.neighbours, a.sweeps, progress=progress_bar("compensate", unit="row"))
-    d2.meta["coupling_model"] = {"path": str(mpath), "sha256": card["weights_sha256"]}
-    save_design(out, d2)
+    if model.cfg.interaction != "pair":
+        from ..validation import ValidationError
+
+        raise ValidationError(f"--coupling-model {mpath}: interaction {model.cfg.interaction!r}; the compensating "
+                              "discretizer scores candidates from pair tables and needs a 'pair' model")
+    with product(out, "design", {"design": design_file(src), "--coupling-model": mpath}):
+        d2, rep = compensate_design(d, model, a.neighbours, a.sweeps,
+                                    progress=progress_bar("compensate", unit="row"))
+        d2.meta["coupling_model"] = {"path": str(mpath), "sha256": card["weights_sha256"]}
+        save_design(out, d2)
     rep["output"] = str(out)
     b, f = rep["residual_rms_before"], rep["residual_rms_after"]
     emit(rep, a.json, f"wrote {out}/design.npz: {rep['supercells']:,} supercells re-chosen under the coupling "

@@ -9,6 +9,8 @@ from pathlib import Path
 
 from ..cliutil import emit, integer, out_dir, out_file, progress_bar, workers_arg
 from ..config import InputError
+from ..products import Input, product
+from .rules import DESIGN_RULES
 
 __all__ = ["register", "SUBCOMMANDS", "DEFAULT", "MAX_PREVIEW_CELLS"]
 
@@ -36,19 +38,27 @@ def _cmd_write(a: argparse.Namespace) -> int:
     base = Path(a.design)
     folder = base if base.is_dir() else base.parent
     stem = Path(a.output) if a.output else folder / "layout"
+    if stem.is_dir():
+        raise InputError(f"-o/--output {stem}: is a folder, expected a layout file path (e.g. {stem}/layout.oas)")
     if stem.suffix in (".oas", ".gds"):
         stem = stem.with_suffix("")
+    elif stem.suffix:
+        raise InputError(f"-o/--output {stem}: expected a layout path ending in .oas or .gds (or one without a "
+                         "suffix: --format adds it)")
     fmts = ["oas", "gds"] if a.format == "both" else [a.format]
     for fmt in fmts:
         out_file(stem.with_suffix("." + fmt))
     d = load_design(a.design)
     opts = _options(a)
     reports = []
+    src = base / "design.npz" if base.is_dir() else base
     for fmt in fmts:
         if fmt == "gds" and d.index_map.size > 1_000_000:
             print(f"metadesign: warning: GDSII cannot store irregular repetitions: {d.index_map.size:,} pillars "
                   "expand into one SREF each (expect a file of GB size and minutes)", file=sys.stderr)
-        reports.append(write_layout(d, stem.with_suffix("." + fmt), fmt, opts))
+        target = stem.with_suffix("." + fmt)
+        with product(target, "layout", {"design": src}, also=(target.with_name(target.name + ".json"),)):
+            reports.append(write_layout(d, target, fmt, opts))
     text = "\n".join(
         f"wrote {r['file']}: {r['pillars']:,} pillars, {r['atoms']} atoms, {r['bytes'] / 1e6:.2f} MB in "
         f"{r['seconds']:.1f} s; widths snapped to {r['snapping']['grid_nm']} nm (max error "
@@ -134,13 +144,15 @@ def _options(a: argparse.Namespace):
 
 def _cmd_tiled(a: argparse.Namespace) -> int:
     from ..design.recipe import load_design_recipe
-    from .tiled import build_tiled
+    from .tiled import build_tiled, tiled_need
 
     recipe = load_design_recipe(a.recipe)
     out = out_dir(a.output) if a.output else out_dir(recipe.default_output())
     opts = _options(a)
-    rep = build_tiled(recipe, out, a.tile, a.hierarchy, opts, a.workers, a.scheduler,
-                      progress=None if a.json else progress_bar("tiled design + layout", unit="row"))
+    with product(out, "design", {"recipe": a.recipe, "design.library": recipe.library_path},
+                 need=tiled_need(recipe, a.tile, a.workers)):
+        rep = build_tiled(recipe, out, a.tile, a.hierarchy, opts, a.workers, a.scheduler,
+                          progress=None if a.json else progress_bar("tiled design + layout", unit="row"))
     m = rep["metrics"]
     emit(rep, a.json, "\n".join([
         f"wrote {rep['design']} and {rep['file']}: {rep['pillars']:,} pillars in {rep['tiles']:,} tiles of "
@@ -165,7 +177,8 @@ def _cmd_preview(a: argparse.Namespace) -> int:
     if a.window and (a.window[0] >= n or a.window[1] >= n):
         raise InputError(f"--window: IX0 and IY0 must be < {n} (cells per side of this layout), got "
                          f"{a.window[0]} {a.window[1]}")
-    preview_layout(lc, out, tuple(a.window) if a.window else None)
+    with product(out, "figure", {"layout": path}):
+        preview_layout(lc, out, tuple(a.window) if a.window else None)
     print(f"wrote {out}")
     return 0
 
@@ -221,8 +234,10 @@ def register(sub) -> None:
     v.add_argument("layout", help="layout file (.oas/.gds)")
     v.add_argument("--design", help="the design to compare with (default: design.npz beside the layout)")
     v.add_argument("--klayout", action="store_true", help="also read the file with KLayout and compare")
-    v.add_argument("--min-feature-nm", type=integer(1, 100000), default=100, help="minimum pillar width rule (100)")
-    v.add_argument("--min-gap-nm", type=integer(1, 100000), default=150, help="minimum gap rule (150)")
+    v.add_argument("--min-feature-nm", type=integer(1, 100000), default=DESIGN_RULES.min_feature_nm,
+                   help=f"minimum pillar width rule ({DESIGN_RULES.min_feature_nm})")
+    v.add_argument("--min-gap-nm", type=integer(1, 100000), default=DESIGN_RULES.min_gap_nm,
+                   help=f"minimum gap rule ({DESIGN_RULES.min_gap_nm})")
     v.add_argument("--drc-window-cells", type=integer(2, 4096), default=64,
                    help="geometric DRC window in cells per side, 2..4096 (default 64)")
     v.add_argument("--sample-tiles", type=integer(0, 10**6),

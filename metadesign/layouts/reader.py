@@ -13,6 +13,7 @@ import numpy as np
 
 from ..config import InputError
 from ..io import from_json_array, iter_npz_rows
+from .rules import DESIGN_RULES
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
 __all__ = ["LayoutContents", "read_layout", "read_layout_klayout", "verify_against_design", "drc_check",
@@ -331,7 +332,8 @@ def verify_against_design(lc: LayoutContents, design, grid_nm: int = 1) -> dict:
                                            minlength=len(design.atoms)).tolist()}
 
 
-def drc_check(lc: LayoutContents, min_feature_nm: int, min_gap_nm: int, window_cells: int = 64) -> dict:
+def drc_check(lc: LayoutContents, min_feature_nm: int = DESIGN_RULES.min_feature_nm,
+              min_gap_nm: int = DESIGN_RULES.min_gap_nm, window_cells: int = 64) -> dict:
     """Design rules: from the atom table, and geometrically with KLayout regions
     on a central window of the layout as read back from the file (merged
     semantics off, so abutting pillars are not fused; one window, no tiles, so
@@ -379,7 +381,8 @@ def _window_drc(block: np.ndarray, r0: int, c0: int, widths: np.ndarray, centres
 
 
 def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 8, seed: int = 0,
-                 min_feature_nm: int = 100, min_gap_nm: int = 150, window_cells: int = 64,
+                 min_feature_nm: int = DESIGN_RULES.min_feature_nm, min_gap_nm: int = DESIGN_RULES.min_gap_nm,
+                 window_cells: int = 64,
                  progress=None) -> dict:
     """Verification that scales, for a tiled layout (:mod:`metadesign.layouts.tiled`, ``hierarchy =
     "tiles"``): KLayout (viewer mode: repetitions stay arrays) counts every pillar, per atom, through the

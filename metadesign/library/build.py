@@ -9,9 +9,6 @@ removed.  Workers are spawned processes with single-threaded BLAS.
 
 from __future__ import annotations
 
-import hashlib
-import json
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,9 +18,8 @@ import numpy as np
 
 from .. import __version__
 from ..config import InputError
-from ..io import atomic_write_text, read_npz, write_npz
-from ..parallel import WorkerPool, run_tasks
-from ..validation import ValidationError
+from ..parallel import WorkerPool
+from ..tasks import TaskFolder, content_key, run_resumable
 from .rcwa import SolverSettings, Stack, solve_cell
 from .recipe import LibraryRecipe
 from .store import UnitCellLibrary, save_library
@@ -157,11 +153,11 @@ def _unique_cells(widths: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _build_key(recipe: LibraryRecipe) -> str:
+    """What shapes the solved cells: the recipe without its name and convergence check, and the version."""
     d = recipe.to_dict()
     d.pop("name")
     d.pop("convergence")
-    d["version"] = __version__
-    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+    return content_key(d, __version__)
 
 
 def build_library(
@@ -249,54 +245,26 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
         pairs = [(i, j, ih, ia) for ih, ia in axes for i, j in pairs]
     chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
     part_dir = output.parent / (output.name + ".partial")
-    key = _build_key(recipe)
-    manifest = part_dir / "manifest.json"
-    if part_dir.exists():
-        ok = manifest.exists() and json.loads(manifest.read_text()).get("key") == key
-        if not ok:
-            log(f"discarding {part_dir} (made with another recipe or version)")
-            shutil.rmtree(part_dir)
-    part_dir.mkdir(parents=True, exist_ok=True)
-    if not manifest.exists():
-        atomic_write_text(manifest, json.dumps({"key": key, "chunk_size": chunk_size,
-                                                "n_chunks": len(chunks)}))
-    else:
-        chunk_size = json.loads(manifest.read_text())["chunk_size"]
-        chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
-
-    done: dict[int, dict] = {}
-    for k in range(len(chunks)):
-        f = part_dir / f"chunk-{k:05d}.npz"
-        if f.exists():
-            try:
-                done[k] = read_npz(f, "chunk")
-            except ValidationError:  # a damaged chunk is recomputed
-                f.unlink()
-    if done:
-        log(f"resuming: {len(done)}/{len(chunks)} chunks already on disk")
-    todo = [k for k in range(len(chunks)) if k not in done]
+    folder = TaskFolder(part_dir, _build_key(recipe), log, chunk_size=chunk_size, n_chunks=len(chunks))
+    chunk_size = int(folder.manifest().get("chunk_size", chunk_size))  # a resumed build keeps its chunking
+    chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
+    names = [f"chunk-{k:05d}" for k in range(len(chunks))]
     n_cells_total = len(pairs)
-    n_done = sum(len(chunks[k]) for k in done)
-    if progress:
-        progress(n_done, n_cells_total)
     t_sweep = time.perf_counter()
     if recipe.fab_axes is None:
-        jobs = [(k, [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings) for k in todo]
+        jobs = {names[k]: (names[k], [(widths[i], widths[j]) for i, j in chunks[k]], recipe.stack, recipe.settings)
+                for k in range(len(chunks))}
         fn = _solve_chunk
     else:
         fa = recipe.fab_axes
-        jobs = [(k, [(widths[i], widths[j], fa.heights[ih], fa.sidewalls[ia]) for i, j, ih, ia in chunks[k]],
-                 recipe.stack, recipe.settings, fa.slices) for k in todo]
+        jobs = {names[k]: (names[k], [(widths[i], widths[j], fa.heights[ih], fa.sidewalls[ia])
+                                      for i, j, ih, ia in chunks[k]], recipe.stack, recipe.settings, fa.slices)
+                for k in range(len(chunks))}
         fn = _solve_chunk_axes
-    results = pool.map(fn, jobs) if scheduler is None else run_tasks(fn, jobs, scheduler=scheduler)
-    for count, (k, res) in enumerate(results, 1):
-        write_npz(part_dir / f"chunk-{k:05d}.npz", res)
-        done[k] = res
-        n_done += len(chunks[k])
-        if progress:
-            progress(n_done, n_cells_total)
-        if _stop_after_chunks is not None and count >= _stop_after_chunks:
-            raise KeyboardInterrupt("simulated kill")
+    size = {names[k]: len(chunks[k]) for k in range(len(chunks))}
+    res, _ = run_resumable(fn, jobs, folder, pool=pool, scheduler=scheduler, weight=size.__getitem__,
+                           progress=progress, log=log, unit="cell", stop_after=_stop_after_chunks)
+    done = {k: res[names[k]] for k in range(len(chunks))}
     sweep_s = time.perf_counter() - t_sweep
 
     extra = () if recipe.fab_axes is None else (len(recipe.fab_axes.heights), len(recipe.fab_axes.sidewalls))
@@ -345,7 +313,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
                             "nominal_slice": "the main arrays = height_um == stack height, sidewall 90 deg"}
     lib = UnitCellLibrary(widths.copy(), widths.copy(), jones, T0, Tt, Rt, meta, fab=fab)
     save_library(output, lib)
-    shutil.rmtree(part_dir, ignore_errors=True)
+    folder.remove()
     report = {
         "output": str(output),
         "cells": n * n * int(np.prod(extra)) if extra else n * n,

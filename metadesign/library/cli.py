@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..cliutil import emit, log_to, num, out_file, progress_bar, workers_arg
 from ..paths import default_library_path
+from ..products import product
 
 __all__ = ["register"]
 
@@ -17,10 +18,11 @@ def _cmd_build(a: argparse.Namespace) -> int:
 
     recipe = load_recipe(a.recipe)
     out = out_file(Path(a.output) if a.output else Path(a.recipe).with_suffix(".npz"), suffixes=(".npz",))
-    lib, rep = build_library(
-        recipe, out, workers=a.workers, allow_unconverged=a.allow_unconverged,
-        progress=progress_bar("library"), log=log_to(a.json), scheduler=a.scheduler,
-    )
+    with product(out, "unit-cell-library", {"recipe": a.recipe}, scratch=(out.with_name(out.name + ".partial"),)):
+        lib, rep = build_library(
+            recipe, out, workers=a.workers, allow_unconverged=a.allow_unconverged,
+            progress=progress_bar("library"), log=log_to(a.json), scheduler=a.scheduler,
+        )
     s = lib.summary()
     rep["summary"] = s
     text = (
@@ -72,7 +74,8 @@ def _cmd_plot(a: argparse.Namespace) -> int:
     path = _lib_arg(a)
     out = out_file(Path(a.output) if a.output else path.with_name(path.stem + "-fig-s1.png"), suffixes=(".png",))
     lib = load_library(path)
-    plot_library(lib, out)
+    with product(out, "figure", {"library": path}):
+        plot_library(lib, out)
     print(f"wrote {out}")
     return 0
 
@@ -82,7 +85,8 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
     out = out_file(a.csv, "-o/--output")
     lib = load_library(_lib_arg(a))
-    n = export_csv(lib, out)
+    with product(out, "library-csv", {"library": _lib_arg(a)}):
+        n = export_csv(lib, out)
     print(f"wrote {out}: {n} rows")
     return 0
 

@@ -222,9 +222,10 @@ def save_coupling(path: str | Path, model, lib_path: str | Path, card: dict) -> 
 def is_coupling(path: str | Path) -> bool:
     p = Path(path).with_suffix(".json")
     try:
-        return json.loads(p.read_text()).get("format") == CARD_FORMAT
+        card = json.loads(p.read_text())
     except (OSError, ValueError):
         return False
+    return isinstance(card, dict) and card.get("format") == CARD_FORMAT
 
 
 def load_coupling(path: str | Path, lib: UnitCellLibrary, check_library: bool = True):
@@ -238,11 +239,27 @@ def load_coupling(path: str | Path, lib: UnitCellLibrary, check_library: bool = 
     card = json.loads(path.with_suffix(".json").read_text())
     if file_sha256(path) != card.get("weights_sha256"):
         raise ValidationError(f"{path}: the weights' sha256 differs from the card's (damaged or replaced)")
-    if check_library and lib.identity and lib.identity != card["library"]["sha256"]:
-        raise ValidationError(f"{path}: fitted against library {card['library']['path']} "
-                              f"(sha256 {card['library']['sha256'][:12]}), not this one ({lib.identity[:12]})")
-    model = _torch_model(CouplingConfig(**card["config"]), lib)
-    model.load_state_dict(load_file(str(path)))
+    lib_card = card.get("library")
+    if not isinstance(lib_card, dict) or not isinstance(lib_card.get("sha256"), str):
+        raise ValidationError(f"{path}: the card's library entry is missing or not an object with a sha256")
+    if check_library and lib.identity and lib.identity != lib_card["sha256"]:
+        raise ValidationError(f"{path}: fitted against library {lib_card.get('path')} "
+                              f"(sha256 {lib_card['sha256'][:12]}), not this one ({lib.identity[:12]})")
+    try:
+        cfg = CouplingConfig(**card["config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValidationError(f"{path}: the card's config is not a coupling configuration ({exc})") from None
+    model = _torch_model(cfg, lib)
+    try:
+        state = load_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types
+        raise ValidationError(f"{path}: unreadable weights ({str(exc).splitlines()[0]})") from None
+    try:
+        model.load_state_dict(state)
+    except RuntimeError:
+        raise ValidationError(f"{path}: the weights do not fit the card's config (interaction "
+                              f"{cfg.interaction!r}, hidden {cfg.hidden}, layers {cfg.layers}, ensemble "
+                              f"{cfg.ensemble}): card and weights belong to different models") from None
     model.eval()
     return model, card
 
@@ -340,7 +357,8 @@ def pair_tables(model, widths: np.ndarray, t_atoms: np.ndarray) -> np.ndarray:
     import torch
 
     if model.cfg.interaction != "pair":
-        raise ValueError("pair tables need a pair-interaction coupling model")
+        raise ValidationError(f"the coupling model has interaction {model.cfg.interaction!r}; pair tables (the "
+                              "compensating discretizer, device-scale look-ups) need interaction 'pair'")
     A = len(widths)
     u = torch.from_numpy(((np.asarray(widths) - W0) / WS).astype(np.float32))
     t = np.asarray(t_atoms)

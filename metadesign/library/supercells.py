@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import __version__
 from ..io import atomic_write_text, read_npz, write_npz
-from ..parallel import run_tasks
+from ..tasks import TaskFolder, run_resumable
 from ..validation import ValidationError
 from .rcwa import Stack
 from .supercell import solve_supercell
@@ -80,7 +80,7 @@ def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack) -> str:
     h.update(np.ascontiguousarray(widths, "<f8").tobytes())
     h.update(json.dumps([n_harmonics, stack.wavelength, stack.period, stack.height, stack.n_pillar,
                          stack.n_substrate, stack.n_superstrate, __version__]).encode())
-    return f"chunk-{h.hexdigest()[:20]}.npz"
+    return f"chunk-{h.hexdigest()}"
 
 
 def _solve_rows(args) -> tuple[str, dict]:
@@ -100,40 +100,15 @@ def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str
     widths = np.asarray(widths, float)
     if widths.ndim != 4 or widths.shape[1:] != (2, 2, 2):
         raise ValueError(f"widths must be (n, 2, 2, 2), got {widths.shape}")
-    part = Path(partial)
-    part.mkdir(parents=True, exist_ok=True)
+    folder = TaskFolder(partial)  # chunks named by their rows' content: a larger table reuses a smaller one's
     chunks = [(k, min(k + chunk_size, len(widths))) for k in range(0, len(widths), chunk_size)]
     names = [_chunk_name(widths[a:b], n_harmonics, stack) for a, b in chunks]
-    done: dict[str, dict] = {}
-    for nm in set(names):
-        f = part / nm
-        if f.exists():
-            try:
-                done[nm] = read_npz(f, "chunk")
-            except ValidationError:  # a damaged chunk is solved again
-                f.unlink()
-    n_done = sum(b - a for (a, b), nm in zip(chunks, names) if nm in done)
-    if n_done:
-        log(f"resuming: {n_done}/{len(widths)} supercells already solved in {part}")
-    if progress:
-        progress(n_done, len(widths))
-    jobs, seen = [], set()
-    for (a, b), nm in zip(chunks, names):
-        if nm not in done and nm not in seen:
-            seen.add(nm)
-            jobs.append((nm, widths[a:b], stack, n_harmonics))
+    jobs = {nm: (nm, widths[a:b], stack, n_harmonics) for (a, b), nm in zip(chunks, names)}
     size = {nm: b - a for (a, b), nm in zip(chunks, names)}
     t0 = time.perf_counter()
-    it = (run_tasks(_solve_rows, jobs, scheduler=scheduler, key="supercells") if scheduler is not None
-          else run_tasks(_solve_rows, jobs, workers=workers))
-    for count, (nm, res) in enumerate(it, 1):
-        write_npz(part / nm, res)
-        done[nm] = res
-        n_done += size[nm]
-        if progress:
-            progress(n_done, len(widths))
-        if _stop_after_chunks is not None and count >= _stop_after_chunks:
-            raise KeyboardInterrupt("simulated kill")
+    done, _ = run_resumable(_solve_rows, jobs, folder, workers=workers, scheduler=scheduler, dask_key="supercells",
+                            weight=size.__getitem__, progress=progress, log=log, unit="supercell",
+                            stop_after=_stop_after_chunks)
     seconds = time.perf_counter() - t0
     t = np.concatenate([done[nm]["t"] for nm in names])
     nGs = {int(v) for nm in names for v in done[nm]["n_harmonics"]}

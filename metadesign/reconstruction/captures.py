@@ -28,7 +28,9 @@ resampled to the tensor size and normalised as synthetic data (8 channels sum to
 
 Saturation: a frame with pixels at or above ``--saturation`` counts (default: the full scale of its
 integer type; hot pixels excepted) is flagged (``flags`` array, bit 0) and reported; ``--saturated drop``
-leaves such samples out, ``error`` refuses the import.  Values are never clipped by the import.
+leaves such samples out, ``error`` refuses the import.  Negative raw counts (a signed or BZERO-less FITS
+file: a camera cannot count below zero) are clipped at zero, with a warning and their number in the report
+(``negative_counts_clipped``); nothing else is clipped.
 
 Output: the same zarr format as ``dataset build`` with ``propagation = "slm"``: ``received`` is the SLM
 field ``exp(i phi) x aperture``, and the end-to-end loss and the evaluation back-propagate through the SLM
@@ -49,7 +51,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..io import atomic_path, atomic_write_text, check_not_input, check_replaceable, output_lock
+from ..io import atomic_write_text
+from ..plotting import save_figure
+from ..products import product
 from ..sensing.camera import Alignment
 from ..sensing.forward import sensor_frames
 from ..sensing.sensor import area_resample, quadrant_slices
@@ -313,10 +317,23 @@ def _phase(path: Path, crop, per_count: float, extent_m: float | None = None) ->
     return np.arctan2(im, re)
 
 
-def _mean_frames(paths, shape, what, dark=None, hot=None):
+def _read_counts(path, what, neg: dict | None):
+    """A frame's counts with negative values clipped at zero (a camera counts photo-electrons: a negative
+    count is a signed-integer or BZERO artefact of the file); their number goes into ``neg``."""
+    f, full = read_frame(path, what)
+    bad = f < 0
+    if bad.any():
+        f = np.where(bad, 0, f)
+        if neg is not None:
+            neg["pixels"] = neg.get("pixels", 0) + int(bad.sum())
+            neg.setdefault("frames", []).append(str(path))
+    return f, full
+
+
+def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None):
     acc = np.zeros(shape)
     for p in paths:
-        f, _ = read_frame(p, what)
+        f, _ = _read_counts(p, what, neg)
         if f.shape != shape:
             raise ValidationError(f"{p}: {what}: {f.shape[1]} x {f.shape[0]} pixels, the sensor has "
                                   f"{shape[1]} x {shape[0]}")
@@ -337,12 +354,11 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
     folder, out = Path(folder), Path(out)
     if options.saturated not in ("flag", "drop", "error"):
         raise ValidationError(f"--saturated: expected flag, drop or error, got {options.saturated!r}")
-    check_not_input(out, {"captures": folder, "--calibration": calibration, "--reference": reference,
-                          **{f"--dark {d}": d for d in (darks or [])}})
     if out.exists() and not overwrite:
         raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
-    check_replaceable(out, lambda p: _read_attrs(p) is not None, "metadesign dataset")
-    with output_lock(out, "dataset"):
+    with product(out, "dataset", {"captures": folder, "--calibration": calibration, "--reference": reference,
+                                  **{f"--dark {d}": d for d in (darks or [])}},
+                 scratch=(out.with_name(out.name + ".partial"),)):
         return _import(folder, out, calibration, reference, darks, options, progress, log, t0)
 
 
@@ -384,11 +400,11 @@ def _manifest_numbers(rows: list[dict], manifest: Path) -> tuple[list[float], li
     return rytov_all, slm_extent
 
 
-def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot) -> tuple[list[np.ndarray], bool]:
+def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None) -> tuple[list[np.ndarray], bool]:
     """A sample's two frames, checked, dark-subtracted and hot-pixel-fixed, and whether one saturated."""
     fr, sat = [], False
     for p in "xy":
-        f, full = read_frame(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}")
+        f, full = _read_counts(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}", neg)
         if f.shape != shape:
             raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
                                   f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
@@ -425,11 +441,13 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
 
     # darks and hot pixels
     dark = hot = None
+    neg: dict = {}
     if darks:
-        dark = _mean_frames([Path(p) for p in darks], shape, "dark frame")
+        dark = _mean_frames([Path(p) for p in darks], shape, "dark frame", neg=neg)
         hot = hot_pixel_map(dark, options.hot_sigma)
     # calibration
-    flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot) for p in "xy"])
+    flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot, neg)
+                     for p in "xy"])
     ref_frames = sensor_frames(ref.pupil, sensor, None)
     c_ref = spot_centroids(ref_frames, sensor, options.threshold)
     al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
@@ -446,7 +464,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     ap = ref.crop.aperture_mask()
     kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
     for j, r in enumerate(rows):
-        fr, sat = _sample_frames(r, shape, options, dark, hot)
+        fr, sat = _sample_frames(r, shape, options, dark, hot, neg)
         if sat:
             if options.saturated == "error":
                 raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "
@@ -468,6 +486,9 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
             progress(j + 1, len(rows))
     if not kept:
         raise ValidationError(f"{manifest}: every sample is saturated (--saturated drop left none)")
+    if neg:
+        log(f"warning: {neg['pixels']} negative counts in {len(neg['frames'])} frame(s) (first: {neg['frames'][0]}) "
+            "clipped at zero: a camera counts photo-electrons (a signed or BZERO-less FITS file?)")
     for line in notes:  # only once every input is known good (an error is one line)
         log(line)
 
@@ -533,6 +554,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         raise
     info = open_dataset(out)
     return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(flagged),
+            "negative_counts_clipped": neg.get("pixels", 0), "negative_count_frames": len(neg.get("frames", [])),
             "saturated_samples": flagged[:20], "saturated_policy": options.saturated, "calibration": calib,
             "seconds": time.perf_counter() - t0, **info.summary()}
 
@@ -556,6 +578,4 @@ def _plot_calibration(path: Path, flat, c_ref, c_meas, al, res) -> None:
     fig.suptitle(f"relay: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
                  f"x{al.scale:.4f}; residual max {res.max():.2f} px")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)

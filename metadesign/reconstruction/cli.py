@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
+from ..products import Input, product, zarr_input
 
 __all__ = ["register"]
 
@@ -111,7 +112,8 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 
     out = out_file(a.output or Path(a.dataset) / "fig-dataset.png", suffixes=(".png",))
     info = open_dataset(a.dataset)
-    plot_dataset(info, out, a.samples)
+    with product(out, "figure", {"dataset": zarr_input(a.dataset)}):
+        plot_dataset(info, out, a.samples)
     print(f"wrote {out}")
     return 0
 
@@ -149,19 +151,19 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
     from .evaluate import evaluate_model, plot_fig3, summarise, write_results
 
     out = out_dir(a.output or Path(a.dataset) / "evaluation")
-    res = evaluate_model(a.model, a.dataset, a.split, a.noise, a.photons, limit=a.limit,
-                         progress=progress_bar("evaluate", unit="sample"))
-    out.mkdir(exist_ok=True)
-    files = write_results(res, out)
-    figs = plot_fig3(res, out)
-    keys = list(res["rows"])
-    summary = {"n": res["n"], "split": a.split, "noise": keys[0], **summarise(res["rows"][keys[0]])}
-    if len(keys) > 1:
-        summary["by_noise"] = {k: summarise(res["rows"][k]) for k in keys}
-    summary["files"] = [str(f) for f in files + figs]
     from ..cliutil import json_safe
 
-    atomic_write_text(out / "summary.json", _json.dumps(json_safe(summary), indent=2, sort_keys=True))
+    with product(out, "evaluation", {"model": a.model, "dataset": zarr_input(a.dataset)}):
+        res = evaluate_model(a.model, a.dataset, a.split, a.noise, a.photons, limit=a.limit,
+                             progress=progress_bar("evaluate", unit="sample"))
+        files = write_results(res, out)
+        figs = plot_fig3(res, out)
+        keys = list(res["rows"])
+        summary = {"n": res["n"], "split": a.split, "noise": keys[0], **summarise(res["rows"][keys[0]])}
+        if len(keys) > 1:
+            summary["by_noise"] = {k: summarise(res["rows"][k]) for k in keys}
+        summary["files"] = [str(f) for f in files + figs]
+        atomic_write_text(out / "summary.json", _json.dumps(json_safe(summary), indent=2, sort_keys=True))
     s = summary
     net = "refined" if "start" in s else "U-Net"  # a refiner's rows: the refined estimate, and its U-Net alone
     lines = [f"evaluated {a.model} on {res['n']} {a.split} samples of {a.dataset} (noise {keys[0]}) -> {out}",
@@ -187,7 +189,8 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from .export import export_onnx
 
     out = out_file(a.onnx, "-o/--output", suffixes=(".onnx",))
-    rep = export_onnx(a.model, out, a.opset)
+    with product(out, "onnx", {"model": a.model}):
+        rep = export_onnx(a.model, out, a.opset)
     emit(rep, a.json, f"wrote {out} ({rep['bytes'] / 1e6:.1f} MB, opset {rep['opset']}, dynamic batch): onnxruntime "
          f"matches torch within {rep['max_abs_diff']:.1e} rad on random inputs")
     return 0

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..turbulence.propagate import Turbulence
 from ..validation import ValidationError, check_int, check_number
+from ..sensing.sensor import NoiseSpec, add_noise
 from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, sample_rytov
 
 __all__ = ["PSFDataset", "apply_noise", "NoiseRange"]
@@ -22,19 +23,11 @@ def apply_noise(psf: np.ndarray, rng: np.random.Generator, gaussian_percent: flo
     """Noise on an (8, S, S) normalised PSF tensor, each channel scaled by its own peak (the camera's
     exposure is set on the brightest spot): shot noise with ``photons_at_peak`` photo-electrons at the
     peak plus Gaussian read noise (electrons), then additive Gaussian noise of ``gaussian_percent`` % of
-    the peak (the paper's noise levels, Fig. 3c-d)."""
-    x = np.asarray(psf, np.float64)
-    peak = x.max(axis=(-2, -1), keepdims=True)
-    peak = np.where(peak > 0, peak, 1.0)
-    y = np.clip(x / peak, 0.0, None)
-    if photons_at_peak:
-        e = rng.poisson(y * photons_at_peak).astype(np.float64)
-        if read_noise_e:
-            e += rng.normal(0.0, read_noise_e, e.shape)
-        y = e / photons_at_peak
-    if gaussian_percent:
-        y = y + rng.normal(0.0, gaussian_percent / 100.0, y.shape)
-    return (y * peak).astype(np.float32)
+    the peak (the paper's noise levels, Fig. 3c-d).  The detector model is sensing's
+    :func:`~metadesign.sensing.sensor.add_noise`; this names its levels as the datasets do (percent; read
+    noise counts only with shot noise)."""
+    return add_noise(psf, NoiseSpec(gaussian_sigma=gaussian_percent / 100.0, photons_at_peak=photons_at_peak or None,
+                                    read_noise_e=read_noise_e if photons_at_peak else 0.0), rng)
 
 
 def _span(name: str, v, lo: float, hi: float, open_lo: bool = False) -> tuple[float, float]:

@@ -43,11 +43,13 @@ from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
-from ..io import atomic_write_text, check_not_input, output_lock, read_npz
+from ..io import atomic_write_text, read_npz
+from ..products import MARKER, product
 from ..layouts import read_layout, verify_against_design, write_layout
 from ..library.locate import file_sha256
 from ..library.store import load_library
-from ..parallel import dask_client, run_tasks
+from ..tasks import TaskFolder, run_resumable
+from ..parallel import dask_client
 from ..sensing.device import Device, ReceiverCrop, check_wavelengths, load_pupil
 from ..sensing.forward import CoarsePupil
 from ..sensing.model import AsFabricated, load_sensing_recipe
@@ -268,12 +270,18 @@ def normalise_psf(tensor: np.ndarray) -> tuple[np.ndarray, float]:
     return ((tensor * (8.0 / power)).astype(np.float32) if power > 0 else tensor.astype(np.float32)), power
 
 
-def _marker(out: Path, shard: int) -> Path:
-    return Path(out) / ".shards" / f"{shard:06d}"
+def shard_folder(out: Path, kind: str = "shards") -> TaskFolder:
+    """The task folder of a store's shards (``OUT/.shards/NNNNNN.json``: a shard's marker, written once its
+    arrays are in the store)."""
+    return TaskFolder(Path(out) / f".{kind}")
+
+
+def shard_name(shard: int) -> str:
+    return f"{shard:06d}"
 
 
 def make_shard(ctx: ShardContext, shard: int) -> dict:
-    """Compute shard ``shard`` and write it into the store, then its marker (atomically).
+    """Compute shard ``shard`` and write it into the store (its marker follows: :func:`run_shards`).
 
     BLAS runs on one thread here whatever the process was started with: a multi-threaded complex matrix
     product sums in another order (~1e-6 relative), and the same seed must give the same bytes."""
@@ -291,7 +299,6 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
     for k, dt in (("psf_power", np.float32), ("rytov", np.float32), ("rytov_measured", np.float32),
                   ("seed", np.int64)):
         g[k][i0:i1] = np.array([r[k] for r in rows], dt)
-    atomic_write_text(_marker(Path(ctx.out), shard), json.dumps({"samples": [i0, i1]}))
     t_store = time.perf_counter() - t0
     tim = {k: float(sum(r["timings"][k] for r in rows)) for k in rows[0]["timings"]}
     tim["storage"] = t_store
@@ -312,10 +319,12 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
     out = recipe.layout.parent if recipe.layout is not None else dr.default_output()
     target = recipe.layout or out / "layout.oas"
     log(f"building the layout {target} from {recipe.design} (design, OASIS, exact read-back)")
-    _, folder = run_design(dr, out)
-    d = load_design(folder)
-    write_layout(d, target, "oas")
-    v = verify_against_design(read_layout(target), d)
+    with product(out, "design", {"dataset.design": recipe.design, "design.library": dr.library_path},
+                 also=(target, target.with_name(target.name + ".json"))):
+        _, folder = run_design(dr, out)
+        d = load_design(folder)
+        write_layout(d, target, "oas")
+        v = verify_against_design(read_layout(target), d)
     if not v["exact"]:
         raise ValidationError(f"{target}: the layout read back differs from the design: {v['problems'][:2]}")
     return target
@@ -470,15 +479,18 @@ def _write_coordinates(g, n: int, s: int, a: int, attrs: dict) -> None:
         g[k].attrs.update({"coordinates": SAMPLE_COORDINATES})
 
 
-def _make_shard(ctx, i: int) -> dict:
-    return ctx.make(i)
+def _make_shard(ctx, i: int) -> tuple[str, dict]:
+    return shard_name(i), ctx.make(i)
 
 
-def run_shards(ctx, pending: list[int], workers: int, scheduler: str | None = None, client=None):
-    """``ctx.make(i)`` for every pending shard (a :class:`ShardContext` or the operators' context), on the
-    shared engine (:func:`metadesign.parallel.run_tasks`): the context goes to each worker once."""
-    return run_tasks(_make_shard, pending, workers, shared=ctx, client=client, scheduler=scheduler,
-                     key=f"metadesign-{ctx.kind}-{ctx.out}")
+def run_shards(ctx, shards: dict[str, int], folder: TaskFolder, workers: int, scheduler: str | None = None,
+               client=None, weight=lambda name: 1, progress=None, log=lambda s: None):
+    """``ctx.make(i)`` for every shard not yet marked done in ``folder`` (a :class:`ShardContext` or the
+    operators' context), on the resumable engine (:func:`metadesign.tasks.run_resumable`): the context goes
+    to each worker once; returns ``(results by name, names computed now)``."""
+    return run_resumable(_make_shard, shards, folder, store="marker", workers=workers, shared=ctx, client=client,
+                         scheduler=scheduler, dask_key=f"metadesign-{ctx.kind}-{ctx.out}", weight=weight,
+                         progress=progress, log=log, unit="sample")
 
 
 def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int = 1, scheduler: str | None = None,
@@ -491,9 +503,12 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     out = Path(out or recipe.default_output())
     if out.exists() and not out.is_dir():
         raise ValidationError(f"-o/--output {out}: exists and is not a folder")
-    check_not_input(out, {"dataset.layout": recipe.layout, "dataset.sensor": recipe.sensor,
-                          "dataset.turbulence": recipe.turbulence, "the recipe": recipe.source})
-    with output_lock(out, "dataset"):
+    f = recipe.fabrication
+    with product(out, "dataset", {"dataset.layout": recipe.layout, "dataset.design": recipe.design,
+                                  "dataset.sensor": recipe.sensor, "dataset.turbulence": recipe.turbulence,
+                                  "the recipe": recipe.source,
+                                  "fabrication.coupling_model": _recipe_path(recipe, f["coupling_model"]),
+                                  "fabrication.fab_library": _recipe_path(recipe, f["fab_library"])}):
         own = None
         if scheduler is not None and client is None:  # an unreachable scheduler fails before anything is written
             client = own = dask_client(scheduler)
@@ -504,9 +519,17 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
                 own.close()
 
 
+def _recipe_path(recipe: DatasetRecipe, value) -> Path | None:
+    """A path named in the recipe, relative to the recipe's folder (None: not given)."""
+    if not value:
+        return None
+    p = Path(value)
+    return p if p.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / p
+
+
 def _is_partial_dataset(out: Path) -> bool:
     """A folder holding only what an interrupted ``dataset build`` leaves before its store exists."""
-    return all(p.name.startswith(("device-pupil", ".device-pupil", ".shards")) for p in out.iterdir())
+    return all(p.name.startswith(("device-pupil", ".device-pupil", ".shards", MARKER)) for p in out.iterdir())
 
 
 def _check_disk(out: Path, n: int, s: int, a: int) -> int:
@@ -544,8 +567,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     if f["coupling_model"]:
         if kind != "supercell":
             raise ValidationError('fabrication.coupling_model: needs coupling = "supercell"')
-        cmodel = Path(f["coupling_model"])
-        cmodel = cmodel if cmodel.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / cmodel
+        cmodel = _recipe_path(recipe, f["coupling_model"])
     if kind != "lpa":
         fab = fab.with_coupling(kind, cmodel)
     check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
@@ -553,8 +575,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
         if not f["fab_library"]:
             raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
                                   "library with fab axes")
-        lp = Path(f["fab_library"])
-        lp = lp if lp.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / lp
+        lp = _recipe_path(recipe, f["fab_library"])
         if not lp.is_file():
             raise ValidationError(f"fabrication.fab_library: {lp}: no such library")
         fab.fab_lib = load_library(lp)
@@ -597,32 +618,29 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
         }
         _create_store(out, n, recipe.tensor_size, shard, a, attrs, split_labels(recipe.seed, n, recipe.split))
     cp = _device_pupil(fab, sensing, pert, out, layout_sha)  # after the store (mode "w")
-    done = {i for i in range(n_shards) if _marker(out, i).exists()}
-    pending = [i for i in range(n_shards) if i not in done]
+    folder = shard_folder(out)
+    shards = {shard_name(i): i for i in range(n_shards)}
+    size = {shard_name(i): min(n, (i + 1) * shard) - i * shard for i in range(n_shards)}
+    done = {nm for nm in shards if folder.marked(nm) is not None}
     ctx = ShardContext(cp, sensing, scenario, fab.n_cells * fab.period, str(out), recipe.seed, n, shard,
                        recipe.rytov_range, recipe.rytov_values)
     log(f"dataset {recipe.name}: {n} samples in {n_shards} shards ({len(done)} done), "
         f"tensor 8x{recipe.tensor_size}^2 -> {out}")
     timings: dict = {}
-    samples_done = sum(min(n, (i + 1) * shard) - i * shard for i in done)
-    if progress:
-        progress(samples_done, n)
     t_sweep = time.perf_counter()
-    results = run_shards(ctx, pending, workers, client=client)
-    for r in results:
-        for k, v in r["timings"].items():
+    results, computed_now = run_shards(ctx, shards, folder, workers, client=client, weight=size.__getitem__,
+                                       progress=progress)
+    for nm in computed_now:
+        for k, v in results[nm]["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
-        samples_done += r["samples"]
-        if progress:
-            progress(samples_done, n)
     sweep = time.perf_counter() - t_sweep
     import zarr
 
     g = zarr.open_group(str(out), mode="r+")
     g.attrs.update({"complete": True})
-    shutil.rmtree(out / ".shards", ignore_errors=True)
+    folder.remove()
     info = open_dataset(out)
-    computed = sum(min(n, (i + 1) * shard) - i * shard for i in pending)
+    computed = sum(size[nm] for nm in computed_now)
     return {"output": str(out), "samples": n, "shards": n_shards, "resumed_shards": len(done),
             "computed_samples": computed, "seconds": time.perf_counter() - t_start, "sweep_seconds": sweep,
             "per_sample_seconds": {k: v / max(computed, 1) for k, v in timings.items()},

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..turbulence.propagate import Turbulence
+from ..turbulence.propagate import Turbulence, split_step_torch
 
-__all__ = ["PiB", "phase_loss", "mse_loss", "split_step_batched", "unwrap_ls", "LOSSES"]
+__all__ = ["PiB", "phase_loss", "mse_loss", "unwrap_ls", "LOSSES"]
 
 #: the training losses, by the name recipes use (``train.loss``, ``train.pretrain_loss``): one registry
 LOSSES = {
@@ -32,20 +32,6 @@ LOSSES = {
 # in the aperture correction u, so the power in the bucket is ||A u||^2 with A the bucket pixels' rows of
 # that operator restricted to the aperture pixels (PiB.bucket_operator: one adjoint propagation per
 # bucket pixel).  Then the loss is a small matrix product instead of 12 FFT pairs forward and back.
-
-
-def split_step_batched(u, screens, H, absorber, reverse: bool = True):
-    """The torch split step with one set of screens per sample: ``u`` (B, n, n) complex, ``screens``
-    (B, n_s, n, n) float; the same arithmetic as :func:`metadesign.turbulence.propagate.split_step_torch`."""
-    import torch
-
-    n_s = screens.shape[1]
-    order = range(n_s - 1, -1, -1) if reverse else range(n_s)
-    for j, i in enumerate(order):
-        u = u * torch.polar(absorber.expand_as(screens[:, i]), screens[:, i])
-        if j < n_s - 1:
-            u = torch.fft.ifft2(torch.fft.fft2(u) * H)
-    return u
 
 
 class PiB:
@@ -83,7 +69,7 @@ class PiB:
         corr = corr / torch.sqrt((corr.abs() ** 2).sum(dim=(-2, -1), keepdim=True))
         u = torch.zeros((B, self.n, self.n), dtype=self.cdtype, device=corr.device)
         u[:, self.c0:self.c0 + self.a, self.c0:self.c0 + self.a] = corr
-        back = split_step_batched(u, screens, self.H, self.absorber, reverse=True)
+        back = split_step_torch(u, screens, self.H, self.absorber, reverse=True)
         p = (back.reshape(B, -1)[:, self.bucket].abs() ** 2).sum(dim=1)
         return p / self.ideal
 
@@ -110,7 +96,7 @@ class PiB:
         step with conjugated factors per bucket pixel, all bucket pixels in one batch."""
         import torch
 
-        B, n_s = screens.shape[0], screens.shape[1]
+        B = screens.shape[0]
         nb = len(self.bucket)
         out = []
         Hc = torch.conj(self.H)
@@ -121,10 +107,9 @@ class PiB:
             e = torch.zeros((nb, self.n * self.n), dtype=self.cdtype, device=self.device)
             e[torch.arange(nb), self.bucket] = 1
             v = e.reshape(nb, self.n, self.n)
-            for j, i in enumerate(range(n_s)):  # D_0^* first, then T^H, D_1^*, ...
-                v = v * torch.polar(self.absorber, -screens[b, i])
-                if j < n_s - 1:
-                    v = torch.fft.ifft2(torch.fft.fft2(v) * Hc)
+            # the adjoint of the backward pass: D_0^* first, then T^H, D_1^*, ... (a forward pass through the
+            # conjugate screens with the conjugate step)
+            v = split_step_torch(v, -screens[b], Hc, self.absorber, reverse=False)
             out.append(torch.conj(v.reshape(nb, -1)[:, full_idx]))
         return torch.stack(out)
 

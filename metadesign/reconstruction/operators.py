@@ -16,8 +16,6 @@ One torch thread per sample: the same bytes whatever the worker count or schedul
 
 from __future__ import annotations
 
-import json
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,20 +23,16 @@ from typing import Callable
 
 import numpy as np
 
-from ..io import atomic_write_text, output_lock
+from ..products import Need, check_need, product
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .dataset import OPERATOR_ARRAY as ARRAY
-from .dataset import has_operators, open_dataset, operator_info, run_shards
+from .dataset import has_operators, open_dataset, operator_info, run_shards, shard_folder, shard_name
 from .losses import PiB
 
 __all__ = ["OperatorContext", "build_operators", "operator_info", "has_operators"]
 
 SPLITS = ("train", "val", "test")
-
-
-def _marker(out: Path, shard: int) -> Path:
-    return Path(out) / ".operators" / f"{shard:06d}"
 
 
 @dataclass
@@ -83,7 +77,6 @@ class OperatorContext:
         finally:
             torch.set_num_threads(threads)
         arr[i0:i1] = block
-        atomic_write_text(_marker(Path(self.out), shard), json.dumps({"samples": [i0, i1]}))
         return {"shard": shard, "samples": int(self.wanted[i0:i1].sum()),
                 "timings": {"operator": time.perf_counter() - t0}}
 
@@ -93,7 +86,7 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
                     log: Callable[[str], None] = lambda s: None, client=None) -> dict:
     """Compute (or resume) the stored bucket operators of ``splits`` of the dataset at ``path``."""
     open_dataset(path)  # a missing or damaged dataset: one line, before the lock
-    with output_lock(path, "dataset"):
+    with product(path, "dataset"):  # the operators are written into the dataset itself
         return _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client)
 
 
@@ -111,6 +104,7 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
     ctx = OperatorContext(str(out), shard, n, wanted)
     pib = ctx.dataset_and_pib()[1]
     nb, n_ap = len(pib.bucket), int(pib.ap.sum())
+    check_need(out, Need(disk=float(wanted.sum()) * nb * n_ap * 8, what="fewer --splits (train alone is usual)"))
     per_shard = np.add.reduceat(wanted.astype(int), np.arange(0, n, shard))  # wanted samples per shard
     want_attrs = {"splits": sorted(splits, key=SPLITS.index), "bucket_pixels": nb, "aperture_pixels": n_ap,
                   "dtype": "complex64",
@@ -127,7 +121,7 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
         log(f"--overwrite: removing the stored operators of {out}")
         del g[ARRAY]
         del g.attrs[ARRAY]
-        shutil.rmtree(out / ".operators", ignore_errors=True)
+        shard_folder(out, "operators").remove()
         old = None
     total = int(wanted.sum())
     t0 = time.perf_counter()
@@ -149,21 +143,16 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
                        dtype="complex64", fill_value=0j, compressors=None,
                        dimension_names=("sample", "bucket", "aperture"))
         g.attrs.update({ARRAY: {**want_attrs, "complete": False}})
-    done = {i for i in range(len(per_shard)) if _marker(out, i).exists()}
-    pending = [i for i, k in enumerate(per_shard) if k and i not in done]
-    todo = int(per_shard[pending].sum())
+    folder = shard_folder(out, "operators")
+    shards = {shard_name(i): i for i, k in enumerate(per_shard) if k}
+    done = [nm for nm in shards if folder.marked(nm) is not None]
+    todo = int(sum(per_shard[shards[nm]] for nm in shards if nm not in done))
     log(f"operators of {out} ({'/'.join(want_attrs['splits'])}): {total} samples, "
-        f"{nb} x {n_ap} complex64 each ({nb * n_ap * 8 / 1e3:.0f} kB); {len(pending)} shards to compute")
-    got = total - todo
-    if progress:
-        progress(got, total)
-    tim = 0.0
-    for r in run_shards(ctx, pending, workers, scheduler, client):
-        got += r["samples"]
-        tim += r["timings"]["operator"]
-        if progress:
-            progress(got, total)
+        f"{nb} x {n_ap} complex64 each ({nb * n_ap * 8 / 1e3:.0f} kB); {len(shards) - len(done)} shards to compute")
+    results, computed = run_shards(ctx, shards, folder, workers, scheduler, client,
+                                   weight=lambda nm: int(per_shard[shards[nm]]), progress=progress)
+    tim = sum(results[nm]["timings"]["operator"] for nm in computed)
     g = zarr.open_group(str(out), mode="r+")
     g.attrs.update({ARRAY: {**want_attrs, "complete": True}})
-    shutil.rmtree(out / ".operators", ignore_errors=True)
+    folder.remove()
     return report(todo, len(done), tim)

@@ -26,7 +26,8 @@ import numpy as np
 
 from ..cliutil import progress_bar
 from ..config import ConfigError, Param, Section, load_toml, parse
-from ..io import atomic_path, atomic_write_text, check_not_input, output_lock
+from ..io import atomic_path, atomic_write_text, claim
+from ..products import Input, product
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
@@ -70,7 +71,7 @@ SECTIONS = (
     ), optional=True),
     Section("refine", (
         Param("unet", str, None),
-        Param("steps", int, 3, lo=0, hi=32),
+        Param("steps", int, 3, lo=1, hi=32),  # K = 0 is the U-Net alone: nothing to train
         Param("rebin", int, 4, lo=1, hi=64),
         Param("samples", int, 1, lo=0, hi=16),
         Param("width", int, 32, lo=1, hi=512),
@@ -236,10 +237,10 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     run folder's lock while it trains: a second run into the same folder is refused."""
     run = Path(run)
     rank = int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
-    if dataset is not None or recipe.dataset:
-        check_not_input(run, {"the dataset": dataset or recipe.dataset, "--init": init,
-                              "refine.unet": recipe.refine_unet})
-    with output_lock(run, "training run") if rank == 0 else contextlib.nullcontext():
+    inputs = {"the dataset": Input(dataset or recipe.dataset, members=None) if (dataset or recipe.dataset) else None,
+              "--init": init, "refine.unet": recipe.refine_unet, "refine.init": recipe.refine_init,
+              "the recipe": recipe.source}
+    with product(run, "training-run", inputs) if rank == 0 else claim(run):
         return _train(recipe, run, dataset, resume, init, log, progress, max_steps)
 
 
@@ -447,6 +448,9 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     the dataset's device; its steps seeded."""
     import torch
 
+    if recipe.refine_unet is not None and init is not None:
+        raise ValidationError(f"--init {init}: the recipe names the refiner's U-Net already (refine.unet "
+                              f"{recipe.refine_unet}); give one of them (refine.init continues a trained refiner)")
     path = recipe.refine_unet or init
     if path is None:
         raise ValidationError("train: a [refine] recipe needs its U-Net (refine.unet in the recipe, or --init)")

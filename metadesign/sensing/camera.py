@@ -32,6 +32,7 @@ from ..io import atomic_path
 from ..optics.propagation import cexp
 from ..validation import check_int, check_number
 from .forward import quadrant_fields
+from .sensor import photo_electrons
 from .twin import crop_to_pupil
 
 __all__ = ["Alignment", "CameraSpec", "extended_frames", "misaligned_frames", "expose", "slm_pupil_field",
@@ -168,9 +169,8 @@ def expose(frames: np.ndarray, camera: CameraSpec, rng: np.random.Generator, hot
     peak = f.max()
     e = f / peak * camera.photons_at_peak * overexpose if peak > 0 else np.zeros_like(f)
     gain = camera.peak_counts / camera.photons_at_peak if camera.photons_at_peak else 0.0  # counts per e-
-    if camera.photons_at_peak:
-        e = rng.poisson(e).astype(np.float64) + rng.normal(0.0, camera.read_noise_e, f.shape)
-        counts = e * gain
+    if camera.photons_at_peak:  # the detector's one kernel (sensing.sensor.photo_electrons), on the electrons
+        counts = photo_electrons(e, camera.read_noise_e, rng) * gain
     else:
         counts = (f / peak * camera.peak_counts * overexpose if peak > 0 else np.zeros_like(f))
     counts = counts + camera.dark_counts

@@ -10,12 +10,21 @@ import numpy as np
 
 from ..cliutil import SEED, emit, integer, num, out_dir, progress_bar
 from ..config import InputError
+from ..products import product
+
 
 __all__ = ["register"]
 
 BIAS = num(-200, 200, unit="nm")
 JITTER = num(0, 100, unit="nm")
 CORNER = num(0, 500, unit="nm")
+
+
+def _inputs(a: argparse.Namespace, *names: str) -> dict:
+    """The declared inputs of a command: the named options' paths (those given)."""
+    if Path(a.layout).is_dir():
+        raise InputError(f"{a.layout}: is a folder, expected a layout file (.oas or .gds)")
+    return {("" if n == "layout" else "--") + n.replace("_", "-"): getattr(a, n, None) for n in names}
 
 
 def _sensing_recipe(a):
@@ -53,21 +62,21 @@ def _cmd_psf(a: argparse.Namespace) -> int:
         if a.wavefront:
             raise InputError("--full-resolution checks the flat-wavefront PSFs; omit --wavefront")
     out = out_dir(a.output if a.output else Path(a.layout).with_name("psf"))
-    field = _read_wavefront(a.wavefront) if a.wavefront else None
-    fab = _device(a, sr)
-    pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
-    if field is not None:
-        field = check_field(field, pupil, f"{a.wavefront}: field")
-    res = render_psf(fab, sr, field, pert, pupil=pupil, noise=sr.noise if sr.noise.active else None)
-    full_check = None
-    if a.full_resolution:
-        clean = res.frames if not sr.noise.active else render_psf(fab, sr, None, pert, pupil=pupil).frames
-        full_check = full_resolution_check(fab, sr, clean, a.full_resolution, pert,
-                                           progress_bar("full resolution", unit="row"))
-    out.mkdir(exist_ok=True)
-    save_psf(out / "psf.npz", res, fab, sr, {"wavefront": str(a.wavefront) if a.wavefront else None})
-    fig = plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
-                      f"{Path(a.layout).name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)")
+    with product(out, "psf", _inputs(a, "layout", "sensor", "library", "coupling_model", "wavefront")):
+        field = _read_wavefront(a.wavefront) if a.wavefront else None
+        fab = _device(a, sr)
+        pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
+        if field is not None:
+            field = check_field(field, pupil, f"{a.wavefront}: field")
+        res = render_psf(fab, sr, field, pert, pupil=pupil, noise=sr.noise if sr.noise.active else None)
+        full_check = None
+        if a.full_resolution:
+            clean = res.frames if not sr.noise.active else render_psf(fab, sr, None, pert, pupil=pupil).frames
+            full_check = full_resolution_check(fab, sr, clean, a.full_resolution, pert,
+                                               progress_bar("full resolution", unit="row"))
+        save_psf(out / "psf.npz", res, fab, sr, {"wavefront": str(a.wavefront) if a.wavefront else None})
+        fig = plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
+                          f"{Path(a.layout).name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)")
     cp = res.pupil
     summary = {"output": str(out), "frames_shape": list(res.frames.shape), "tensor_shape": list(res.tensor.shape),
                "pupil_grid": list(cp.G.shape[-2:]), "block_cells": cp.block, "clamped_pillars": cp.n_clamped,
@@ -92,20 +101,21 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
     if a.seed + a.seeds - 1 > 2**63 - 1:
         raise InputError("--seed: the last jitter seed (--seed + --seeds - 1) exceeds 2^63 - 1")
     out = out_dir(a.output if a.output else Path(a.layout).with_name("fab-study"))
-    fab = _device(a, sr)
-    needs_axes = any(h for h in a.height_nm) or any(x != 90 for x in a.sidewall_deg) or a.height_gradient_nm \
-        or a.sidewall_gradient_deg
-    if a.fab_library:
-        from ..library.store import load_library
+    with product(out, "fab-study", _inputs(a, "layout", "sensor", "library", "coupling_model", "fab_library")):
+        fab = _device(a, sr)
+        needs_axes = any(h for h in a.height_nm) or any(x != 90 for x in a.sidewall_deg) or a.height_gradient_nm \
+            or a.sidewall_gradient_deg
+        if a.fab_library:
+            from ..library.store import load_library
 
-        fab.fab_lib = load_library(a.fab_library)
-    if needs_axes and fab.fab_lib is None and fab.lib.fab is None:
-        raise InputError("--height-nm / --sidewall-deg need a library with height and sidewall axes: build one "
-                         "with a [fab_axes] recipe section and pass it as --fab-library")
-    rows = fab_study(fab, sr, a.bias_nm, a.jitter_nm, a.corner_nm, a.seeds, a.seed,
-                     progress_bar("fab-study", unit="case"), a.height_nm, a.sidewall_deg, a.height_gradient_nm,
-                     a.sidewall_gradient_deg)
-    files = write_fab_study(rows, out)
+            fab.fab_lib = load_library(a.fab_library)
+        if needs_axes and fab.fab_lib is None and fab.lib.fab is None:
+            raise InputError("--height-nm / --sidewall-deg need a library with height and sidewall axes: build one "
+                             "with a [fab_axes] recipe section and pass it as --fab-library")
+        rows = fab_study(fab, sr, a.bias_nm, a.jitter_nm, a.corner_nm, a.seeds, a.seed,
+                         progress_bar("fab-study", unit="case"), a.height_nm, a.sidewall_deg, a.height_gradient_nm,
+                         a.sidewall_gradient_deg)
+        files = write_fab_study(rows, out)
     n_cases = len(a.bias_nm) * len(a.jitter_nm) * len(a.corner_nm) * len(a.height_nm) * len(a.sidewall_deg) * a.seeds
     lines = [f"wrote {out}/fab-study.csv, fab-study.png ({n_cases} cases x 8 channels)",
              "  bias  jitter corner height wall | mean eff  mean Strehl  mean |focal shift| mm  mean crosstalk  clamped"]
@@ -128,13 +138,13 @@ def _cmd_phasemap(a: argparse.Namespace) -> int:
         raise InputError(f"--bias-nm: one value (both axes) or two (x y), got {len(a.bias_nm)}")
     pert = Perturbation.from_nm(a.bias_nm[0], a.bias_nm[-1], a.jitter_nm, a.corner_nm, a.seed)
     out = out_dir(a.output if a.output else Path(a.layout).with_name("phasemap"))
-    fab = _device(a)
-    maps = phase_maps(fab, pert, tuple(a.window) if a.window else None, a.bin,
-                      progress=progress_bar("phasemap", unit="row"))
-    out.mkdir(exist_ok=True)
-    f = save_phase_maps(out / "phasemap.npz", maps, {"layout": str(a.layout), "perturbation": pert.to_dict()})
-    fig = plot_phase_maps(maps, out / "phasemap.png", f"{Path(a.layout).name}: as-fabricated phase "
-                          f"(bias {a.bias_nm} nm, jitter {a.jitter_nm} nm, corner {a.corner_nm} nm)")
+    with product(out, "phasemap", _inputs(a, "layout", "library", "coupling_model")):
+        fab = _device(a)
+        maps = phase_maps(fab, pert, tuple(a.window) if a.window else None, a.bin,
+                          progress=progress_bar("phasemap", unit="row"))
+        f = save_phase_maps(out / "phasemap.npz", maps, {"layout": str(a.layout), "perturbation": pert.to_dict()})
+        fig = plot_phase_maps(maps, out / "phasemap.png", f"{Path(a.layout).name}: as-fabricated phase "
+                              f"(bias {a.bias_nm} nm, jitter {a.jitter_nm} nm, corner {a.corner_nm} nm)")
     st = maps["stats"]
     w = maps["window"]
     lines = [f"wrote {f} and {fig.name}: window ({w['ix0']}, {w['iy0']}) {w['cells']}^2 pillars at full resolution, "

@@ -22,7 +22,7 @@ import numpy as np
 from ..conventions import centered
 from ..validation import ConfigError, check_int, check_number
 
-__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "area_weights", "area_resample"]
+__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "photo_electrons", "area_weights", "area_resample"]
 
 
 @dataclass(frozen=True)
@@ -132,18 +132,31 @@ class NoiseSpec:
                 "read_noise_e": self.read_noise_e, "bit_depth": self.bit_depth or 0, "seed": self.seed}
 
 
+def photo_electrons(mean_e: np.ndarray, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
+    """The detector's one noise kernel: expected photo-electrons per pixel -> detected electrons (float64):
+    Poisson shot noise plus Gaussian read noise (electrons).  :func:`add_noise` (sensing, datasets,
+    evaluation, estimators) and :func:`metadesign.sensing.camera.expose` (the capture synthesiser's
+    counts) both draw through it."""
+    e = rng.poisson(mean_e).astype(np.float64)
+    if read_noise_e:
+        e += rng.normal(0.0, read_noise_e, e.shape)
+    return e
+
+
 def add_noise(frames: np.ndarray, noise: NoiseSpec, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Noisy copy of ``frames`` (..., H, W), each frame scaled by its own peak; seeded."""
+    """Noisy copy of ``frames`` (..., H, W), each frame scaled by its own peak; seeded.
+
+    The one detector model (hcipy's ``NoisyDetector`` in spirit), in one unit, the frame's peak: the
+    irradiance is clipped at zero (a detector sees no negative power), then shot + read noise
+    (:func:`photo_electrons`), additive Gaussian noise of ``gaussian_sigma`` x peak, and an optional ADC
+    quantisation of [0, peak].  Noise may take a pixel below zero; only the ADC clips the result."""
     rng = rng or np.random.default_rng(noise.seed)
     f = np.asarray(frames, np.float64)
     peak = f.max(axis=(-2, -1), keepdims=True)
     peak = np.where(peak > 0, peak, 1.0)
-    x = f / peak
+    x = np.clip(f / peak, 0.0, None)
     if noise.photons_at_peak:
-        e = rng.poisson(x * noise.photons_at_peak).astype(np.float64)
-        if noise.read_noise_e:
-            e += rng.normal(0.0, noise.read_noise_e, e.shape)
-        x = e / noise.photons_at_peak
+        x = photo_electrons(x * noise.photons_at_peak, noise.read_noise_e, rng) / noise.photons_at_peak
     if noise.gaussian_sigma:
         x = x + rng.normal(0.0, noise.gaussian_sigma, x.shape)
     if noise.bit_depth:

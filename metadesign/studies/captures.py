@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write_text, check_not_input, output_lock
+from ..io import atomic_path, atomic_write_text
+from ..products import product, write_marker, zarr_input
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device
 from ..sensing.camera import Alignment, CameraSpec, expose, misaligned_frames, slm_pupil_field, write_frame
@@ -35,8 +36,8 @@ def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alig
     final = Path(out)
     if final.exists() and (not final.is_dir() or any(final.iterdir())):
         raise ValidationError(f"-o/--output {final}: exists and is not empty (captures are written into a new folder)")
-    check_not_input(final, {"PHASES": phases, "--device": device})
-    with output_lock(final, "capture folder"):
+    with product(final, "captures", {"PHASES": zarr_input(phases), "--device": device},
+                 scratch=(final.with_name(final.name + ".partial"),)):
         return _synth_captures(phases, device, final, alignment, camera, samples, split, fmt, flats, darks, saturate,
                                seed, progress)
 
@@ -57,8 +58,9 @@ def _synth_captures(phases, device, final: Path, alignment, camera, samples, spl
     try:
         rep = _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed,
                      phases, device, progress)
-        if final.exists():
-            final.rmdir()
+        write_marker(out, "captures")
+        if final.exists():  # empty but for the marker (refused otherwise, above)
+            shutil.rmtree(final)
         out.rename(final)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
@@ -88,7 +90,7 @@ def _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, dar
         name = f"{j:06d}"
         write_frame(out / "frames" / f"{name}-x{ext}", counts[0])
         write_frame(out / "frames" / f"{name}-y{ext}", counts[1])
-        with open(out / "slm" / f"{name}.npy", "wb") as fh:
+        with atomic_path(out / "slm" / f"{name}.npy") as tmp, open(tmp, "wb") as fh:
             np.save(fh, phi, allow_pickle=False)
         rows.append({"sample": name, "frame_x": f"frames/{name}-x{ext}", "frame_y": f"frames/{name}-y{ext}",
                      "slm_phase": f"slm/{name}.npy", "rytov": f"{s['rytov']:.6g}",

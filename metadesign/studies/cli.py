@@ -4,12 +4,21 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 from dataclasses import replace
 from pathlib import Path
 
-from ..cliutil import emit, integer, log_to, num, out_dir, progress_bar, workers_arg
+from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
+from ..products import Need, path_fields, product, zarr_input
+from ..validation import InputError
 
 __all__ = ["register"]
+
+
+def design_input(path) -> Path:
+    """The file a design or layout input names (a design folder holds ``design.npz``)."""
+    p = Path(path)
+    return p / "design.npz" if p.is_dir() else p
 
 
 def _settings(a: argparse.Namespace, methods):
@@ -65,11 +74,13 @@ def _cmd_compare(a: argparse.Namespace) -> int:
     out = out_dir(a.output or Path(a.dataset) / "compare")
     st = _settings(a, a.methods)
     log = log_to(a.json)
-    tuning = None
-    if a.tune:
-        st, tuning = tune(model, a.dataset, st, a.tune, log=log)
-    res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("compare", unit="sample"))
-    files = write_compare(res, out, tuning)
+    inputs = {"model": a.model if model is not None else None, "dataset": zarr_input(a.dataset)}
+    with product(out, "compare", inputs):
+        tuning = None
+        if a.tune:
+            st, tuning = tune(model, a.dataset, st, a.tune, log=log)
+        res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("compare", unit="sample"))
+        files = write_compare(res, out, tuning)
     from .compare import summarise
 
     summ = summarise(res)
@@ -87,11 +98,13 @@ def _cmd_retrieve(a: argparse.Namespace) -> int:
     if model is not None and a.iterations is not None:
         st = replace(st, hybrid=replace(st.hybrid, zonal_iterations=a.iterations))
     out = out_dir(a.output) if a.output else None
-    res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("retrieve", unit="sample"))
-    summ = summarise(res)
-    files = write_compare(res, out) if out else []
-    if out:
-        files.append(_plot_convergence(res, out))
+    inputs = {"model": a.model if model is not None else None, "dataset": zarr_input(a.dataset)}
+    with product(out, "compare", inputs) if out else contextlib.nullcontext():
+        res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("retrieve", unit="sample"))
+        summ = summarise(res)
+        files = write_compare(res, out) if out else []
+        if out:
+            files.append(_plot_convergence(res, out))
     name = methods[-1]
     mis = res["rows"][f"{name}_misfit"].mean(axis=1)
     doc = {"summary": summ, "settings": res["settings"].to_dict(), "files": [str(f) for f in files],
@@ -145,7 +158,9 @@ def _common(p, iterations_help: str) -> None:
 def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    summary = run_demo(out_dir(a.output), log=log_to(a.json))
+    out = out_dir(a.output)
+    with product(out, "demo"):
+        summary = run_demo(out, log=log_to(a.json))
     emit(summary, a.json, summary["text"])
     return 0 if summary["passed"] else 1
 
@@ -154,7 +169,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
     from .pipeline import run_pipeline
 
     out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    rep = run_pipeline(a.recipe, out, log=log_to(a.json))
+    with product(out, "pipeline", {"recipe": a.recipe}):
+        rep = run_pipeline(a.recipe, out, log=log_to(a.json))
     lines = [f"pipeline {a.recipe} -> {out}"]
     for k, v in rep["stages"].items():
         lines.append(f"  {k:<11} " + (f"up to date (ran in {v.get('ran_seconds', float('nan')):.1f} s)"
@@ -179,7 +195,8 @@ def _cmd_table_s2(a: argparse.Namespace) -> int:
     from .table_s2 import run_table_s2
 
     out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    rep = run_table_s2(a.recipe, out, workers=a.workers, log=log_to(a.json))
+    with product(out, "table-s2", {"recipe": a.recipe}):
+        rep = run_table_s2(a.recipe, out, workers=a.workers, log=log_to(a.json))
     lines = [f"Table S2 ({rep['samples']} samples at Rytov {rep['rytov']}, {rep['epochs']} epochs) -> {out}",
              "  model split  PiB ratio (mean of NPiB_unet / NPiB_pc)  ratio of means   NPiB U-Net / none / conjugate"]
     for r in rep["rows"]:
@@ -196,7 +213,8 @@ def _cmd_tolerance(a: argparse.Namespace) -> int:
 
     rec = load_tolerance_recipe(a.recipe)
     out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    rep = run_tolerance(rec, out, workers=a.workers, log=log_to(a.json))
+    with product(out, "tolerance", {"recipe": a.recipe, **path_fields(rec)}):
+        rep = run_tolerance(rec, out, workers=a.workers, log=log_to(a.json))
     lines = [f"fab tolerance of {rec.model.name} at {rep['noise_percent']:g} % noise -> {out} ({Path(rep['figure']).name})",
              "  case              NPiB U-Net  captured  gain(median) | fine-tuned U-Net  captured | conjugate  none"]
     for r in rep["rows"]:
@@ -229,8 +247,9 @@ def _cmd_transfer(a: argparse.Namespace) -> int:
 
     rec = load_transfer_recipe(a.recipe)
     out = out_dir(a.output or Path(a.recipe).with_name(Path(a.recipe).stem + "-out"))
-    rep = run_transfer(rec, out, workers=a.workers, log=log_to(a.json),
-                       progress=None if a.json else progress_bar("captures", unit="frame"))
+    with product(out, "transfer", {"recipe": a.recipe, **path_fields(rec)}):
+        rep = run_transfer(rec, out, workers=a.workers, log=log_to(a.json),
+                           progress=None if a.json else progress_bar("captures", unit="frame"))
     r = rep["rows"]
     tr, fi = rep["truth_alignment"], rep["fitted_alignment"]
     lines = [f"transfer to captured frames -> {out} ({Path(rep['figure']).name}); relay true "
@@ -263,29 +282,31 @@ def _cmd_lpa(a: argparse.Namespace) -> int:
 
         raise ValidationError("--dataset and --model go together (the downstream NPiB needs both)")
     log = log_to(a.json)
-    if src.is_dir():
-        from ..design.store import load_design
+    inputs = {"design": design_input(src), "--dataset": zarr_input(a.dataset) if a.dataset else None,
+              "--model": a.model}
+    with product(out, "lpa-check", inputs):
+        if src.is_dir():
+            from ..design.store import load_design
 
-        fab = AsFabricated.from_design(load_design(src))
-    else:
-        fab = AsFabricated.from_files(src)
-    im, w = fab.layout.index_map, fab.layout.atom_widths_nm
-    mask = None
-    if (fab.aperture or {}).get("kind") == "circle":
-        n2 = im.shape[0] // 2
-        x = (np.arange(n2) - (n2 - 1) / 2) * 2 * fab.period
-        mask = x[None, :] ** 2 + x[:, None] ** 2 <= (im.shape[0] * fab.period / 2) ** 2 * 0.98
-    log(f"lpa-check: {a.supercells} supercells of {src} (period {fab.period * 1e6:.3f} um, 2 x 2) ...")
-    rep = lpa_check(im, w, fab.lib, a.supercells, a.harmonics, a.seed, a.workers, a.check, mask,
-                    progress=None if a.json else progress_bar("supercells", unit="cell"))
-    eps = rep.pop("_eps")
-    rep.pop("_contrast"), rep.pop("_spread")
-    if a.dataset is not None:
-        log("downstream: channel metrics and NPiB with the measured error ...")
-        rep["downstream"] = lpa_downstream(eps, a.dataset, a.model, fab, a.samples, a.noise, a.seed, log)
-    out.mkdir(exist_ok=True)
-    atomic_write_text(out / "lpa.json", json.dumps(rep, indent=1))
-    rep["figure"] = str(plot_lpa(rep, out / "lpa.png"))
+            fab = AsFabricated.from_design(load_design(src))
+        else:
+            fab = AsFabricated.from_files(src)
+        im, w = fab.layout.index_map, fab.layout.atom_widths_nm
+        mask = None
+        if (fab.aperture or {}).get("kind") == "circle":
+            n2 = im.shape[0] // 2
+            x = (np.arange(n2) - (n2 - 1) / 2) * 2 * fab.period
+            mask = x[None, :] ** 2 + x[:, None] ** 2 <= (im.shape[0] * fab.period / 2) ** 2 * 0.98
+        log(f"lpa-check: {a.supercells} supercells of {src} (period {fab.period * 1e6:.3f} um, 2 x 2) ...")
+        rep = lpa_check(im, w, fab.lib, a.supercells, a.harmonics, a.seed, a.workers, a.check, mask,
+                        progress=None if a.json else progress_bar("supercells", unit="cell"))
+        eps = rep.pop("_eps")
+        rep.pop("_contrast"), rep.pop("_spread")
+        if a.dataset is not None:
+            log("downstream: channel metrics and NPiB with the measured error ...")
+            rep["downstream"] = lpa_downstream(eps, a.dataset, a.model, fab, a.samples, a.noise, a.seed, log)
+        atomic_write_text(out / "lpa.json", json.dumps(rep, indent=1))
+        rep["figure"] = str(plot_lpa(rep, out / "lpa.png"))
     L, Ll = rep["lpa"], rep["lpa_library"]
     lines = [f"LPA error on {rep['supercells']} supercells (RCWA nG {rep['n_harmonics_supercell']}, unit cells nG "
              f"{rep['n_harmonics_unit']}; 1.5x harmonics change <= "
@@ -319,32 +340,57 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
     from .supercells import build_table, load_supercell_recipe
 
     rec = load_supercell_recipe(a.recipe)
-    out = Path(a.output) if a.output else rec.default_output()
+    out = out_file(Path(a.output) if a.output else rec.default_output(), suffixes=(".npz",))
     log = log_to(a.json)
-    rep = build_table(rec, out, supercells=a.supercells, workers=a.workers, scheduler=a.scheduler,
-                      progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+    n = a.supercells or rec.supercells
+    inputs = {"recipe": rec.source, "table.library": rec.library, "table.design": rec.design,
+              "table.extra_design": rec.extra_design}
+    with product(out, "supercells", inputs, scratch=(out.with_name(out.name + ".partial"),),
+                 need=supercell_need(n, rec.n_harmonics, a.workers)):
+        rep = build_table(rec, out, supercells=a.supercells, workers=a.workers, scheduler=a.scheduler,
+                          progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
     emit(rep, a.json, f"wrote {out}: {rep['supercells']} supercells ({rep['held_out']} held out), nG "
                       f"{rep['n_harmonics']}; {rep['solve_seconds']:.0f} s solving here "
                       f"({rep['seconds_per_supercell_core']:.1f} s per supercell per core)")
     return 0
 
 
-def _cmd_coupling(a: argparse.Namespace) -> int:
-    import numpy as np
+def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
+    """A supercell table's peak: the rows on disk twice (chunks + the table) and, per worker, the RCWA
+    solve's matrices (about 30 complex (2 nG)^2 arrays)."""
+    return Need(disk=2 * n * 256.0, memory=workers * 30 * 16.0 * (2 * n_harmonics) ** 2,
+                what="fewer -j workers or a lower table.n_harmonics")
 
-    from ..library.coupling import CouplingConfig, save_coupling
-    from ..library.locate import file_sha256, find_library
+
+def _cmd_coupling(a: argparse.Namespace) -> int:
+    from ..library.locate import find_library
     from ..library.store import load_library
     from ..library.supercells import load_table
-    from .supercells import certify_coupling, plot_coupling
 
     table = load_table(a.table)
     tp = Path(a.table)
     lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
                                                                 table.meta["library"]["path"], tp.parent)
     lib = load_library(lib_path)
-    out = Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-coupling.safetensors")
+    out = out_file(Path(a.output) if a.output else
+                   tp.with_name(tp.stem.replace("-supercells", "") + "-coupling.safetensors"),
+                   suffixes=(".safetensors",))
+    if not table.test.any() or table.test.all():
+        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
+                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
     log = log_to(a.json)
+    with product(out, "coupling", {"table": tp, "--library": lib_path},
+                 also=(out.with_suffix(".json"), out.with_suffix(".png"))):
+        return _coupling_fit(a, table, tp, lib, lib_path, out, log)
+
+
+def _coupling_fit(a, table, tp, lib, lib_path, out, log) -> int:
+    import numpy as np
+
+    from ..library.coupling import CouplingConfig, save_coupling
+    from ..library.locate import file_sha256
+    from .supercells import certify_coupling, plot_coupling
+
     cfg = CouplingConfig(a.hidden, a.layers, a.ensemble, a.interaction)
     log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
     model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, weight_decay=a.weight_decay, log=log)
@@ -374,7 +420,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
 
     from ..design.store import load_design
     from ..io import atomic_write_text
-    from ..paths import product
+    from ..paths import product as packaged
     from ..sensing.model import AsFabricated, load_sensing_recipe
     from ..validation import ValidationError
     from .coupling_check import CASES, coupling_check, plot_coupling_frames
@@ -384,29 +430,32 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     src = Path(a.design)
     out = out_dir(a.output or (src if src.is_dir() else src.parent) / "coupling-check")
     log = log_to(a.json)
-    fab = AsFabricated.from_design(load_design(src))
-    fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
-    if a.compensated:
-        fc = AsFabricated.from_design(load_design(a.compensated))
-        fabs["compensated"] = fc.with_coupling("supercell", a.coupling_model)
-        fabs["compensated_lpa"] = fc
-    if a.dataset:
-        from ..reconstruction.dataset import load_device
+    inputs = {"design": design_input(src), "--compensated": design_input(a.compensated) if a.compensated else None,
+              "--coupling-model": a.coupling_model, "--sensor": a.sensor,
+              "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model}
+    with product(out, "coupling-check", inputs):
+        fab = AsFabricated.from_design(load_design(src))
+        fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
+        if a.compensated:
+            fc = AsFabricated.from_design(load_design(a.compensated))
+            fabs["compensated"] = fc.with_coupling("supercell", a.coupling_model)
+            fabs["compensated_lpa"] = fc
+        if a.dataset:
+            from ..reconstruction.dataset import load_device
 
-        dev = load_device(a.dataset)
-        sensor, grid = dev.sensor, dev.pupil.G.shape[-1]
-        if dev.pupil.block != fab.pupil_block(grid):
-            raise ValidationError(f"{a.dataset}: its device's pupil ({dev.pupil.block}-cell blocks) is not this "
-                                  "design's on that grid: use the dataset made with this design")
-    else:
-        sr = load_sensing_recipe(a.sensor or product("sensing", "paper.toml"))
-        sensor, grid = sr.sensor, sr.pupil_grid
-    log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
-    rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log)
-    out.mkdir(exist_ok=True)
-    rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
-    rep["coupling_model_sha256"] = fabs["coupled"].coupling_card["weights_sha256"]
-    atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
+            dev = load_device(a.dataset)
+            sensor, grid = dev.sensor, dev.pupil.G.shape[-1]
+            if dev.pupil.block != fab.pupil_block(grid):
+                raise ValidationError(f"{a.dataset}: its device's pupil ({dev.pupil.block}-cell blocks) is not this "
+                                      "design's on that grid: use the dataset made with this design")
+        else:
+            sr = load_sensing_recipe(a.sensor or packaged("sensing", "paper.toml"))
+            sensor, grid = sr.sensor, sr.pupil_grid
+        log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
+        rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log)
+        rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
+        rep["coupling_model_sha256"] = fabs["coupled"].coupling_card["weights_sha256"]
+        atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
     lines = [f"wrote {out}/coupling-check.json and coupling-frames.png",
              "  case                        spot eff.  spot Strehl  stray    |focal shift| um"
              + ("   U-Net NPiB" if "downstream" in rep else "")]

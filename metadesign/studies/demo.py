@@ -80,7 +80,7 @@ def _stage_layout(out: Path, log) -> dict:
     lc = read_layout(out / "design" / "layout.oas")
     v = verify_against_design(lc, d)
     k = verify_against_design(read_layout_klayout(out / "design" / "layout.oas"), d)
-    drc = drc_check(lc, 100, 150)
+    drc = drc_check(lc)
     fig = preview_layout(lc, out / "layout-preview.png")
     line = (f"{rep['pillars']:,} pillars, {rep['bytes'] / 1e3:.0f} kB OASIS in {rep['seconds']:.2f} s; read-back exact "
             f"{v['exact']} (gdstk) / {k['exact']} (KLayout); DRC {'pass' if drc['passed'] else 'FAIL'} (min feature "

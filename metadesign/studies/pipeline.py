@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import dataclasses
-import hashlib
 import html
 import json
 import shutil
@@ -29,6 +28,7 @@ from ..design.store import load_design, run_design
 from ..io import atomic_write_text
 from ..layouts import drc_check, read_layout, verify_against_design, write_layout
 from ..layouts.preview import preview_layout
+from ..layouts.rules import DESIGN_RULES
 from ..library.build import build_library
 from ..library.plot import plot_library
 from ..library.recipe import load_recipe
@@ -41,6 +41,8 @@ from ..reconstruction.train import load_train_recipe, train
 from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf
+from ..turbulence.scenario import load_scenario
+from ..tasks import content_key, file_key
 from ..turbulence.scenario import load_scenario
 from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
@@ -101,13 +103,18 @@ def load_pipeline_recipe(path: str | Path) -> dict:
 
 
 def _h(*parts) -> str:
-    h = hashlib.sha256()
-    for x in parts:
+    """A stage's key: the one content key (:func:`metadesign.tasks.content_key`) of its inputs, files by
+    their bytes (never by where they lie: a copied run folder is up to date)."""
+    def content(x):
         if isinstance(x, Path):
-            h.update(x.read_bytes() if x.is_file() else str(x).encode())
-        else:
-            h.update(json.dumps(x, sort_keys=True, default=str).encode())
-    return h.hexdigest()
+            return {"file": file_key(x)} if x.is_file() else {"missing": x.name}
+        if isinstance(x, dict):
+            return {k: content(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [content(v) for v in x]
+        return x
+
+    return content_key(*(content(x) for x in parts))
 
 
 def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] = print) -> dict:
@@ -233,7 +240,7 @@ class _Pipeline:
             w = write_layout(d, lay, "oas")
             lc = read_layout(lay)
             v = verify_against_design(lc, d)
-            drc = drc_check(lc, 100, 150)
+            drc = drc_check(lc)
             preview_layout(lc, out / "layout-preview.png")
             return {"pillars": w["pillars"], "bytes": w["bytes"], "exact": v["exact"], "drc_passed": drc["passed"]}
 
@@ -242,7 +249,7 @@ class _Pipeline:
             raise ValidationError(f"{lay}: the layout failed its read-back or design-rule check")
         self.check("layout read-back", "exact" if li["exact"] else "differs", "every pillar as designed", li["exact"],
                    "the OASIS file read back pillar by pillar against the design")
-        self.check("design rules (gap >= 100 nm, width >= 150 nm)", "passed" if li["drc_passed"] else "violated",
+        self.check(f"design rules ({DESIGN_RULES.label()})", "passed" if li["drc_passed"] else "violated",
                    "no violation", li["drc_passed"])
         self.section("3. Layout", ("Layout", [
             {"quantity": "pillars", "value": f"{li['pillars']:,}"},
@@ -300,7 +307,8 @@ class _Pipeline:
     def turbulence(self) -> None:
         p, out = self.p, self.out
         sc = load_scenario(p["turbulence"])
-        self.k_tu = _h(p["turbulence"], p["turbulence_samples"])
+        self.k_scn = _h(p["turbulence"])  # what the dataset depends on: the scenario, not its validation
+        self.k_tu = _h(self.k_scn, p["turbulence_samples"])
 
         def do_turb():
             res = validate(sc, (0.1, 0.3, 0.5), samples=p["turbulence_samples"], pib_samples=5)
@@ -310,7 +318,7 @@ class _Pipeline:
                                 "rytov_theory": x["rytov_weak_theory_inner_scale"], "D_over_r0": x["D_over_r0"]}
                                for x in res["levels"]]}
 
-        figs = [Path(f) for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
+        figs = [out / Path(f).name for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
         tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
         rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}",
                  "weak theory with inner scale": f"{x.get('rytov_theory', float('nan')):.3f}",
@@ -349,7 +357,8 @@ class _Pipeline:
                               "rytov_min": ds_sec["rytov_min"], "rytov_max": ds_sec["rytov_max"],
                               "split": list(ds_sec["split"]), "seed": ds_sec["seed"],
                               "tensor_size": ds_sec["tensor_size"], "shard_size": ds_sec["shard_size"]}}
-        self.k_ds = _h(self.k_psf, self.k_tu, ds_raw)
+        self.k_ds = _h(self.k_psf, self.k_scn, {k: v for k, v in ds_raw["dataset"].items()
+                                                 if k not in ("layout", "sensor", "turbulence")})
         ds = self.stage("dataset", self.k_ds, [self.dsdir / "zarr.json"], lambda: {
             k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), self.dsdir, workers=workers,
                                            overwrite=True, progress=progress_bar("dataset", "sample")).items()
@@ -384,7 +393,7 @@ class _Pipeline:
     def evaluate(self) -> None:
         ev_dir = self.out / "evaluation"
         ev_opts = self.rec["evaluate"]
-        k_ev = _h(self.k_ds, Path(self.model), ev_opts)
+        k_ev = _h(self.k_ds, Path(self.model), {k: v for k, v in ev_opts.items() if not isinstance(v, Path)})
 
         def do_eval():
             ev_dir.mkdir(exist_ok=True)
@@ -395,7 +404,7 @@ class _Pipeline:
             figs = plot_fig3(res, ev_dir)
             return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in res["rows"]}}
 
-        figs = [Path(f) for f in self.state.get("evaluate", {}).get("info", {}).get("figures", [])]
+        figs = [ev_dir / Path(f).name for f in self.state.get("evaluate", {}).get("info", {}).get("figures", [])]
         ev = self.stage("evaluate", k_ev, figs or [ev_dir / "__none__"], do_eval)
         levels = sorted(ev["summary"], key=_noise_value)  # numerically: 0, 2, 5, 10 (not as strings)
         refines = any("start" in v for v in ev["summary"].values())

@@ -16,7 +16,6 @@ smaller one (a table grows without re-solving what it has) and the held-out rows
 
 from __future__ import annotations
 
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from ..library.supercells import (
     solve_table,
 )
 from ..plotting import pyplot, save_figure
+from ..products import temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "SOURCES", "certify_coupling",
            "plot_coupling"]
@@ -109,8 +109,8 @@ def _load(path: Path, log) -> tuple[Design, str]:
         if (store / "design.npz").exists():
             return load_design(store), file_sha256(store / "design.npz")
         log(f"  designing {path.name} (no store at {store}) ...")
-        with tempfile.TemporaryDirectory() as tmp:
-            d, out = run_design(rec, Path(tmp) / "d")
+        with temporary() as tmp:
+            d, out = run_design(rec, tmp / "d")
             return d, file_sha256(Path(out) / "design.npz" if Path(out).is_dir() else out)
     p = path / "design.npz" if path.is_dir() else path
     return load_design(p), file_sha256(p)

@@ -47,6 +47,7 @@ def _cmd_show(a: argparse.Namespace) -> int:
 
 def _cmd_validate(a: argparse.Namespace) -> int:
     from ..io import atomic_write_text
+    from ..products import product
     from .path import check_sampling, solve_path
     from .validate import plot_validation, validate
 
@@ -57,10 +58,10 @@ def _cmd_validate(a: argparse.Namespace) -> int:
         if not rep.ok:
             raise ValidationError(f"Rytov {r:g}: infeasible sampling: " + "; ".join(rep.failures))
     out = out_dir(a.output)
-    res = validate(sc, rytovs, a.samples, a.seed, progress=progress_bar("turbulence", unit="sample"))
-    out.mkdir(exist_ok=True)
-    figs = plot_validation(res, out)
-    atomic_write_text(out / "turbulence-validation.json", json.dumps(res, default=float))
+    with product(out, "turbulence-validation", {"recipe": a.recipe}):
+        res = validate(sc, rytovs, a.samples, a.seed, progress=progress_bar("turbulence", unit="sample"))
+        figs = plot_validation(res, out)
+        atomic_write_text(out / "turbulence-validation.json", json.dumps(res, default=float))
     sf = res["structure_function"]
     lines = [f"wrote {', '.join(f.name for f in figs)} and turbulence-validation.json to {out}",
              "structure function / theory: " + " ".join(f"{x:.3f}" for x in sf["ratio"])

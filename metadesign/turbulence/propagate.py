@@ -21,7 +21,7 @@ from ..validation import ValidationError
 from .path import PathModel, Scenario, check_sampling, solve_path
 from .screens import ScreenGrid, screens
 
-__all__ = ["Turbulence", "point_source", "split_step", "split_step_torch", "Sample"]
+__all__ = ["SplitStep", "Turbulence", "point_source", "split_step", "split_step_torch", "Sample"]
 
 
 def point_source(sc: Scenario) -> np.ndarray:
@@ -65,17 +65,45 @@ def split_step(u: np.ndarray, phases: np.ndarray, H: np.ndarray, absorber: np.nd
 
 
 def split_step_torch(u, phases, H, absorber, reverse: bool = False):
-    """Torch twin of :func:`split_step` (``u``: (..., n, n) complex64 tensor;
-    ``phases``: (n_screens, n, n) float tensor; ``H`` complex64 tensor)."""
+    """Torch twin of :func:`split_step` (``u``: (..., n, n) complex tensor; ``phases``: (n_screens, n, n)
+    float tensor shared by the batch, or (B, n_screens, n, n), one set per sample of ``u`` (B, n, n);
+    ``H`` complex tensor).  The training loss, the stored bucket operators and the tests all propagate
+    through this one function."""
     import torch
 
-    n_s = phases.shape[0]
+    per_sample = phases.dim() == 4
+    n_s = phases.shape[1] if per_sample else phases.shape[0]
     order = range(n_s) if not reverse else range(n_s - 1, -1, -1)
     for j, i in enumerate(order):
-        u = u * torch.polar(absorber, phases[i])  # absorber * exp(i phase) in one factor
+        ph = phases[:, i] if per_sample else phases[i]
+        u = u * torch.polar(absorber.expand_as(ph), ph)  # absorber * exp(i phase) in one factor
         if j < n_s - 1:
             u = torch.fft.ifft2(torch.fft.fft2(u) * H)
     return u
+
+
+@dataclass(frozen=True)
+class SplitStep:
+    """The turbulent path as one optical element (hcipy's ``OpticalElement`` protocol): ``forward``
+    propagates a field from the beacon's plane through the screens in order (screen 0 first, an
+    angular-spectrum step ``H`` between consecutive screens, the ``absorber`` at every screen),
+    ``backward`` from the receiver's plane through them in reverse.  numpy arrays go through
+    :func:`split_step` (scipy FFTs, complex64), torch tensors through :func:`split_step_torch` (autograd,
+    GPU); the two agree to float32 rounding (test)."""
+
+    H: object
+    absorber: object
+
+    def _run(self, u, phases, reverse: bool):
+        if isinstance(u, np.ndarray):
+            return split_step(u, phases, self.H, self.absorber, reverse=reverse)
+        return split_step_torch(u, phases, self.H, self.absorber, reverse=reverse)
+
+    def forward(self, u, phases):
+        return self._run(u, phases, False)
+
+    def backward(self, u, phases):
+        return self._run(u, phases, True)
 
 
 @dataclass

@@ -1,0 +1,255 @@
+"""The product layer (metadesign.products), table-driven over every command that writes.
+
+Each command meets the outputs that must never be written: its own input, a path inside an input, a
+folder around an input, a user's file, a user's folder (with a dot-file), another kind of product, and an
+output another process is writing.  Each must exit 2 with one line on stderr and leave every tree
+byte-identical.  Then: the kinds are recognised from the files themselves, a resource estimate refuses
+with its figures, the CLI cannot write around the layer, and the issue's four data-loss cases."""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO, run_main, tiny_model
+
+LIB = REPO / "library" / "paper.npz"
+
+
+def _tree(root: Path) -> dict:
+    """Every file (with its bytes' sha256) and folder under ``root``."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        rel = str(p.relative_to(root))
+        out[rel] = "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory, demo_products, tiny_dataset):
+    """Small copies of every kind of input, in one folder (copied per case)."""
+    base = tmp_path_factory.mktemp("product-inputs")
+    shutil.copy(LIB, base / "lib.npz")
+    shutil.copy(REPO / "library" / "paper.toml", base / "lib.toml")
+    (base / "lib.toml").write_text((base / "lib.toml").read_text())
+    shutil.copytree(demo_products["design"], base / "design")
+    shutil.copytree(tiny_dataset, base / "ds")
+    m = base / "models"
+    m.mkdir()
+    tiny_model(m)
+    shutil.copy(REPO / "library" / "paper-supercells.npz", base / "table.npz")
+    for f in ("paper-coupling.safetensors", "paper-coupling.json"):
+        shutil.copy(REPO / "library" / f, base / f)
+    dr = (REPO / "layouts" / "demo.toml").read_text()
+    (base / "demo.toml").write_text(dr.replace('library = "../library/paper.npz"', f'library = "{base / "lib.npz"}"'))
+    (base / "scenario.toml").write_text((REPO / "sensing" / "turbulence.toml").read_text())
+    (base / "tiny.toml").write_text(
+        f'[dataset]\nlayout = "{base / "design" / "layout.oas"}"\nsensor = "{REPO / "sensing" / "demo.toml"}"\n'
+        f'turbulence = "{base / "scenario.toml"}"\nsamples = 4\ntensor_size = 16\nshard_size = 4\nseed = 5\n')
+    return base
+
+
+# command -> (argv with {OUT} for the output and {IN} for the folder of inputs, output is a folder?,
+#             the input that the "is / inside / around an input" cases use, relative to {IN})
+COMMANDS = {
+    "library build": (["library", "build", "{IN}/lib.toml", "-o", "{OUT}.npz"], False, "lib.toml"),
+    "library plot": (["library", "plot", "--library", "{IN}/lib.npz", "-o", "{OUT}.png"], False, "lib.npz"),
+    "library export": (["library", "export", "--library", "{IN}/lib.npz", "-o", "{OUT}.csv"], False, "lib.npz"),
+    "library coupling": (["library", "coupling", "{IN}/table.npz", "--library", "{IN}/lib.npz", "-o",
+                          "{OUT}.safetensors"], False, "table.npz"),
+    "design build": (["design", "build", "{IN}/demo.toml", "-o", "{OUT}"], True, "demo.toml"),
+    "design plot": (["design", "plot", "{IN}/design", "-o", "{OUT}.png"], False, "design/design.npz"),
+    "design compensate": (["design", "compensate", "{IN}/design", "--coupling-model",
+                           "{IN}/paper-coupling.safetensors", "-o", "{OUT}"], True, "design/design.npz"),
+    "layout write": (["layout", "write", "{IN}/design", "-o", "{OUT}.oas"], False, "design/design.npz"),
+    "layout tiled": (["layout", "tiled", "{IN}/demo.toml", "-o", "{OUT}"], True, "demo.toml"),
+    "layout preview": (["layout", "preview", "{IN}/design/layout.oas", "-o", "{OUT}.png"], False,
+                       "design/layout.oas"),
+    "psf": (["psf", "{IN}/design/layout.oas", "--sensor", str(REPO / "sensing" / "demo.toml"), "-o", "{OUT}"], True,
+            "design/layout.oas"),
+    "fab-study": (["fab-study", "{IN}/design/layout.oas", "-o", "{OUT}"], True, "design/layout.oas"),
+    "phasemap": (["phasemap", "{IN}/design/layout.oas", "-o", "{OUT}"], True, "design/layout.oas"),
+    "turbulence validate": (["turbulence", "validate", "{IN}/scenario.toml", "--samples", "2", "-o", "{OUT}"], True,
+                            "scenario.toml"),
+    "dataset build": (["dataset", "build", "{IN}/tiny.toml", "-o", "{OUT}"], True, "tiny.toml"),
+    "dataset plot": (["dataset", "plot", "{IN}/ds", "-o", "{OUT}.png"], False, "ds/psf"),
+    "dataset synth-captures": (["dataset", "synth-captures", "{IN}/ds", "--device", "{IN}/ds", "-o", "{OUT}"],
+                               True, "ds/psf"),
+    "train": (["train", "{IN}/models/t.toml", "--dataset", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
+    "evaluate": (["evaluate", "{IN}/models/m.safetensors", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
+    "export": (["export", "{IN}/models/m.safetensors", "-o", "{OUT}.onnx"], False, "models/m.safetensors"),
+    "compare": (["compare", "{IN}/models/m.safetensors", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
+    "lpa-check": (["library", "lpa-check", "{IN}/design", "-o", "{OUT}"], True, "design/design.npz"),
+    "demo": (["demo", "-o", "{OUT}"], True, None),
+}
+
+CASES = ["is-input", "inside-input", "around-input", "user-file", "user-folder", "other-kind", "concurrent"]
+
+
+def _argv(cmd, base: Path, out: Path) -> list[str]:
+    return [a.replace("{IN}", str(base)).replace("{OUT}", str(out)) for a in COMMANDS[cmd][0]]
+
+
+def _out_of(argv: list[str], placeholder: Path) -> Path:
+    """The output path in ``argv`` (the argument that starts with the placeholder)."""
+    return Path(next(a for a in argv if a.startswith(str(placeholder))))
+
+
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("cmd", list(COMMANDS))
+def test_every_writer_refuses_what_it_must_not_write(cmd, case, inputs, tmp_path, capsys):
+    base = tmp_path / "in"
+    shutil.copytree(inputs, base)
+    folder_out, inp = COMMANDS[cmd][1], COMMANDS[cmd][2]
+    ph = tmp_path / "work" / "out"
+    ph.parent.mkdir()
+    argv = _argv(cmd, base, ph)
+    out = _out_of(argv, ph)
+    if case in ("is-input", "inside-input", "around-input"):
+        if inp is None:
+            pytest.skip("the demo reads only packaged products")
+        src = base / inp
+        target = {"is-input": src, "inside-input": src / "x" if src.is_dir() else src.parent / src.name / "x",
+                  "around-input": src.parent}[case]
+        if case == "inside-input" and not src.is_dir():
+            target = src  # a file has no inside: the same as the input itself
+        argv = [str(target) if a == str(out) else a for a in argv]
+        out = target
+    elif case == "user-file":
+        out.write_text("a user's notes\n")
+    elif case == "user-folder":
+        if not folder_out:
+            out.write_bytes(b"\x89PNG\r\n\x1a\nnot ours" if out.suffix == ".png" else b"user data")
+        else:
+            out.mkdir()
+            (out / ".settings").write_text("mine")
+            (out / "metrics.json").write_text("{}")
+    elif case == "other-kind":
+        if folder_out:
+            out.mkdir()
+            kind = "psf" if "psf" not in cmd else "dataset"
+            (out / ".metadesign.json").write_text('{"format": "metadesign.product/1", "kind": "%s"}' % kind)
+            (out / "result.txt").write_text("kept")
+        elif out.suffix == ".npz":
+            shutil.copy(base / "table.npz", out)  # a supercell table where a library goes
+        elif out.suffix == ".png":
+            pytest.skip("no other kind of product is a PNG")
+        else:
+            shutil.copy(base / "lib.npz", out)  # a library under a foreign suffix
+    before = {"in": _tree(base), "work": _tree(ph.parent)}
+    fd = None
+    if case == "concurrent":
+        from metadesign.io import lock_path
+
+        fd = os.open(lock_path(out), os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        before["work"] = _tree(ph.parent)
+    try:
+        rc, stdout, err = run_main(argv, capsys)
+    finally:
+        if fd is not None:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+    assert rc == 2, (cmd, case, rc, err[-3:])
+    assert len(err) == 1 and err[0].startswith("metadesign: error:"), (cmd, case, err)
+    assert "Traceback" not in "".join(err)
+    after = {"in": _tree(base), "work": _tree(ph.parent)}
+    assert after == before, (cmd, case, err)
+
+
+def test_the_issue_data_loss_cases(inputs, tmp_path, capsys):
+    """#31: the four commands that replaced what a user had, each with exit 0."""
+    base = tmp_path / "in"
+    shutil.copytree(inputs, base)
+    rec = tmp_path / "sc.toml"
+    rec.write_text((REPO / "library" / "paper-supercells.toml").read_text())
+    before = _tree(base)
+    cases = [
+        ["library", "supercells", str(REPO / "library" / "paper-supercells.toml"), "-o", str(base / "lib.npz")],
+        ["library", "coupling", str(base / "table.npz"), "--library", str(base / "lib.npz"), "-o",
+         str(base / "table.npz")],
+        ["design", "compensate", str(base / "design"), "--coupling-model", str(base / "paper-coupling.safetensors"),
+         "-o", str(base / "design")],
+    ]
+    for argv in cases:
+        rc, _, err = run_main(argv, capsys)
+        assert rc == 2 and len(err) == 1, (argv, err)
+    user = base / "mine"
+    user.mkdir()
+    (user / "metrics.json").write_text('{"my": "results"}')
+    before = _tree(base)
+    rc, _, err = run_main(["layout", "tiled", str(base / "demo.toml"), "-o", str(user)], capsys)
+    assert rc == 2 and "did not write" in err[0]
+    assert _tree(base) == before
+
+
+def test_kinds_are_recognised_from_the_files(tmp_path):
+    from metadesign.plotting import pyplot, save_figure
+    from metadesign.products import identify
+
+    assert identify(LIB) == "unit-cell-library"
+    assert identify(REPO / "library" / "paper-supercells.npz") == "supercells"
+    assert identify(REPO / "library" / "paper-coupling.safetensors") == "coupling"
+    assert identify(REPO / "sensing" / "models" / "demo-unet-robust.safetensors") == "unet"
+    assert identify(REPO / "sensing" / "models" / "demo-refine.safetensors") == "refiner"
+    assert identify(REPO / "library" / "paper.toml") is None
+    plt = pyplot()
+    save_figure(plt.figure(), tmp_path / "f.png")
+    assert identify(tmp_path / "f.png") == "figure"
+    plt.imsave(tmp_path / "g.png", [[0, 1], [1, 0]])  # a PNG metadesign did not write
+    assert identify(tmp_path / "g.png") is None
+    (tmp_path / "d").mkdir()
+    assert identify(tmp_path / "d") is None
+
+
+def test_a_job_larger_than_the_machine_is_refused_with_its_estimate(tmp_path, capsys):
+    """A 300 mm aperture: ~1.8e11 pillars; the estimate names the disk it needs and what is free."""
+    rec = tmp_path / "huge.toml"
+    txt = (REPO / "layouts" / "wide-25mm.toml").read_text().replace("../library/", str(REPO / "library") + "/")
+    import re
+
+    txt = re.sub(r"aperture_mm\s*=\s*[0-9.]+", "aperture_mm = 300.0", txt)
+    rec.write_text(txt)
+    rc, _, err = run_main(["layout", "tiled", str(rec), "-o", str(tmp_path / "out")], capsys)
+    assert rc == 2 and "needs about" in err[0] and "GB of disk" in err[0] and "free" in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_cli_cannot_write_around_the_product_layer(tmp_path):
+    """With the CLI's enforcement on, a write outside every declared output is a programming error."""
+    from metadesign.io import atomic_write_text, enforce_claims
+    from metadesign.products import product
+
+    enforce_claims(True)
+    try:
+        with pytest.raises(RuntimeError, match="outside any declared output"):
+            atomic_write_text(tmp_path / "stray.txt", "x")
+        with product(tmp_path / "ok", "demo"):
+            atomic_write_text(tmp_path / "ok" / "a.txt", "x")
+            with pytest.raises(RuntimeError):
+                atomic_write_text(tmp_path / "elsewhere.txt", "x")
+    finally:
+        enforce_claims(False)
+    assert not (tmp_path / "stray.txt").exists() and (tmp_path / "ok" / "a.txt").exists()
+
+
+def test_no_module_writes_files_by_hand():
+    """Every file write goes through metadesign.io (atomic, claimed): a static scan for raw writers."""
+    import re
+
+    raw = re.compile(r"\.savefig\(|torch\.save\(|np\.save\(|open\([^)]*['\"][wa]b?['\"]|\.write_oas\(|\.write_gds\(")
+    allowed = {"io.py", "plotting.py"}
+    bad = []
+    for p in (REPO / "metadesign").rglob("*.py"):
+        if p.name in allowed:
+            continue
+        for i, line in enumerate(p.read_text().splitlines(), 1):
+            # allowed: writing the temporary path atomic_path yields, or an in-memory buffer / its handle
+            if raw.search(line) and not re.search(r"atomic|\btmp\b|\bbuf\b|\(fh\b", line):
+                bad.append(f"{p.relative_to(REPO)}:{i}: {line.strip()}")
+    assert not bad, "\n".join(bad)
