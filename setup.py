@@ -10,7 +10,7 @@ from setuptools import find_packages, setup
 PRODUCTS = {
     "metadesign.products.library": ("library", ["paper.npz", "paper.toml", "paper-fab.npz", "paper-fab.toml",
                                                 "paper-supercells.toml", "paper-coupling.safetensors",
-                                                "paper-coupling.json"]),
+                                                "paper-coupling.safetensors.json"]),
     "metadesign.products.layouts": ("layouts", ["*.toml"]),
     "metadesign.products.sensing": ("sensing", ["*.toml"]),
     # the demo's robust U-Net and its learned refinement (which names the U-Net beside it), and the

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     a = parser.parse_args(_legacy(argv))
     from .io import enforce_claims
 
-    enforce_claims(True)  # every write goes through the product layer (metadesign.products)
+    enforce_claims(True)  # every write goes through the product layer (metadesign.outputs)
     try:
         return int(a.func(a) or 0)
     except ValidationError as exc:

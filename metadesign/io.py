@@ -65,7 +65,7 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
         raise
 
 
-#: outputs opened by the product layer (metadesign.products.product) in this process, and whether writes
+#: outputs opened by the product layer (metadesign.outputs.product) in this process, and whether writes
 #: outside them are refused (the CLI turns this on: no command writes around the product layer)
 _CLAIMS: list[Path] = []
 _ENFORCE = [False]
@@ -85,7 +85,7 @@ def claimed(target: str | Path) -> bool:
 def _check_claimed(target: Path) -> None:
     if _ENFORCE[0] and not claimed(target):
         raise RuntimeError(f"{target}: written outside any declared output (every output goes through "
-                           "metadesign.products.product)")
+                           "metadesign.outputs.product)")
 
 
 @contextlib.contextmanager

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from .io import atomic_path
 
-#: the PNG text chunk that marks a figure as metadesign's (metadesign.products recognises it)
+#: the PNG text chunk that marks a figure as metadesign's (metadesign.outputs recognises it)
 PNG_KEY = "metadesign"
 
 __all__ = ["pyplot", "save_figure"]

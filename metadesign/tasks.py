@@ -12,10 +12,13 @@
   job killed at any point (SIGKILL included) loses at most the tasks in flight; the rerun computes only
   those, and since results are keyed by task (never by arrival order), the bytes are the same whatever
   the worker count or scheduler.
+* :meth:`TaskFolder.step` is the sequential form (a pipeline stage, a tolerance case, a transfer run): a
+  step reruns exactly when its content key changed or its outputs are gone.
 
 Used by the library build (``OUT.partial/``), the supercell table (``OUT.partial/``), the tiled layout
 (``OUT/.tiled-partial/``), the dataset's shards (``DATASET/.shards/``) and its bucket operators
-(``DATASET/.operators/``).
+(``DATASET/.operators/``); steps by the pipeline (``OUT/.steps/``), the tolerance study's cases and the
+transfer study's stages (``OUT/.steps/``).
 """
 
 from __future__ import annotations
@@ -124,6 +127,26 @@ class TaskFolder:
 
     def remove(self) -> None:
         shutil.rmtree(self.root, ignore_errors=True)
+
+    def step(self, name: str, key: str, fn: Callable[[], dict], outputs: Iterable[Path] = (),
+             clear: Iterable[Path] = ()) -> tuple[dict, bool]:
+        """One step of a sequential study (a pipeline stage, a tolerance case, a transfer run): its result
+        (a JSON-able dict) if the marker ``name`` holds the same ``key`` and every path of ``outputs``
+        exists, else ``fn()`` run afresh (after removing ``clear``: the step's partial work of another
+        key) and marked.  Returns ``(result, skipped)``."""
+        m = self.marked(name)
+        if m is not None and m.get("key") == key and all(Path(o).exists() for o in outputs):
+            return m["result"], True
+        if m is not None and m.get("key") != key:
+            for c in clear:
+                c = Path(c)
+                if c.is_dir():
+                    shutil.rmtree(c)
+                elif c.exists():
+                    c.unlink()
+        res = fn()
+        self.mark(name, {"key": key, "result": res})
+        return res, False
 
 
 def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store: str = "npz",

@@ -11,7 +11,8 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "metadesign"
 
 #: the shared edges: used by everything, import only each other
-EDGES = {"conventions", "config", "io", "validation", "products", "tasks", "cliutil", "parallel", "paths", "plotting", "timing",
+EDGES = {"conventions", "config", "io", "validation", "outputs", "tasks", "cards", "cliutil", "parallel", "paths",
+         "plotting", "timing", "lazy",
          "determinism"}
 #: subpackages in pipeline order (a module may import its own level and those below)
 ORDER = ["optics", "library", "design", "layouts", "sensing", "turbulence", "reconstruction", "studies"]
@@ -149,3 +150,20 @@ def test_the_checker_accepts_downward_imports():
     assert violations("from ..sensing.forward import CoarsePupil\nfrom ..io import read_npz\n",
                       "metadesign.reconstruction.dataset") == []
     assert violations("def f():\n    from .dataset import build_dataset\n", "metadesign.reconstruction.cli") == []
+
+
+def test_help_imports_no_heavy_library():
+    """``metadesign --help`` builds every parser without importing scipy, torch, zarr, dask or matplotlib
+    (subpackages export lazily, PEP 562); and the estimator names it prints are the registry's."""
+    import subprocess
+    import sys
+
+    code = ("import sys, metadesign.cli as c; c.build_parser(); "
+            "print(sorted(m for m in ('scipy', 'torch', 'zarr', 'dask', 'matplotlib', 'klayout', 'onnx') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
+    from metadesign.studies.cli import BUILTIN_ESTIMATORS
+    from metadesign.studies.compare import ESTIMATORS
+
+    assert tuple(ESTIMATORS[:len(BUILTIN_ESTIMATORS)]) == BUILTIN_ESTIMATORS

@@ -201,7 +201,7 @@ def test_compare_with_no_model_and_only_model_methods_is_one_line(tiny_dataset, 
 # -- training -------------------------------------------------------------------------------------------
 
 def test_training_inputs_are_checked_before_an_epoch(tiny_dataset, demo_products, tmp_path, capsys):
-    from metadesign.products import write_marker
+    from metadesign.outputs import write_marker
 
     tiny_model(tmp_path)
     rec = tmp_path / "t.toml"
@@ -241,13 +241,13 @@ def test_a_diverging_loss_stops_training_with_one_line(tiny_dataset, tmp_path, c
     """A NaN loss (a diverged run) stops training with one line; it never trains on to report 'best -inf'."""
     import importlib
 
-    tr = importlib.import_module("metadesign.reconstruction.train")  # the package exports train(), the function
+    losses = importlib.import_module("metadesign.reconstruction.losses")
 
     tiny_model(tmp_path)
     rec = tmp_path / "t.toml"
     rec.write_text(rec.read_text().replace("[train]\n", "[train]\nepochs = 2\npretrain_loss = \"phase\"\n"
                                                          "pretrain_epochs = 2\n"))
-    monkeypatch.setattr(tr, "phase_loss", lambda phi, rec, ap: (phi * float("nan")).sum())
+    monkeypatch.setattr(losses, "phase_loss", lambda phi, rec, ap: (phi * float("nan")).sum())  # the registry's
     rc, _, err = _run(["train", rec, "--dataset", tiny_dataset, "-o", tmp_path / "run"], capsys)
     assert rc == 2 and len(err) == 1 and "diverged" in err[0], err
     assert not (tmp_path / "run" / "model.safetensors").exists()

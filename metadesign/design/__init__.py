@@ -1,19 +1,13 @@
 """Stage 2: Eq. 1 supercell phase design and the birefringent discretizer."""
 
-from .discretize import AtomTable, Metric, NearestAtom, brute_force_nearest, optimal_offsets, select_atoms
-from .phase import (
-    LensChannel,
-    SupercellSpec,
-    cell_coordinates,
-    channel_of_cell,
-    design_phase_rows,
-    lens_phase,
-    paper_channels,
-    wrap,
-)
+from ..lazy import lazy_exports
 
-__all__ = [
-    "AtomTable", "Metric", "NearestAtom", "brute_force_nearest", "optimal_offsets", "select_atoms",
-    "LensChannel", "SupercellSpec", "cell_coordinates", "channel_of_cell", "design_phase_rows", "lens_phase",
-    "paper_channels", "wrap",
-]
+#: each name -> the submodule that defines it (imported on first use, PEP 562)
+_EXPORTS = {
+    "AtomTable": "discretize", "Metric": "discretize", "NearestAtom": "discretize",
+    "brute_force_nearest": "discretize", "optimal_offsets": "discretize", "select_atoms": "discretize",
+    "LensChannel": "phase", "SupercellSpec": "phase", "cell_coordinates": "phase", "channel_of_cell": "phase",
+    "design_phase_rows": "phase", "lens_phase": "phase", "paper_channels": "phase", "wrap": "phase",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

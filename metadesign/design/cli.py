@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from ..cliutil import emit, integer, out_dir, out_file, progress_bar
-from ..products import product
+from ..outputs import product
 
 __all__ = ["register", "SUBCOMMANDS", "DEFAULT"]
 

@@ -1,7 +1,13 @@
 """Stage 3: OASIS/GDS layout writer (gdstk), read-back, KLayout cross-check, design rules, previews."""
 
-from .reader import LayoutContents, check_file, drc_check, read_layout, read_layout_klayout, verify_against_design
-from .writer import LayoutOptions, layout_geometry, layout_library, snap_widths, write_layout
+from ..lazy import lazy_exports
 
-__all__ = ["LayoutContents", "check_file", "drc_check", "read_layout", "read_layout_klayout", "verify_against_design",
-           "LayoutOptions", "layout_geometry", "layout_library", "snap_widths", "write_layout"]
+#: each name -> the submodule that defines it (imported on first use, PEP 562)
+_EXPORTS = {
+    "LayoutContents": "reader", "check_file": "reader", "drc_check": "reader", "read_layout": "reader",
+    "read_layout_klayout": "reader", "verify_against_design": "reader", "LayoutOptions": "writer",
+    "layout_geometry": "writer", "layout_library": "writer", "snap_widths": "writer", "write_layout": "writer",
+    "open_layout": "reader", "MadeLayout": "make", "make_layout": "make", "DESIGN_RULES": "rules", "DesignRules": "rules",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from ..config import InputError
-from ..io import from_json_array, iter_npz_rows
+from ..io import NpzRows, from_json_array, iter_npz_rows
 from .rules import DESIGN_RULES
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
-__all__ = ["LayoutContents", "read_layout", "read_layout_klayout", "verify_against_design", "drc_check",
-           "check_file", "verify_tiled", "layout_tiling"]
+__all__ = ["open_layout", "IndexRows", "read_tiled_contents", "LayoutContents", "read_layout", "read_layout_klayout",
+           "verify_against_design", "drc_check", "check_file", "verify_tiled", "layout_tiling"]
 
 _OASIS_MAGIC = b"%SEMI-OASIS\r\n"
 _GDS_MAGIC = b"\x00\x06\x00\x02"
@@ -492,3 +492,48 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
             "drc": {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm},
                     "from_atom_table": table, "windows": drc, "window_cells": window_cells, "passed": drc_ok},
             "read_seconds": t_read, "count_seconds": t_count - t_read, "seconds": time.perf_counter() - t0}
+
+
+class IndexRows:
+    """A tiled design's index map, read by rows from ``design.npz`` (:class:`metadesign.io.NpzRows`),
+    with the no-pillar sentinel as -1 (int32), as a layout's index map: a device of any size in the
+    memory of the rows a consumer asks for."""
+
+    def __init__(self, path: str | Path, empty: int | None):
+        self.rows, self.empty = NpzRows(path, "index_map"), empty
+        self.shape = self.rows.shape
+        self.dtype = np.dtype(np.int32)
+
+    def __getitem__(self, key) -> np.ndarray:
+        raw = self.rows[key]
+        im = raw.astype(np.int32)
+        if self.empty is not None:
+            im[raw == self.empty] = -1
+        return im
+
+
+def read_tiled_contents(path: Path) -> LayoutContents:
+    """The pillars of a tiled layout, streamed from the design written with it (``design.npz`` beside
+    it, which ``layout verify`` checks against the file: KLayout's count of every pillar and sampled
+    tiles exactly), so a 1e9-pillar device never sits in memory; atom rectangles from the provenance."""
+    path = Path(path)
+    side = json.loads(path.with_suffix(path.suffix + ".json").read_text())
+    prov = side["provenance"]
+    design = path.parent / "design.npz"
+    if not design.exists():
+        raise InputError(f"{path}: a tiled layout is read through its design.npz, which is not beside it")
+    n = int(prov["n_cells"])
+    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
+    w = np.asarray(prov["atom_widths_nm"], np.int64)
+    im = IndexRows(design, prov.get("empty_index"))
+    if im.shape != (n, n):
+        raise InputError(f"{design}: index map {im.shape}, the layout has {n} x {n} cells")
+    return LayoutContents(im, w, -(w % 2), prov, int(side["pillars"]), 0, 0, p_nm, x0, 0.0)
+
+
+def open_layout(path: str | Path) -> LayoutContents:
+    """The one reader of a layout written by metadesign, whole or tiled: a whole layout's pillars read back
+    from the file (gdstk); a tiled one's streamed by rows from the design written with it (its
+    ``design.npz``, which ``layout verify`` ties to the file), so a 1e9-pillar device never sits in memory."""
+    path = Path(path)
+    return read_tiled_contents(path) if layout_tiling(path) else read_layout(path)

@@ -36,7 +36,7 @@ from ..design.store import Design, check_library, design_meta, select_recipe_ato
 from .. import __version__
 from ..io import StreamedArray, atomic_path, atomic_write_text, json_array, read_npz, write_npz
 from ..library.store import load_library
-from ..products import Need
+from ..outputs import Need
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
 from . import oasis as O
@@ -174,7 +174,7 @@ def tiled_need(recipe: DesignRecipe, tile: int = DEFAULT_TILE, workers: int = 1)
     n = recipe.spec.n_cells
     lib = load_library(recipe.library_path)
     atoms = select_recipe_atoms(recipe, lib)
-    dtype, _ = empty_index(len(atoms), True)
+    dtype, _ = empty_index(len(atoms), recipe.spec.bounded)
     item = np.dtype(dtype).itemsize
     cells = float(n) * n
     return Need(disk=cells * (2 * item + OASIS_BYTES_PER_PILLAR * 2), memory=0.4e9 + workers * tile * n * 16.0,

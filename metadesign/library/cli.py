@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..cliutil import emit, log_to, num, out_file, progress_bar, workers_arg
 from ..paths import default_library_path
-from ..products import product
+from ..outputs import product
 
 __all__ = ["register"]
 

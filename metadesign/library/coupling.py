@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_path, atomic_write_text
+from ..cards import find_card, load_weights, read_card, save_card_model
 from ..paths import repo_root
 from ..validation import ValidationError
 from .locate import file_sha256
@@ -205,24 +205,20 @@ def coupling_t(model, widths: np.ndarray, t_units: np.ndarray | None = None, bat
 
 
 def save_coupling(path: str | Path, model, lib_path: str | Path, card: dict) -> Path:
-    """Weights (safetensors) at ``path`` and the card beside it (``.json``): the config, the library it
-    was fitted against (name + sha256) and whatever ``card`` adds (certification, learning curve)."""
-    from safetensors.torch import save_file
-
+    """Weights (safetensors) at ``path`` and the card beside it (``PATH.json``, :mod:`metadesign.cards`): the
+    config, the library it was fitted against (name + sha256), the table it was fitted on
+    (``card["table"]``: what it was trained on) and whatever ``card`` adds (certification, learning curve)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(tmp))
-    full = {"format": CARD_FORMAT, "config": asdict(model.cfg), "weights": path.name,
-            "weights_sha256": file_sha256(path),
-            "library": {"path": Path(lib_path).name, "sha256": file_sha256(lib_path)}, **card}
-    atomic_write_text(path.with_suffix(".json"), json.dumps(full, indent=1))
+    save_card_model(path, model.state_dict(), CARD_FORMAT,
+                    {"config": asdict(model.cfg),
+                     "library": {"path": Path(lib_path).name, "sha256": file_sha256(lib_path)}, **card},
+                    trained_on=card.get("table"))
     return path
 
 
 def is_coupling(path: str | Path) -> bool:
-    p = Path(path).with_suffix(".json")
     try:
-        card = json.loads(p.read_text())
+        card = json.loads(find_card(path).read_text())
     except (OSError, ValueError):
         return False
     return isinstance(card, dict) and card.get("format") == CARD_FORMAT
@@ -231,14 +227,7 @@ def is_coupling(path: str | Path) -> bool:
 def load_coupling(path: str | Path, lib: UnitCellLibrary, check_library: bool = True):
     """The model at ``path`` (safetensors + card) for library ``lib`` (its sha256 must match the card's
     unless ``check_library`` is off); returns ``(model, card)``."""
-    from safetensors.torch import load_file
-
-    path = Path(path)
-    if not is_coupling(path):
-        raise ValidationError(f"{path}: not a coupling model (no {CARD_FORMAT} card beside it)")
-    card = json.loads(path.with_suffix(".json").read_text())
-    if file_sha256(path) != card.get("weights_sha256"):
-        raise ValidationError(f"{path}: the weights' sha256 differs from the card's (damaged or replaced)")
+    path, _, card = read_card(path, CARD_FORMAT, "coupling model")
     lib_card = card.get("library")
     if not isinstance(lib_card, dict) or not isinstance(lib_card.get("sha256"), str):
         raise ValidationError(f"{path}: the card's library entry is missing or not an object with a sha256")
@@ -250,10 +239,7 @@ def load_coupling(path: str | Path, lib: UnitCellLibrary, check_library: bool = 
     except (KeyError, TypeError, ValueError) as exc:
         raise ValidationError(f"{path}: the card's config is not a coupling configuration ({exc})") from None
     model = _torch_model(cfg, lib)
-    try:
-        state = load_file(str(path))
-    except Exception as exc:  # noqa: BLE001 - safetensors raises its own error types
-        raise ValidationError(f"{path}: unreadable weights ({str(exc).splitlines()[0]})") from None
+    state = load_weights(path, what="coupling model")
     try:
         model.load_state_dict(state)
     except RuntimeError:
@@ -340,7 +326,8 @@ def find_coupling(lib: UnitCellLibrary, path: str | Path | None = None):
                 card = json.loads(card_path.read_text())
             except (OSError, ValueError):
                 continue
-            if card.get("format") == CARD_FORMAT and card.get("library", {}).get("sha256") == lib.identity:
+            if isinstance(card, dict) and card.get("format") == CARD_FORMAT and \
+                    (card.get("library") or {}).get("sha256") == lib.identity:
                 w = card_path.with_name(card["weights"])
                 m, card = load_coupling(w, lib)
                 return m, card, w

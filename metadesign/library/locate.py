@@ -3,22 +3,19 @@ product file), then by its sha256 among the libraries a user keeps."""
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 
 from ..paths import repo_root
+from ..tasks import file_key
 from ..validation import ValidationError
 
 __all__ = ["file_sha256", "find_library", "relative_to_product"]
 
 
 def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    """A file's sha256 (the one content key of a file: :func:`metadesign.tasks.file_key`)."""
+    return file_key(path)
 
 
 def relative_to_product(target: str | Path, product_dir: str | Path) -> str:

@@ -1,15 +1,12 @@
 """Shared scalar optics: band-limited angular spectrum, matrix Fourier transform, Fresnel integral."""
 
-from .propagation import (
-           SamplingError,
-           angular_spectrum,
-           asm_transfer,
-           cexp,
-           check_asm_sampling,
-           fresnel_points,
-           grid,
-           mft,
-)
+from ..lazy import lazy_exports
 
-__all__ = ["SamplingError", "angular_spectrum", "asm_transfer", "cexp", "check_asm_sampling", "fresnel_points",
-           "grid", "mft"]
+#: each name -> the submodule that defines it (imported on first use, PEP 562)
+_EXPORTS = {
+    "SamplingError": "propagation", "angular_spectrum": "propagation", "asm_transfer": "propagation",
+    "cexp": "propagation", "check_asm_sampling": "propagation", "fresnel_points": "propagation",
+    "grid": "propagation", "mft": "propagation",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

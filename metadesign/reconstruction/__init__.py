@@ -5,27 +5,19 @@ evaluation (:mod:`.evaluate`, :mod:`.metrics`), ONNX export (:mod:`.export`), th
 (:mod:`.operators`), capture import (:mod:`.captures`), the model-based baselines (:mod:`.retrieval`,
 :mod:`.shack_hartmann`) and every wavefront estimator behind one interface (:mod:`.estimators`)."""
 
-from .captures import ImportOptions, import_captures
-from .data import PSFDataset, apply_noise
-from .dataset import (
-    DatasetRecipe,
-    build_dataset,
-    load_dataset_recipe,
-    load_device,
-    open_dataset,
-    verify_dataset,
-)
-from .estimators import ESTIMATORS, Estimator, make_estimator, register
-from .evaluate import evaluate_model
-from .export import export_onnx
-from .losses import LOSSES, PiB
-from .metrics import captured_fraction
-from .model import UNetConfig, build_unet, load_model, save_model
-from .operators import build_operators
-from .train import TrainRecipe, load_train_recipe, train
+from ..lazy import lazy_exports
 
-__all__ = ["ImportOptions", "import_captures", "PSFDataset", "apply_noise", "DatasetRecipe", "build_dataset",
-           "load_dataset_recipe", "load_device", "open_dataset", "verify_dataset", "ESTIMATORS", "Estimator",
-           "make_estimator", "register", "evaluate_model", "export_onnx", "LOSSES", "PiB", "captured_fraction",
-           "UNetConfig", "build_unet", "load_model", "save_model", "build_operators", "TrainRecipe",
-           "load_train_recipe", "train"]
+#: each name -> the submodule that defines it (imported on first use, PEP 562); a function named like its
+#: module (``train.train``) is reached through the module
+_EXPORTS = {
+    "ImportOptions": "captures", "import_captures": "captures", "PSFDataset": "data", "apply_noise": "data",
+    "DatasetRecipe": "dataset", "build_dataset": "dataset", "load_dataset_recipe": "dataset",
+    "load_device": "dataset", "open_dataset": "dataset", "verify_dataset": "dataset", "ESTIMATORS": "estimators",
+    "Estimator": "estimators", "make_estimator": "estimators", "register": "estimators",
+    "evaluate_model": "evaluate", "export_onnx": "export", "LOSSES": "losses", "PiB": "losses",
+    "captured_fraction": "metrics", "UNetConfig": "model", "build_unet": "model", "load_model": "model",
+    "save_model": "model", "build_operators": "operators", "TrainRecipe": "train", "load_train_recipe": "train",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+

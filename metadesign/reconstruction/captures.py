@@ -53,7 +53,7 @@ import numpy as np
 from .. import __version__
 from ..io import atomic_write_text
 from ..plotting import save_figure
-from ..products import product
+from ..outputs import product
 from ..sensing.camera import Alignment
 from ..sensing.forward import sensor_frames
 from ..sensing.sensor import area_resample, quadrant_slices

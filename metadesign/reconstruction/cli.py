@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
-from ..products import Input, product, zarr_input
+from ..outputs import Input, product, zarr_input
 
 __all__ = ["register"]
 

@@ -44,8 +44,8 @@ from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..io import atomic_write_text, read_npz
-from ..products import MARKER, product
-from ..layouts import read_layout, verify_against_design, write_layout
+from ..outputs import MARKER, product
+from ..layouts.make import make_layout
 from ..library.locate import file_sha256
 from ..library.store import load_library
 from ..tasks import TaskFolder, run_resumable
@@ -322,11 +322,9 @@ def ensure_layout(recipe: DatasetRecipe, log: Callable[[str], None]) -> Path:
     with product(out, "design", {"dataset.design": recipe.design, "design.library": dr.library_path},
                  also=(target, target.with_name(target.name + ".json"))):
         _, folder = run_design(dr, out)
-        d = load_design(folder)
-        write_layout(d, target, "oas")
-        v = verify_against_design(read_layout(target), d)
-    if not v["exact"]:
-        raise ValidationError(f"{target}: the layout read back differs from the design: {v['problems'][:2]}")
+        made = make_layout(load_design(folder), target, drc=False)
+    if not made.exact:
+        raise ValidationError(f"{target}: the layout read back differs from the design: {made.verify['problems'][:2]}")
     return target
 
 

@@ -15,18 +15,43 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
 from ..turbulence.propagate import Turbulence, split_step_torch
 
-__all__ = ["PiB", "phase_loss", "mse_loss", "unwrap_ls", "LOSSES"]
+__all__ = ["PiB", "phase_loss", "mse_loss", "unwrap_ls", "LOSSES", "Loss", "register_loss"]
 
-#: the training losses, by the name recipes use (``train.loss``, ``train.pretrain_loss``): one registry
-LOSSES = {
-    "pib": "end to end: -log NPiB of the corrected beam through the sample's own turbulence (PiB)",
-    "phase": "piston-free MSE against the received phase, on the aperture (phase_loss)",
-    "mse": "MSE against the least-squares unwrapped received phase (mse_loss; Table S2's baseline)",
-}
+@dataclass(frozen=True)
+class Loss:
+    """A training loss: ``fn(ctx, phi, batch, received) -> (loss, per-sample NPiB or None)``; ``ctx`` holds
+    the batch's :class:`PiB` (``ctx.pib``) and, for the end-to-end loss, how it meets the screens (the
+    training loop's :class:`~metadesign.reconstruction.train` batch context).  ``end_to_end``: the loss
+    needs each sample's screens or bucket operators."""
+
+    name: str
+    description: str
+    fn: Callable
+    end_to_end: bool = False
+
+
+#: the training losses, by the name recipes use (``train.loss``, ``train.pretrain_loss``): one registry,
+#: as the estimators' (:func:`register_loss` adds one)
+LOSSES: dict[str, Loss] = {}
+
+
+def register_loss(name: str, description: str, end_to_end: bool = False):
+    """Decorator: register ``fn(ctx, phi, batch, received)`` as the loss ``name``."""
+    if not name or name in LOSSES:
+        raise ValueError(f"loss {name!r}: empty or registered already")
+
+    def deco(fn):
+        LOSSES[name] = Loss(name, description, fn, end_to_end)
+        return fn
+
+    return deco
 
 # The end-to-end loss is a quadratic form.  Back-propagation through a sample's fixed screens is linear
 # in the aperture correction u, so the power in the bucket is ||A u||^2 with A the bucket pixels' rows of
@@ -186,3 +211,34 @@ def mse_loss(phi, received, ap):
     d = (phi - true.to(phi.device)) * ap
     piston = d.sum(dim=(-2, -1), keepdim=True) / ap.sum()
     return ((((d - piston) * ap) ** 2).sum(dim=(-2, -1)) / ap.sum()).mean()
+
+
+@register_loss("pib", "end to end: -log NPiB of the corrected beam through the sample's own turbulence (PiB)",
+               end_to_end=True)
+def _pib(ctx, phi, b, rec):
+    """Through the stored bucket operators, the per-sample operators computed once (quadratic form), or the
+    split step over the sample's screens (``ctx.mode``)."""
+    import torch
+
+    pib, device = ctx.pib, ctx.device
+    if ctx.stored:
+        return pib.loss(phi, A=b["A"].to(device))
+    if ctx.quadratic:
+        idx = [int(i) for i in b["index"]]
+        miss = [k for k, i in enumerate(idx) if i not in ctx.ops]
+        if miss:
+            with torch.no_grad():
+                for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
+                    ctx.ops[idx[k]] = A.cpu()
+        return pib.loss(phi, A=torch.stack([ctx.ops[i] for i in idx]).to(device))
+    return pib.loss(phi, b["screens"].to(device))
+
+
+@register_loss("phase", "piston-free MSE against the received phase, on the aperture (phase_loss)")
+def _phase(ctx, phi, b, rec):
+    return phase_loss(phi, rec, ctx.pib.ap), None
+
+
+@register_loss("mse", "MSE against the least-squares unwrapped received phase (mse_loss; Table S2's baseline)")
+def _mse(ctx, phi, b, rec):
+    return mse_loss(phi, rec, ctx.pib.ap), None

@@ -10,14 +10,13 @@ layer: training starts at the flat (uncorrected) phase.  Weights ship as safeten
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_path, atomic_write_text
+from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
 
 __all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
@@ -116,62 +115,25 @@ UNet = build_unet  # the architecture's name
 
 
 def save_model(model, path: str | Path, card: dict) -> tuple[Path, Path]:
-    """Weights as ``PATH`` (safetensors) and the card as ``PATH.json`` (both written atomically)."""
-    from safetensors.torch import save_file
-
-    path = Path(path)
-    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    with atomic_path(path) as tmp:
-        save_file(state, str(tmp), metadata={"format": MODEL_FORMAT})
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    card = {"format": MODEL_FORMAT, "architecture": asdict(model.config), "weights_sha256": digest, **card}
-    card_path = path.with_name(path.name + ".json")
-    atomic_write_text(card_path, json.dumps(card, indent=2, sort_keys=True, default=float))
-    return path, card_path
+    """Weights as ``PATH`` (safetensors) and the card as ``PATH.json`` (:mod:`metadesign.cards`, both
+    written atomically); ``card["dataset"]`` (when given) is what it was trained on."""
+    return save_card_model(path, model.state_dict(), MODEL_FORMAT,
+                           {"architecture": asdict(model.config), **card}, trained_on=card.get("dataset"))
 
 
 def load_model(path: str | Path, device: str = "cpu"):
     """A model saved by :func:`save_model` (``PATH`` or ``PATH.json``), in eval mode, and its card.
     The weights file is checked against the card's sha256; nothing is unpickled."""
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    path = Path(path)
-    if path.suffix == ".json":
-        path = path.with_suffix("")
-    card_path = path.with_name(path.name + ".json")
-    if not path.is_file() or not card_path.is_file():
-        raise ValidationError(f"{path}: no such model (expected the weights and {card_path.name} beside them)")
+    path, card_path, card = read_card(path, MODEL_FORMAT, "model")
     try:
-        card = json.loads(card_path.read_text())
-        if not isinstance(card, dict):
-            raise ValueError(f"a JSON {type(card).__name__}, not an object")
-        if card.get("format") != MODEL_FORMAT:
-            raise ValueError(f"format {card.get('format')!r}")
         if not isinstance(card.get("architecture"), dict):
             raise ValueError("no architecture object")
         cfg = UNetConfig(**card["architecture"])
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+    except (ValueError, KeyError, TypeError) as exc:
         raise ValidationError(f"{card_path}: not a metadesign model card ({exc})") from None
-    if hashlib.sha256(path.read_bytes()).hexdigest() != card.get("weights_sha256"):
-        raise ValidationError(f"{path}: weights do not match the card's sha256 (truncated or replaced)")
-    try:
-        state = load_file(str(path), device=device)
-    except (SafetensorError, OSError, ValueError) as exc:
-        raise ValidationError(f"{path}: unreadable safetensors ({exc})") from None
-    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(v.isfinite().all())]
-    if bad:
-        raise ValidationError(f"{path}: non-finite weights (NaN or infinity in {len(bad)} tensor(s), e.g. {bad[0]}): "
-                              "a diverged or damaged model")
-    try:
-        model = build_unet(cfg)
-        missing, unexpected = model.load_state_dict(state, strict=False)
-    except (RuntimeError, ValueError) as exc:
-        raise ValidationError(f"{path}: weights do not fit the card's architecture "
-                              f"({str(exc).strip().splitlines()[-1].strip()[:160]})") from None
-    if missing or unexpected:
-        raise ValidationError(f"{path}: weights do not fit the card's architecture (missing {missing[:3]}, "
-                              f"unexpected {unexpected[:3]})")
+    state = load_weights(path, device, "model")
+    model = build_unet(cfg)
+    load_into(model, state, path, "model")
     return model.to(device).eval(), card
 
 

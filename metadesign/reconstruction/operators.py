@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..products import Need, check_need, product
+from ..outputs import Need, check_need, product
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .dataset import OPERATOR_ARRAY as ARRAY

@@ -27,12 +27,12 @@ import numpy as np
 from ..cliutil import progress_bar
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..io import atomic_path, atomic_write_text, claim
-from ..products import Input, product
+from ..outputs import Input, product
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .dataset import load_device
-from .losses import LOSSES, PiB, mse_loss, phase_loss
+from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model
 from .operators import has_operators
@@ -261,7 +261,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     ckpt = _check_run(run, resume)
     tr = PSFDataset(dataset, "train", **recipe.noise(), noise_seed=recipe.seed,
                     limit=recipe.train_limit or None)
-    any_pib = any(recipe.loss_at(e) == "pib" for e in range(recipe.epochs))
+    any_pib = any(LOSSES[recipe.loss_at(e)].end_to_end for e in range(recipe.epochs))
     mode = _pib_mode(recipe, tr)
     quadratic = mode == "quadratic" and any_pib
     stored = mode == "stored" and any_pib
@@ -308,8 +308,9 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     steps = 0
     for epoch in range(start, recipe.epochs):
         loss_name = recipe.loss_at(epoch)
-        tr.screens = loss_name == "pib" and not stored and not (quadratic and len(batch_loss.ops) >= len(tr))
-        tr.operators = stored and loss_name == "pib"
+        e2e = LOSSES[loss_name].end_to_end
+        tr.screens = e2e and not stored and not (quadratic and len(batch_loss.ops) >= len(tr))
+        tr.operators = stored and e2e
         tr.set_epoch(epoch)
         sampler.set_epoch(epoch)
         loader = torch.utils.data.DataLoader(tr, batch_size=recipe.batch // world, sampler=sampler,
@@ -494,24 +495,7 @@ class _BatchLoss:
         self.ops: dict[int, object] = {}
 
     def __call__(self, name: str, phi, b: dict, rec):
-        import torch
-
-        pib, device = self.pib, self.device
-        if name == "pib" and self.stored:
-            return pib.loss(phi, A=b["A"].to(device))
-        if name == "pib" and self.quadratic:
-            idx = [int(i) for i in b["index"]]
-            miss = [k for k, i in enumerate(idx) if i not in self.ops]
-            if miss:
-                with torch.no_grad():
-                    for k, A in zip(miss, pib.bucket_operator(b["screens"][miss].to(device))):
-                        self.ops[idx[k]] = A.cpu()
-            return pib.loss(phi, A=torch.stack([self.ops[i] for i in idx]).to(device))
-        if name == "pib":
-            return pib.loss(phi, b["screens"].to(device))
-        if name == "phase":
-            return phase_loss(phi, rec, pib.ap), None
-        return mse_loss(phi, rec, pib.ap), None
+        return LOSSES[name].fn(self, phi, b, rec)
 
 
 def _restore(ckpt: Path, model, opt, sched, device) -> tuple[list, float, int]:

@@ -2,16 +2,17 @@
 :class:`~.device.Device` the estimators take, the differentiable twin (:mod:`.twin`), the camera and
 relay models of captures (:mod:`.camera`), phase maps and the fab study."""
 
-from .camera import Alignment, CameraSpec
-from .device import Device, ReceiverCrop
-from .forward import CoarsePupil, coarse_pupil, full_resolution_frames, quadrant_fields, sensor_frames
-from .model import AsFabricated, SensingRecipe, channel_metrics, load_sensing_recipe, render_frames
-from .render import fab_study, render_psf, save_psf
-from .sensor import NoiseSpec, SensorSpec, add_noise, psf_tensor, quadrant_slices
-from .transmission import Perturbation, interpolate_t, perturb_widths, pillar_transmission
+from ..lazy import lazy_exports
 
-__all__ = ["Alignment", "CameraSpec", "Device", "ReceiverCrop", "fab_study", "render_psf", "save_psf",
-           "CoarsePupil", "coarse_pupil", "full_resolution_frames", "quadrant_fields", "sensor_frames",
-           "AsFabricated", "SensingRecipe", "channel_metrics", "load_sensing_recipe", "render_frames",
-           "NoiseSpec", "SensorSpec", "add_noise", "psf_tensor", "quadrant_slices",
-           "Perturbation", "interpolate_t", "perturb_widths", "pillar_transmission"]
+#: each name -> the submodule that defines it (imported on first use, PEP 562)
+_EXPORTS = {
+    "Alignment": "camera", "CameraSpec": "camera", "Device": "device", "ReceiverCrop": "device",
+    "CoarsePupil": "forward", "coarse_pupil": "forward", "full_resolution_frames": "forward",
+    "quadrant_fields": "forward", "sensor_frames": "forward", "AsFabricated": "model", "SensingRecipe": "model",
+    "channel_metrics": "model", "load_sensing_recipe": "model", "render_frames": "model", "fab_study": "render",
+    "render_psf": "render", "save_psf": "render", "NoiseSpec": "sensor", "SensorSpec": "sensor",
+    "add_noise": "sensor", "psf_tensor": "sensor", "quadrant_slices": "sensor", "Perturbation": "transmission",
+    "interpolate_t": "transmission", "perturb_widths": "transmission", "pillar_transmission": "transmission",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..cliutil import SEED, emit, integer, num, out_dir, progress_bar
 from ..config import InputError
-from ..products import product
+from ..outputs import product
 
 
 __all__ = ["register"]

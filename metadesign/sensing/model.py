@@ -13,8 +13,7 @@ from ..config import ConfigError, InputError, Param, Section, load_toml, parse
 from ..design.phase import LensChannel, cell_coordinates, polygon_mask
 from ..design.recipe import design_recipe_from_dict
 from ..design.store import design_library, load_design
-from ..io import NpzRows
-from ..layouts.reader import LayoutContents, layout_tiling, read_layout
+from ..layouts.reader import IndexRows, LayoutContents, open_layout, read_tiled_contents
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
 from ..library.coupling import find_coupling
 from ..library.locate import find_library
@@ -88,24 +87,6 @@ def load_sensing_recipe(path: str | Path) -> SensingRecipe:
     return sr
 
 
-class IndexRows:
-    """A tiled design's index map, read by rows from ``design.npz`` (:class:`metadesign.io.NpzRows`),
-    with the no-pillar sentinel as -1 (int32), as a layout's index map: a device of any size in the
-    memory of the rows a consumer asks for."""
-
-    def __init__(self, path: str | Path, empty: int | None):
-        self.rows, self.empty = NpzRows(path, "index_map"), empty
-        self.shape = self.rows.shape
-        self.dtype = np.dtype(np.int32)
-
-    def __getitem__(self, key) -> np.ndarray:
-        raw = self.rows[key]
-        im = raw.astype(np.int32)
-        if self.empty is not None:
-            im[raw == self.empty] = -1
-        return im
-
-
 @dataclass
 class AsFabricated:
     """A layout's pillars and the library, ready to make coarse pupils."""
@@ -142,7 +123,7 @@ class AsFabricated:
         """Read a layout written by ``metadesign layout`` and find its library: ``lib_path`` if given, else
         the path recorded in the layout (relative to it), else any library with the recorded sha256."""
         layout_path = Path(layout_path)
-        lc = read_tiled_contents(layout_path) if layout_tiling(layout_path) else read_layout(layout_path)
+        lc = open_layout(layout_path)
         prov = lc.provenance
         if lib_path is not None:
             path = Path(lib_path)
@@ -220,25 +201,6 @@ class AsFabricated:
         block = block_size_for(self.n_cells, pupil_grid, self.supercell)
         return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
                             self.tn_scale, progress=progress)
-
-
-def read_tiled_contents(path: Path) -> LayoutContents:
-    """The pillars of a tiled layout, streamed from the design written with it (``design.npz`` beside
-    it, which ``layout verify`` checks against the file: KLayout's count of every pillar and sampled
-    tiles exactly), so a 1e9-pillar device never sits in memory; atom rectangles from the provenance."""
-    path = Path(path)
-    side = json.loads(path.with_suffix(path.suffix + ".json").read_text())
-    prov = side["provenance"]
-    design = path.parent / "design.npz"
-    if not design.exists():
-        raise InputError(f"{path}: a tiled layout is read through its design.npz, which is not beside it")
-    n = int(prov["n_cells"])
-    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
-    w = np.asarray(prov["atom_widths_nm"], np.int64)
-    im = IndexRows(design, prov.get("empty_index"))
-    if im.shape != (n, n):
-        raise InputError(f"{design}: index map {im.shape}, the layout has {n} x {n} cells")
-    return LayoutContents(im, w, -(w % 2), prov, int(side["pillars"]), 0, 0, p_nm, x0, 0.0)
 
 
 def channels_from_provenance(prov: dict):

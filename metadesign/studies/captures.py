@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_path, atomic_write_text
-from ..products import product, write_marker, zarr_input
+from ..outputs import product, write_marker, zarr_input
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device
 from ..sensing.camera import Alignment, CameraSpec, expose, misaligned_frames, slm_pupil_field, write_frame

@@ -9,10 +9,15 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
-from ..products import Need, path_fields, product, zarr_input
+from ..cards import card_path
+from ..outputs import Need, path_fields, product, zarr_input
 from ..validation import InputError
 
 __all__ = ["register"]
+
+#: the estimators metadesign registers (metadesign.reconstruction.estimators), named here so that ``--help``
+#: need not import them; ``compare`` checks ``--methods`` against the live registry
+BUILTIN_ESTIMATORS = ("shack_hartmann", "retrieval", "unet", "hybrid", "refine")
 
 
 def design_input(path) -> Path:
@@ -68,7 +73,13 @@ def _lines(res, summ, out, tuning) -> list[str]:
 
 
 def _cmd_compare(a: argparse.Namespace) -> int:
-    from .compare import run_compare, tune, write_compare
+    from .compare import ESTIMATORS, run_compare, tune, write_compare
+
+    if a.methods is None:
+        a.methods = list(ESTIMATORS)
+    bad = [m for m in a.methods if m not in ESTIMATORS]
+    if bad:
+        raise InputError(f"--methods: {bad[0]!r} is not an estimator (registered: {', '.join(ESTIMATORS)})")
 
     model = _model_arg(a.model)
     out = out_dir(a.output or Path(a.dataset) / "compare")
@@ -380,7 +391,7 @@ def _cmd_coupling(a: argparse.Namespace) -> int:
                          "certification needs both fitting and held-out rows (table.test_every >= 2)")
     log = log_to(a.json)
     with product(out, "coupling", {"table": tp, "--library": lib_path},
-                 also=(out.with_suffix(".json"), out.with_suffix(".png"))):
+                 also=(card_path(out), out.with_suffix(".png"))):
         return _coupling_fit(a, table, tp, lib, lib_path, out, log)
 
 
@@ -475,8 +486,6 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
 def register(sub, groups: dict) -> None:
     """Add the study commands: top-level ones to ``sub``, ``library lpa-check`` and ``dataset synth-captures``
     to the stage groups in ``groups``."""
-    from .compare import ESTIMATORS
-
     c = sub.add_parser(
         "compare", help="every estimator (Shack-Hartmann, retrieval, U-Net, hybrid, learned refinement) on the same samples: NPiB and latency",
         description="Every wavefront sensor on the same samples and the same sensor noise: uncorrected, a "
@@ -487,8 +496,9 @@ def register(sub, groups: dict) -> None:
     c.add_argument("model", help="U-Net or refiner weights (.safetensors with its .json card), or NONE")
     _common(c, "zonal iterations of the retrieval (default 100)")
     c.add_argument("--hybrid-iterations", type=integer(0, 100000), help="iterations of the hybrid (default 50)")
-    c.add_argument("--methods", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS),
-                   help="estimators to run (default: all)")
+    c.add_argument("--methods", nargs="+", metavar="ESTIMATOR",
+                   help="estimators to run (default: all registered: " + ", ".join(BUILTIN_ESTIMATORS)
+                   + " and any registered later)")
     c.add_argument("--tune", type=integer(0, 10000), default=0, metavar="N",
                    help="first tune every baseline on N validation samples (grids in metadesign.studies.compare)")
     c.add_argument("-o", "--output", help="output folder (default: DATASET/compare)")

@@ -17,7 +17,7 @@ from ..design.plot import plot_design
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..io import atomic_write_text
-from ..layouts import drc_check, read_layout, read_layout_klayout, verify_against_design, write_layout
+from ..layouts.make import make_layout
 from ..layouts.preview import preview_layout
 from ..library.plot import plot_library
 from ..library.rcwa import SolverSettings, Stack, solve_cell
@@ -76,18 +76,15 @@ def _stage_design(out: Path, log) -> dict:
 
 def _stage_layout(out: Path, log) -> dict:
     d = load_design(out / "design")
-    rep = write_layout(d, out / "design" / "layout.oas", "oas")
-    lc = read_layout(out / "design" / "layout.oas")
-    v = verify_against_design(lc, d)
-    k = verify_against_design(read_layout_klayout(out / "design" / "layout.oas"), d)
-    drc = drc_check(lc)
-    fig = preview_layout(lc, out / "layout-preview.png")
+    made = make_layout(d, out / "design" / "layout.oas", klayout=True)
+    rep, v, k, drc = made.write, made.verify, made.verify_klayout, made.drc
+    fig = preview_layout(made.contents, out / "layout-preview.png")
     line = (f"{rep['pillars']:,} pillars, {rep['bytes'] / 1e3:.0f} kB OASIS in {rep['seconds']:.2f} s; read-back exact "
             f"{v['exact']} (gdstk) / {k['exact']} (KLayout); DRC {'pass' if drc['passed'] else 'FAIL'} (min feature "
             f"{drc['from_atom_table']['min_feature_nm']} nm, min gap {min(drc['from_atom_table']['min_gap_x_nm'], drc['from_atom_table']['min_gap_y_nm'])} nm)")
     log(f"layout: {line}")
     return {"line": line, "write": rep, "verify_gdstk": v, "verify_klayout": k, "drc": drc, "figures": [str(fig)],
-            "passed": bool(v["exact"] and k["exact"] and drc["passed"])}
+            "passed": made.passed}
 
 
 def _stage_sensing(out: Path, log) -> dict:

@@ -26,7 +26,7 @@ from ..design.plot import plot_design
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..io import atomic_write_text
-from ..layouts import drc_check, read_layout, verify_against_design, write_layout
+from ..layouts.make import make_layout
 from ..layouts.preview import preview_layout
 from ..layouts.rules import DESIGN_RULES
 from ..library.build import build_library
@@ -42,7 +42,7 @@ from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf
 from ..turbulence.scenario import load_scenario
-from ..tasks import content_key, file_key
+from ..tasks import TaskFolder, content_key, file_key
 from ..turbulence.scenario import load_scenario
 from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
@@ -142,8 +142,8 @@ class _Pipeline:
 
     def __init__(self, rec: dict, out: Path, log: Callable[[str], None]):
         self.rec, self.out, self.log, self.p = rec, out, log, rec["pipeline"]
-        self.state_path = out / "pipeline-state.json"
-        self.state = json.loads(self.state_path.read_text()) if self.state_path.exists() else {}
+        self.steps = TaskFolder(out / ".steps")
+        self.state = {}  # this run's stages: name -> {"key", "info"}
         self.report: dict = {"stages": {}, "figures": {}, "tables": {}, "checks": [], "headline": {}, "sections": {}}
 
     def check(self, what: str, value: str, threshold: str, passed: bool, why: str = "") -> None:
@@ -162,20 +162,26 @@ class _Pipeline:
             sec["figures"].append((title, Path(path), caption))
             self.report["figures"][title] = Path(path)
 
+    def _previous(self, name: str) -> dict:
+        """What the step ``name`` recorded when it last ran (empty: never)."""
+        m = self.steps.marked(name) or {}
+        return m.get("result") or {}
+
     def stage(self, name: str, key: str, outputs: list[Path], fn) -> dict:
         t0 = time.perf_counter()
-        if self.state.get(name, {}).get("key") == key and all(o.exists() for o in outputs):
-            info = self.state[name]["info"]
-            info["skipped"] = True
-            self.log(f"{name}: up to date (ran in {info.get('ran_seconds', float('nan')):.1f} s)")
-        else:
+
+        def run():
             self.log(f"{name}: running")
             info = fn()
-            info["skipped"] = False
             info["ran_seconds"] = time.perf_counter() - t0
             info["ran_at"] = time.strftime("%Y-%m-%d %H:%M:%S")
-            self.state[name] = {"key": key, "info": info}
-            atomic_write_text(self.state_path, json.dumps(self.state, indent=1, sort_keys=True, default=str))
+            return json.loads(json.dumps(info, default=str))
+
+        info, skipped = self.steps.step(name, key, run, outputs)
+        info["skipped"] = skipped
+        if skipped:
+            self.log(f"{name}: up to date (ran in {info.get('ran_seconds', float('nan')):.1f} s)")
+        self.state[name] = {"key": key, "info": info}
         info["seconds"] = time.perf_counter() - t0
         self.report["stages"][name] = info
         return info
@@ -236,13 +242,10 @@ class _Pipeline:
         self.k_lay = _h(self.k_des)
 
         def do_layout():
-            d = load_design(self.ddir)
-            w = write_layout(d, lay, "oas")
-            lc = read_layout(lay)
-            v = verify_against_design(lc, d)
-            drc = drc_check(lc)
-            preview_layout(lc, out / "layout-preview.png")
-            return {"pillars": w["pillars"], "bytes": w["bytes"], "exact": v["exact"], "drc_passed": drc["passed"]}
+            made = make_layout(load_design(self.ddir), lay)
+            preview_layout(made.contents, out / "layout-preview.png")
+            return {"pillars": made.write["pillars"], "bytes": made.write["bytes"], "exact": made.exact,
+                    "drc_passed": bool(made.drc["passed"])}
 
         li = self.stage("layout", self.k_lay, [lay, out / "layout-preview.png"], do_layout)
         if not (li["exact"] and li["drc_passed"]):
@@ -318,7 +321,7 @@ class _Pipeline:
                                 "rytov_theory": x["rytov_weak_theory_inner_scale"], "D_over_r0": x["D_over_r0"]}
                                for x in res["levels"]]}
 
-        figs = [out / Path(f).name for f in self.state.get("turbulence", {}).get("info", {}).get("figures", [])]
+        figs = [out / Path(f).name for f in self._previous("turbulence").get("figures", [])]
         tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
         rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}",
                  "weak theory with inner scale": f"{x.get('rytov_theory', float('nan')):.3f}",
@@ -404,7 +407,7 @@ class _Pipeline:
             figs = plot_fig3(res, ev_dir)
             return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in res["rows"]}}
 
-        figs = [ev_dir / Path(f).name for f in self.state.get("evaluate", {}).get("info", {}).get("figures", [])]
+        figs = [ev_dir / Path(f).name for f in self._previous("evaluate").get("figures", [])]
         ev = self.stage("evaluate", k_ev, figs or [ev_dir / "__none__"], do_eval)
         levels = sorted(ev["summary"], key=_noise_value)  # numerically: 0, 2, 5, 10 (not as strings)
         refines = any("start" in v for v in ev["summary"].values())

@@ -39,7 +39,7 @@ from ..library.supercells import (
     solve_table,
 )
 from ..plotting import pyplot, save_figure
-from ..products import temporary
+from ..outputs import temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "SOURCES", "certify_coupling",
            "plot_coupling"]

@@ -21,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..io import atomic_path, atomic_write_text
 from ..plotting import pyplot, save_figure
@@ -30,6 +31,7 @@ from ..reconstruction.losses import LOSSES
 from ..reconstruction.metrics import captured_fraction, gain
 from ..reconstruction.model import check_sizes, load_model
 from ..reconstruction.train import load_train_recipe, train
+from ..tasks import TaskFolder, content_key, file_key
 from ..validation import ValidationError
 
 __all__ = ["run_tolerance", "load_tolerance_recipe", "TOLERANCE_SECTIONS"]
@@ -129,6 +131,15 @@ def check_architecture(cfg, train_recipe, model_path, train_path) -> None:
         raise ValidationError(f"{train_path}: [model] base/depth/norm {want} differ from the model {model_path}'s {have}")
 
 
+def _file_or_name(recipe: ToleranceRecipe, p) -> str | None:
+    """A path of the recipe by its content (its name when absent)."""
+    if not p:
+        return None
+    q = Path(p)
+    q = q if q.is_absolute() else recipe.source.parent / q
+    return file_key(q) if q.is_file() else q.name
+
+
 def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Callable[[str], None] = print) -> dict:
     out = Path(out)
     base_train = load_train_recipe(recipe.train)
@@ -139,47 +150,61 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
     check_architecture(model.config, base_train, recipe.model, recipe.train)
     out.mkdir(exist_ok=True)
     rows = []
+    steps = TaskFolder(out / ".steps")
+    model_key = file_key(recipe.model)
     for label, b, j, c, hh, sw, hg, sg in recipe.cases:
         case = out / f"case-{label}"
-        done = case / "result.json"
-        if done.exists():
-            rows.append(json.loads(done.read_text()))
-            log(f"{label}: done before")
-            continue
-        case.mkdir(exist_ok=True)
         fab = {"bias_x_nm": b, "bias_y_nm": b, "jitter_nm": j, "corner_nm": c, "seed": recipe.seed}
         if label == "supercell":
             fab["coupling"] = "supercell"
         if hh or sw != 90 or hg or sg:
             fab.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg,
                         "fab_library": recipe.fab_library})
-        ds_rec = ds0.with_fabrication(f"tolerance-{label}", **fab)
-        log(f"{label}: dataset ...")
-        build_dataset(ds_rec, case / "dataset", workers=workers, log=log)
-        res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
-        key = next(iter(res["rows"]))
-        row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key),
-               "coupling": "supercell" if label == "supercell" else "lpa"}
-        if hh or sw != 90 or hg or sg:
-            row.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg, "sidewall_gradient_deg": sg})
-        log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} (captured {row['before']['captured_fraction']:.2f})")
-        fine = label != "nominal" and recipe.epochs > 0 and (recipe.finetune_bias is None or b in recipe.finetune_bias
-                                                             or label == "supercell")
-        if fine:
-            tr_rec = base_train.derive(f"finetune-{label}", {"noise_percent": recipe.noise_percent, "val_limit": 0},
-                                       epochs=recipe.epochs, lr=recipe.lr, lr_halve_every=max(1, recipe.epochs),
-                                       loss=recipe.loss, pretrain_epochs=0)
-            run = case / "finetune"
-            resume = (run / "checkpoint.pt").exists()
-            rep = train(tr_rec, run, dataset=case / "dataset",
-                        resume=resume, init=None if resume else recipe.model, log=log, progress=True)
-            res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
-            row["after"] = _metrics(res2, next(iter(res2["rows"])))
+        # the case reruns exactly when what shapes it changed (a recipe edit no longer reuses a stale case)
+        key = content_key({"fabrication": {k: (_file_or_name(recipe, v) if k == "fab_library" else v)
+                                           for k, v in fab.items()},
+                           "layout": _file_or_name(recipe, ds0.layout),
+                           "dataset": json.loads(json.dumps(recipe.dataset, default=str)), "model": model_key,
+                           "noise_percent": recipe.noise_percent, "epochs": recipe.epochs, "lr": recipe.lr,
+                           "loss": recipe.loss, "finetune_bias": recipe.finetune_bias, "train": file_key(recipe.train)},
+                          __version__)
 
-            row["finetune"] = {"epochs": rep["epochs_done"], "loss": recipe.loss, "lr": recipe.lr,
-                               "train_samples": int(len(open_dataset(case / "dataset").indices("train")))}
-            log(f"{label}: fine-tuned NPiB {row['after']['npib_unet']:.3f}")
-        atomic_write_text(done, json.dumps(row, indent=2))
+        def run_case(label=label, b=b, j=j, c=c, hh=hh, sw=sw, hg=hg, sg=sg, fab=fab, case=case):
+            case.mkdir(exist_ok=True)
+            ds_rec = ds0.with_fabrication(f"tolerance-{label}", **fab)
+            log(f"{label}: dataset ...")
+            build_dataset(ds_rec, case / "dataset", workers=workers, log=log, overwrite=True)
+            res = evaluate_model(recipe.model, case / "dataset", "test", [recipe.noise_percent])
+            key0 = next(iter(res["rows"]))
+            row = {"case": label, "bias_nm": b, "jitter_nm": j, "corner_nm": c, "before": _metrics(res, key0),
+                   "coupling": "supercell" if label == "supercell" else "lpa"}
+            if hh or sw != 90 or hg or sg:
+                row.update({"height_nm": hh, "sidewall_deg": sw, "height_gradient_nm": hg,
+                            "sidewall_gradient_deg": sg})
+            log(f"{label}: nominal model NPiB {row['before']['npib_unet']:.3f} "
+                f"(captured {row['before']['captured_fraction']:.2f})")
+            fine = label != "nominal" and recipe.epochs > 0 and (
+                recipe.finetune_bias is None or b in recipe.finetune_bias or label == "supercell")
+            if fine:
+                tr_rec = base_train.derive(f"finetune-{label}", {"noise_percent": recipe.noise_percent,
+                                                                 "val_limit": 0},
+                                           epochs=recipe.epochs, lr=recipe.lr, lr_halve_every=max(1, recipe.epochs),
+                                           loss=recipe.loss, pretrain_epochs=0)
+                run = case / "finetune"
+                resume = (run / "checkpoint.pt").exists()
+                rep = train(tr_rec, run, dataset=case / "dataset",
+                            resume=resume, init=None if resume else recipe.model, log=log, progress=True)
+                res2 = evaluate_model(run / "model.safetensors", case / "dataset", "test", [recipe.noise_percent])
+                row["after"] = _metrics(res2, next(iter(res2["rows"])))
+                row["finetune"] = {"epochs": rep["epochs_done"], "loss": recipe.loss, "lr": recipe.lr,
+                                   "train_samples": int(len(open_dataset(case / "dataset").indices("train")))}
+                log(f"{label}: fine-tuned NPiB {row['after']['npib_unet']:.3f}")
+            atomic_write_text(case / "result.json", json.dumps(row, indent=2))  # for a reader of the folder
+            return row
+
+        row, skipped = steps.step(f"case-{label}", key, run_case, clear=[case])
+        if skipped:
+            log(f"{label}: done before")
         rows.append(row)
     rep = {"rows": rows, "noise_percent": recipe.noise_percent, "model": str(recipe.model)}
     atomic_write_text(out / "tolerance.json", json.dumps(rep, indent=2))

@@ -19,12 +19,14 @@ A finished step leaves its product (``OUT/device-dataset``, ``OUT/captures``, ``
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..io import atomic_write_text
 from ..plotting import pyplot, save_figure
@@ -36,6 +38,7 @@ from ..reconstruction.metrics import captured_fraction
 from ..reconstruction.model import check_fits, load_model
 from ..reconstruction.train import load_train_recipe, train
 from ..sensing.camera import Alignment, CameraSpec
+from ..tasks import TaskFolder, content_key, file_key
 from .captures import synth_captures
 from .tolerance import check_architecture
 
@@ -130,22 +133,35 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
     build_dataset(rec_ds, dev, workers=workers, log=log)
     cap = out / "captures"
     c = recipe.captures
-    if not (cap / "manifest.csv").exists():
+    steps = TaskFolder(out / ".steps")
+    # each step reruns exactly when what shapes it changed: the device dataset (its recipe hash), the camera
+    k_cap = content_key(open_dataset(dev).attrs.get("recipe_hash"), c, __version__)
+
+    def do_captures():
         log("2/4 synthetic captures ...")
+        if cap.exists():  # captures of an interrupted step (ours: inside this study's folder)
+            shutil.rmtree(cap)
         cam = CameraSpec(peak_counts=c["peak_counts"], photons_at_peak=c["photons_at_peak"],
                          read_noise_e=c["read_noise_e"], dark_counts=c["dark_counts"], hot_pixels=c["hot_pixels"],
                          seed=c["seed"])
         synth_captures(dev, dev, cap, Alignment(c["shift_px"][0], c["shift_px"][1], c["rotation_deg"], c["scale"]),
                        cam, fmt=c["format"], seed=c["seed"], progress=progress)
+        return {}
+
+    steps.step("captures", k_cap, do_captures, [cap / "manifest.csv"], clear=[cap])
     imp = out / "imported"
-    if not imp.exists():
+    k_imp = content_key(k_cap, file_key(Path(recipe.reference) / "zarr.json"))
+
+    def do_import():
         log("3/4 import ...")
         rep_imp = import_captures(cap, imp, cap / "flat.csv", recipe.reference, sorted((cap / "dark").glob("*")),
-                                  log=log)
-        atomic_write_text(out / "import.json", json.dumps(
-            {k: rep_imp[k] for k in ("samples", "listed", "saturated", "calibration", "split_counts")}, indent=1))
+                                  overwrite=True, log=log)
+        imp_rep = {k: rep_imp[k] for k in ("samples", "listed", "saturated", "calibration", "split_counts")}
+        atomic_write_text(out / "import.json", json.dumps(imp_rep, indent=1))
+        return imp_rep
+
+    imp_rep, _ = steps.step("import", k_imp, do_import, [imp / "zarr.json"], clear=[imp])
     truth = json.loads((cap / "truth.json").read_text())
-    imp_rep = json.loads((out / "import.json").read_text())
     log("4/4 models ...")
     res0 = evaluate_model(recipe.model, imp, "test", [0.0])
     rows = {"unadapted": _metrics(res0)}
@@ -161,10 +177,10 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
     curves = {}
     for name, (tr, init) in runs.items():
         run = out / name
-        done = run / "result.json"
-        if done.exists():
-            r = json.loads(done.read_text())
-        else:
+        k_run = content_key(k_imp, tr, f["noise_percent"], file_key(recipe.train),
+                            file_key(init) if init is not None else None)
+
+        def do_run(name=name, tr=tr, init=init, run=run):
             tr_rec = base.derive(f"transfer-{name}", {"noise_percent": f["noise_percent"], "val_limit": 0}, **tr)
             resume = (run / "checkpoint.pt").exists()
             rep = train(tr_rec, run, dataset=imp, resume=resume,
@@ -172,7 +188,10 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
             r = _metrics(evaluate_model(run / "model.safetensors", imp, "test", [0.0]))
             r["epochs"] = rep["epochs_done"]
             r["train_samples"] = int(len(open_dataset(imp).indices("train")))
-            atomic_write_text(done, json.dumps(r, indent=1))
+            atomic_write_text(run / "result.json", json.dumps(r, indent=1))  # for a reader of the folder
+            return json.loads(json.dumps(r, default=float))
+
+        r, _ = steps.step(name, k_run, do_run, [run / "model.safetensors"], clear=[run])
         rows[name] = r
         hist = run / "metrics.json"
         if hist.exists():

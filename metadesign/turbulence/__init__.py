@@ -2,13 +2,16 @@
 scenario recipe and its validation against theory (:mod:`.validate`), and one beacon sample through a
 device to the sensor (:class:`.chain.BeaconChain`)."""
 
-from .chain import BeaconChain, BeaconSample
-from .path import PathModel, SamplingReport, Scenario, check_sampling, solve_path
-from .propagate import Turbulence, point_source, split_step, split_step_torch
-from .scenario import load_scenario, scenario_from_dict
-from .screens import ScreenGrid, psd_mvk, screens, structure_function_theory
-from .validate import validate
+from ..lazy import lazy_exports
 
-__all__ = ["PathModel", "SamplingReport", "Scenario", "check_sampling", "solve_path", "Turbulence", "point_source",
-           "split_step", "split_step_torch", "ScreenGrid", "psd_mvk", "screens", "structure_function_theory",
-           "BeaconChain", "BeaconSample", "load_scenario", "scenario_from_dict", "validate"]
+#: each name -> the submodule that defines it (imported on first use, PEP 562); a function named like its
+#: module (``screens.screens``, ``validate.validate``) is reached through the module
+_EXPORTS = {
+    "BeaconChain": "chain", "BeaconSample": "chain", "PathModel": "path", "SamplingReport": "path",
+    "Scenario": "path", "check_sampling": "path", "solve_path": "path", "Turbulence": "propagate",
+    "point_source": "propagate", "split_step": "propagate", "split_step_torch": "propagate",
+    "load_scenario": "scenario", "scenario_from_dict": "scenario", "ScreenGrid": "screens", "psd_mvk": "screens", "structure_function_theory": "screens",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+

@@ -47,7 +47,7 @@ def _cmd_show(a: argparse.Namespace) -> int:
 
 def _cmd_validate(a: argparse.Namespace) -> int:
     from ..io import atomic_write_text
-    from ..products import product
+    from ..outputs import product
     from .path import check_sampling, solve_path
     from .validate import plot_validation, validate
 

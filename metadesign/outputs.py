@@ -1,4 +1,4 @@
-"""The product layer: every output metadesign writes goes through :func:`product`.
+"""The product layer (``metadesign.outputs``): every output metadesign writes goes through :func:`product`.
 
 A command declares, before any work, its output, the output's *kind* and every input it reads::
 
@@ -116,6 +116,20 @@ _LEGACY_FOLDERS: dict[str, tuple[tuple[str, str], ...]] = {
     "phasemap": (("phasemap.npz", "phasemap-file"),),
     "dataset": (("zarr.json", "dataset"),),
     "training-run": (("model.safetensors", "unet"), ("model.safetensors", "refiner")),
+}
+
+#: folders written before the marker existed whose summary carries no format tag: kind -> (the summary's
+#: name, keys its top-level JSON object holds); a user's own file of that name would need all of them
+_LEGACY_SUMMARIES: dict[str, tuple[str, set]] = {
+    "demo": ("summary.json", {"output", "passed", "seconds", "stages"}),
+    "evaluation": ("summary.json", {"n", "split", "noise", "npib", "captured_fraction"}),
+    "compare": ("compare.json", {"settings", "summary", "wall_seconds"}),
+    "coupling-check": ("coupling-check.json", {"cases", "coupling_model_sha256"}),
+    "lpa-check": ("lpa.json", {"lpa", "lpa_library", "n_harmonics_supercell"}),
+    "tolerance": ("tolerance.json", {"model", "noise_percent", "rows"}),
+    "transfer": ("transfer.json", {"fitted_alignment", "truth_alignment", "rows"}),
+    "table-s2": ("table-s2.json", {"rows", "rytov", "epochs"}),
+    "pipeline": ("pipeline-state.json", set()),
 }
 
 #: the CSV header ``library export`` writes
@@ -252,6 +266,15 @@ def identify(path: str | Path) -> str | None:
                 f = path / name
                 if f.is_file() and (_FILE_SNIFFERS.get(f.suffix, _json_format)(f)) == want:
                     return kind
+        for kind, (name, keys) in _LEGACY_SUMMARIES.items():
+            f = path / name
+            if f.is_file():
+                try:
+                    obj = json.loads(f.read_text(encoding="utf-8"))
+                except (OSError, ValueError, UnicodeDecodeError):
+                    continue
+                if isinstance(obj, dict) and keys <= set(obj):
+                    return kind
         return None
     sniff = _FILE_SNIFFERS.get(path.suffix.lower())
     return sniff(path) if sniff else None
@@ -384,10 +407,8 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
                              "(an input is never its own output)")
     if not out.parent.resolve().is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist (create it first)")
-    if folder:
-        _check_folder(out, kind, what)
-    else:
-        _check_file(out, kind, what)
+    _check_existing(out, kind, what, folder)
+    if not folder:
         for extra in also:
             extra = Path(extra)
             if extra.exists() or extra.is_symlink():
@@ -405,34 +426,25 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
     return out
 
 
-def _check_folder(out: Path, kind: str, what: str) -> None:
-    if out.is_symlink() or (out.exists() and not out.is_dir()):
+def _check_existing(out: Path, kind: str, what: str, folder: bool) -> None:
+    """An existing output: replaceable only when it is metadesign's product of this kind."""
+    if folder and (out.is_symlink() or (out.exists() and not out.is_dir())):
         raise InputError(f"{out}: exists and is not a folder (refusing to replace it; a {what} is a folder)")
-    if not out.exists() or not any(out.iterdir()):
-        return
-    have = identify(out)
-    if have == kind:
-        return
-    if have is not None:
-        raise InputError(f"{out}: holds a {_what(have)}, not a {what} (refusing to write into it: choose "
-                         "another output)")
-    raise InputError(f"{out}: exists and is not a {what} (it holds files metadesign did not write; refusing to "
-                     "write into or replace it: choose another output)")
-
-
-def _check_file(out: Path, kind: str, what: str) -> None:
-    if out.is_dir():
+    if not folder and out.is_dir():
         raise InputError(f"{out}: is a folder, expected a file path")
-    if out.is_symlink():
+    if not folder and out.is_symlink():
         raise InputError(f"{out}: is a symbolic link (refusing to replace it)")
-    if not out.exists():
+    if not out.exists() or (folder and not any(out.iterdir())):
         return
     have = identify(out)
     if have == kind:
         return
     if have is not None:
-        raise InputError(f"{out}: holds a {_what(have)}, not a {what} (refusing to replace it: choose another "
-                         "output)")
+        raise InputError(f"{out}: holds a {_what(have)}, not a {what} (refusing to "
+                         f"{'write into' if folder else 'replace'} it: choose another output)")
+    if folder:
+        raise InputError(f"{out}: exists and is not a {what} (it holds files metadesign did not write; refusing to "
+                         "write into or replace it: choose another output)")
     raise InputError(f"{out}: exists and metadesign did not write it (refusing to replace it: move it or choose "
                      "another output)")
 

@@ -1,4 +1,4 @@
-"""The product layer (metadesign.products), table-driven over every command that writes.
+"""The product layer (metadesign.outputs), table-driven over every command that writes.
 
 Each command meets the outputs that must never be written: its own input, a path inside an input, a
 folder around an input, a user's file, a user's folder (with a dot-file), another kind of product, and an
@@ -43,7 +43,7 @@ def inputs(tmp_path_factory, demo_products, tiny_dataset):
     m.mkdir()
     tiny_model(m)
     shutil.copy(REPO / "library" / "paper-supercells.npz", base / "table.npz")
-    for f in ("paper-coupling.safetensors", "paper-coupling.json"):
+    for f in ("paper-coupling.safetensors", "paper-coupling.safetensors.json"):
         shutil.copy(REPO / "library" / f, base / f)
     dr = (REPO / "layouts" / "demo.toml").read_text()
     (base / "demo.toml").write_text(dr.replace('library = "../library/paper.npz"', f'library = "{base / "lib.npz"}"'))
@@ -190,7 +190,7 @@ def test_the_issue_data_loss_cases(inputs, tmp_path, capsys):
 
 def test_kinds_are_recognised_from_the_files(tmp_path):
     from metadesign.plotting import pyplot, save_figure
-    from metadesign.products import identify
+    from metadesign.outputs import identify
 
     assert identify(LIB) == "unit-cell-library"
     assert identify(REPO / "library" / "paper-supercells.npz") == "supercells"
@@ -198,6 +198,11 @@ def test_kinds_are_recognised_from_the_files(tmp_path):
     assert identify(REPO / "sensing" / "models" / "demo-unet-robust.safetensors") == "unet"
     assert identify(REPO / "sensing" / "models" / "demo-refine.safetensors") == "refiner"
     assert identify(REPO / "library" / "paper.toml") is None
+    # folders written before the marker existed: by their summaries (the committed studies)
+    for folder, kind in (("compare-demo", "compare"), ("tolerance-demo-out", "tolerance"),
+                         ("transfer-demo-out", "transfer"), ("lpa-check", "lpa-check"),
+                         ("coupling-check", "coupling-check")):
+        assert identify(REPO / "sensing" / folder) == kind, folder
     plt = pyplot()
     save_figure(plt.figure(), tmp_path / "f.png")
     assert identify(tmp_path / "f.png") == "figure"
@@ -223,7 +228,7 @@ def test_a_job_larger_than_the_machine_is_refused_with_its_estimate(tmp_path, ca
 def test_the_cli_cannot_write_around_the_product_layer(tmp_path):
     """With the CLI's enforcement on, a write outside every declared output is a programming error."""
     from metadesign.io import atomic_write_text, enforce_claims
-    from metadesign.products import product
+    from metadesign.outputs import product
 
     enforce_claims(True)
     try:
