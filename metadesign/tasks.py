@@ -56,9 +56,14 @@ def _canonical(obj):
 
 
 def content_key(*parts) -> str:
-    """Full sha256 (64 hex digits) of the canonical JSON of ``parts``."""
-    return hashlib.sha256(json.dumps(_canonical(list(parts)), sort_keys=True, separators=(",", ":"),
-                                     allow_nan=True).encode()).hexdigest()
+    """Full sha256 (64 hex digits) of the canonical JSON of ``parts`` (one part: of that part alone; the
+    canonical JSON is ``json.dumps(..., sort_keys=True)``, so a dataset's recipe hash keeps its value)."""
+    obj = _canonical(parts[0] if len(parts) == 1 else list(parts))
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=_refuse).encode()).hexdigest()
+
+
+def _refuse(obj):
+    raise TypeError(f"content_key: {type(obj).__name__} is not JSON content ({obj!r:.60})")
 
 
 def file_key(path: str | Path) -> str:

@@ -72,3 +72,34 @@ def test_split_step_forward_backward_and_backends():
     for b in range(2):
         one = split_step_torch(U[b], S[b], torch.from_numpy(H), torch.from_numpy(absorber), reverse=True)
         assert torch.equal(per[b], one)
+
+
+def test_one_system_factory_is_what_the_dataset_uses(tiny_dataset, demo_products):
+    """build_system gives the device, sensor and perturbation a dataset was made with: its pupil equals the
+    one stored in the dataset (the same device through the same factory)."""
+    from metadesign.reconstruction.dataset import load_device, open_dataset
+    from metadesign.turbulence.system import build_system
+
+    info = open_dataset(tiny_dataset)
+    prov = info.attrs["provenance"]
+    sys_ = build_system(demo_products["layout"], demo_products["sensor"], tensor_size=info.tensor_size)
+    assert sys_.sensing.sensor.to_dict() == prov["sensor"]
+    cp = sys_.pupil()
+    np.testing.assert_array_equal(cp.G, load_device(tiny_dataset).pupil.G)
+
+
+def test_one_content_key():
+    """tasks.content_key: the canonical JSON's sha256 (an independent hashlib computation), arrays by their
+    bytes, paths refused (a key never depends on where a file lies)."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from metadesign.tasks import content_key
+
+    d = {"b": [1, 2.5, "x"], "a": {"z": None, "y": True}}
+    assert content_key(d) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
+    a = np.arange(6, dtype=np.float32)
+    assert content_key(a) != content_key(a.astype(np.float64)) and content_key(a) == content_key(a.copy())
+    with pytest.raises(TypeError):
+        content_key({"layout": Path("/somewhere/layout.oas")})

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import csv
-import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..config import InputError
+from ..tasks import file_key
 from ..io import atomic_path, json_array, read_product, write_npz
 
 __all__ = ["UnitCellLibrary", "interpolate_t", "load_library", "save_library", "export_csv", "FORMAT"]
@@ -179,7 +179,7 @@ def load_library(path: str | Path) -> UnitCellLibrary:
             raise InputError(f"{path}: fab axes must be strictly increasing")
         fab = {"heights": h, "sidewalls": a, "jones": z["fab_jones"], "T0": z["fab_T0"], "T_total": z["fab_T_total"],
                "R_total": z["fab_R_total"]}
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    digest = file_key(path)
     return UnitCellLibrary(wx, wy, z["jones"], z["T0"], z["T_total"], z["R_total"], meta, digest, fab)
 
 

@@ -14,7 +14,6 @@ table is the same bytes whatever the worker count or scheduler (each row depends
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import time
@@ -26,7 +25,7 @@ import numpy as np
 
 from .. import __version__
 from ..io import atomic_write_text, read_npz, write_npz
-from ..tasks import TaskFolder, run_resumable
+from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
 from .rcwa import Stack
 from .supercell import solve_supercell
@@ -76,11 +75,9 @@ class SupercellTable:
 
 
 def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack) -> str:
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(widths, "<f8").tobytes())
-    h.update(json.dumps([n_harmonics, stack.wavelength, stack.period, stack.height, stack.n_pillar,
-                         stack.n_substrate, stack.n_superstrate, __version__]).encode())
-    return f"chunk-{h.hexdigest()}"
+    """A chunk's task name: the content key of its rows and of what shapes their solve."""
+    return "chunk-" + content_key(np.ascontiguousarray(widths, "<f8"), [n_harmonics, stack.wavelength, stack.period,
+                                  stack.height, stack.n_pillar, stack.n_substrate, stack.n_superstrate], __version__)
 
 
 def _solve_rows(args) -> tuple[str, dict]:

@@ -41,7 +41,6 @@ failed import leaves nothing behind."""
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import shutil
 import time
@@ -53,6 +52,7 @@ import numpy as np
 from .. import __version__
 from ..io import atomic_write_text
 from ..plotting import save_figure
+from ..tasks import content_key, file_key
 from ..outputs import product
 from ..sensing.camera import Alignment
 from ..sensing.forward import sensor_frames
@@ -496,7 +496,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     n = len(kept)
     split = split_all[kept]
     rytov = np.array([rytov_all[j] for j in kept], np.float32)
-    msha = hashlib.sha256(manifest.read_bytes()).hexdigest()
+    msha = file_key(manifest)
     calib = {"alignment": al.to_dict(), "fit": options.fit, "residuals_px": [float(v) for v in res],
              "reference_centres_px": c_ref.tolist(), "measured_centres_px": c_meas.tolist(),
              "flat_captures": len(flats), "dark_frames": len(darks or []),
@@ -504,7 +504,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     prov_ref = ref_info.attrs["provenance"]
     parts = {"format": DATASET_FORMAT, "source": "captures", "manifest_sha256": msha, "calibration": calib,
              "options": {k: getattr(options, k) for k in options.__dataclass_fields__}}
-    rhash = hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+    rhash = content_key(parts)
     attrs = {
         "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
         "name": out.name, "samples": n, "shard_size": options.shard_size,

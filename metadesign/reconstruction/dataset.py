@@ -29,7 +29,6 @@ unfinished shards; ``complete`` is set in the attributes at the end.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import time
@@ -47,14 +46,13 @@ from ..io import atomic_write_text, read_npz
 from ..outputs import MARKER, product
 from ..layouts.make import make_layout
 from ..library.locate import file_sha256
-from ..library.store import load_library
-from ..tasks import TaskFolder, run_resumable
+from ..tasks import TaskFolder, content_key, run_resumable
 from ..parallel import dask_client
-from ..sensing.device import Device, ReceiverCrop, check_wavelengths, load_pupil
+from ..sensing.device import Device, ReceiverCrop, load_pupil
 from ..sensing.forward import CoarsePupil
-from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.sensor import SensorSpec
 from ..sensing.transmission import Perturbation
+from ..turbulence.system import build_system
 from ..turbulence.chain import BeaconChain
 from ..turbulence.path import check_sampling, solve_path
 from ..turbulence.scenario import load_scenario, scenario_from_dict
@@ -417,7 +415,8 @@ def load_device(dataset: str | Path) -> Device:
 
 
 def _recipe_hash(parts: dict) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+    """The dataset's content key (what shapes its bytes): :func:`metadesign.tasks.content_key`."""
+    return content_key(parts)  # = sha256 of json.dumps(parts, sort_keys=True): the same value as before
 
 
 def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray,
@@ -547,36 +546,17 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     if out.exists() and existing is None and not _is_partial_dataset(out):
         raise ValidationError(f"{out}: exists and is not a metadesign dataset (it holds files metadesign did not "
                               "write; refusing to write into it)")
-    sensing = load_sensing_recipe(recipe.sensor)
-    sensing = replace(sensing, sensor=replace(sensing.sensor, tensor_size=recipe.tensor_size))
     scenario = load_scenario(recipe.turbulence)
     for r in ([*recipe.rytov_values] if recipe.rytov_values else list(recipe.rytov_range)):
         sc = replace(scenario, rytov=r)
         rep = check_sampling(sc, solve_path(sc))
         if not rep.ok:
             raise ValidationError(f"dataset: Rytov {r:g}: infeasible turbulence sampling: {rep.failures[0]}")
-    f = recipe.fabrication
-    pert = Perturbation.from_config(f)
     layout = ensure_layout(recipe, log)
     layout_sha = file_sha256(layout)
-    fab = AsFabricated.from_files(layout)
-    kind = f["coupling"] or sensing.coupling
-    cmodel = sensing.coupling_model
-    if f["coupling_model"]:
-        if kind != "supercell":
-            raise ValidationError('fabrication.coupling_model: needs coupling = "supercell"')
-        cmodel = _recipe_path(recipe, f["coupling_model"])
-    if kind != "lpa":
-        fab = fab.with_coupling(kind, cmodel)
-    check_wavelengths(fab.wavelength, scenario.wavelength, f"dataset.turbulence {recipe.turbulence}")
-    if pert.has_fab_axes:
-        if not f["fab_library"]:
-            raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
-                                  "library with fab axes")
-        lp = _recipe_path(recipe, f["fab_library"])
-        if not lp.is_file():
-            raise ValidationError(f"fabrication.fab_library: {lp}: no such library")
-        fab.fab_lib = load_library(lp)
+    system = build_system(layout, recipe.sensor, scenario, recipe.fabrication,
+                          recipe.source.parent if recipe.source else Path.cwd(), recipe.tensor_size)
+    fab, sensing, pert = system.device, system.sensing, system.perturbation
     parts = {"format": DATASET_FORMAT, "recipe": recipe.raw, "sensor": sensing.sensor.to_dict(),
              "pupil_grid": sensing.pupil_grid, "scenario": scenario.to_dict(), "layout_sha256": layout_sha,
              "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}

@@ -30,10 +30,10 @@ from ..reconstruction.losses import PiB
 from ..reconstruction.metrics import captured_fraction, gain, npib_rows
 from ..reconstruction.model import load_model
 from ..reconstruction.refine import load_refiner
-from ..sensing.model import AsFabricated, load_sensing_recipe
+from ..sensing.model import AsFabricated
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf, save_psf
-from ..turbulence.chain import BeaconChain
+from ..turbulence.system import build_system
 from ..turbulence.scenario import load_scenario
 from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
@@ -88,8 +88,8 @@ def _stage_layout(out: Path, log) -> dict:
 
 
 def _stage_sensing(out: Path, log) -> dict:
-    fab = AsFabricated.from_files(out / "design" / "layout.oas")
-    sr = load_sensing_recipe(repo_root() / "sensing" / "demo.toml")
+    system = build_system(out / "design" / "layout.oas", repo_root() / "sensing" / "demo.toml")
+    fab, sr = system.device, system.sensing
     res = render_psf(fab, sr)
     save_psf(out / "design" / "psf.npz", res, fab, sr)
     figs = [plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
@@ -115,8 +115,7 @@ def _stage_turbulence(out: Path, log) -> dict:
     res = validate(sc, rytovs=(0.1, 0.3, 0.5), samples=10, pib_samples=5)
     figs = plot_validation(res, out)
     # one scintillated beacon through the demo metasurface onto the sensor (the stage API's chain)
-    chain = BeaconChain.for_device(AsFabricated.from_files(out / "design" / "layout.oas"),
-                                   load_sensing_recipe(repo_root() / "sensing" / "demo.toml"), sc)
+    chain = build_system(out / "design" / "layout.oas", repo_root() / "sensing" / "demo.toml", sc).chain()
     smp = chain.sample(seed=1, rytov=0.3)
     figs.append(plot_frames(smp.frames, chain.sensing.sensor, out / "psf-turbulent.png", chain.fab.channels,
                             "demo metasurface, scintillated beacon at Rytov 0.3"))
@@ -141,8 +140,6 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
     """The committed robust demo U-Net and its learned refinement on freshly drawn beacons through the
     paper design (not their training samples: another root seed), at 0 % and 5 % sensor noise, against
     no correction and the phase and complex conjugates."""
-    from dataclasses import replace
-
     import torch
 
     model, card = load_model(repo_root() / DEMO_MODEL)
@@ -152,11 +149,8 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
         if rcard["unet"]["weights_sha256"] != card["weights_sha256"]:
             raise ValidationError(f"{DEMO_REFINER}: refines another U-Net than {DEMO_MODEL}")
     d, _ = run_design(load_design_recipe(repo_root() / "layouts" / "paper-5mm.toml"), out / "paper-design")
-    fab = AsFabricated.from_design(d)
-    sr = load_sensing_recipe(repo_root() / "sensing" / "paper.toml")
-    sr = replace(sr, sensor=replace(sr.sensor, tensor_size=model.config.input_size))
-    sc = load_scenario(repo_root() / "sensing" / "turbulence.toml")
-    chain = BeaconChain.for_device(fab, sr, sc)
+    chain = build_system(AsFabricated.from_design(d), repo_root() / "sensing" / "paper.toml",
+                         repo_root() / "sensing" / "turbulence.toml", tensor_size=model.config.input_size).chain()
     c0, a = received_crop(chain.turbulence.sc)
     pib = PiB(chain.turbulence.sc, c0, a)
     root = 2026  # fresh samples: the demo dataset was drawn from root seed 0

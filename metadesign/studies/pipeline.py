@@ -38,12 +38,13 @@ from ..reconstruction.evaluate import evaluate_model, plot_fig3, summarise, writ
 from ..reconstruction.model import check_sizes
 from ..reconstruction.refine import load_network
 from ..reconstruction.train import load_train_recipe, train
-from ..sensing.model import AsFabricated, load_sensing_recipe
+from ..sensing.model import load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf
 from ..turbulence.scenario import load_scenario
 from ..tasks import TaskFolder, content_key, file_key
 from ..turbulence.scenario import load_scenario
+from ..turbulence.system import build_system
 from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
 
@@ -269,7 +270,7 @@ class _Pipeline:
         self.k_psf = _h(self.k_lay, self.p["sensor"])
 
         def do_psf():
-            fab = AsFabricated.from_files(self.lay)
+            fab = build_system(self.lay, sr).device
             res = render_psf(fab, sr)
             plot_frames(res.frames, sr.sensor, out / "fig-2c.png", fab.channels, "as-fabricated sensor frames")
             rows = fab_study(fab, sr, [-10.0, 0.0, 10.0], [0.0], [0.0])
