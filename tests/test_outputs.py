@@ -48,6 +48,26 @@ def inputs(tmp_path_factory, demo_products, tiny_dataset):
     dr = (REPO / "layouts" / "demo.toml").read_text()
     (base / "demo.toml").write_text(dr.replace('library = "../library/paper.npz"', f'library = "{base / "lib.npz"}"'))
     (base / "scenario.toml").write_text((REPO / "sensing" / "turbulence.toml").read_text())
+    (base / "sc.toml").write_text(
+        (REPO / "library" / "paper-supercells.toml").read_text().replace('"paper.npz"', f'"{base / "lib.npz"}"')
+        .replace('"../layouts/paper-5mm.toml"', f'"{base / "demo.toml"}"')
+        .replace('"../layouts/demo.toml"', f'"{base / "demo.toml"}"'))
+    caps = base / "caps"
+    caps.mkdir()
+    (caps / "manifest.csv").write_text("sample,frame_x,frame_y,slm_phase\n")
+    (caps / "flat.csv").write_text("frame_x,frame_y\n")
+    (base / "p.toml").write_text(f"""[pipeline]
+library = "{base / 'lib.npz'}"
+design = "{base / 'demo.toml'}"
+sensor = "{REPO / 'sensing' / 'demo.toml'}"
+turbulence = "{base / 'scenario.toml'}"
+[dataset]
+samples = 16
+tensor_size = 16
+[train]
+model = "{base / 'models' / 'm.safetensors'}"
+""")
+    (base / "s2.toml").write_text(f'[dataset]\nlayout = "{base / "design" / "layout.oas"}"\n')
     (base / "tiny.toml").write_text(
         f'[dataset]\nlayout = "{base / "design" / "layout.oas"}"\nsensor = "{REPO / "sensing" / "demo.toml"}"\n'
         f'turbulence = "{base / "scenario.toml"}"\nsamples = 4\ntensor_size = 16\nshard_size = 4\nseed = 5\n')
@@ -86,6 +106,14 @@ COMMANDS = {
     "compare": (["compare", "{IN}/models/m.safetensors", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
     "lpa-check": (["library", "lpa-check", "{IN}/design", "-o", "{OUT}"], True, "design/design.npz"),
     "demo": (["demo", "-o", "{OUT}"], True, None),
+    "library supercells": (["library", "supercells", "{IN}/sc.toml", "-o", "{OUT}.npz"], False, "sc.toml"),
+    "coupling-check": (["library", "coupling-check", "{IN}/design", "--coupling-model",
+                        "{IN}/paper-coupling.safetensors", "-o", "{OUT}"], True, "design/design.npz"),
+    "retrieve": (["retrieve", "NONE", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
+    "run": (["run", "{IN}/p.toml", "-o", "{OUT}"], True, "p.toml"),
+    "table-s2": (["table-s2", "{IN}/s2.toml", "-o", "{OUT}"], True, "s2.toml"),
+    "dataset import": (["dataset", "import", "{IN}/caps", "--calibration", "{IN}/caps/flat.csv", "--reference",
+                        "{IN}/ds", "-o", "{OUT}"], True, "caps/manifest.csv"),
 }
 
 CASES = ["is-input", "inside-input", "around-input", "user-file", "user-folder", "other-kind", "concurrent"]
@@ -135,8 +163,8 @@ def test_every_writer_refuses_what_it_must_not_write(cmd, case, inputs, tmp_path
             kind = "psf" if "psf" not in cmd else "dataset"
             (out / ".metadesign.json").write_text('{"format": "metadesign.product/1", "kind": "%s"}' % kind)
             (out / "result.txt").write_text("kept")
-        elif out.suffix == ".npz":
-            shutil.copy(base / "table.npz", out)  # a supercell table where a library goes
+        elif out.suffix == ".npz":  # a supercell table where a library goes, and the other way round
+            shutil.copy(base / ("lib.npz" if cmd == "library supercells" else "table.npz"), out)
         elif out.suffix == ".png":
             pytest.skip("no other kind of product is a PNG")
         else:

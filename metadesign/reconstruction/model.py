@@ -15,6 +15,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
 
 from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
@@ -53,65 +56,59 @@ def aperture_mask(a: int) -> np.ndarray:
     return (r[None, :] ** 2 + r[:, None] ** 2) <= ((a - 1) / 2) ** 2 + 1e-9
 
 
-def _torch():
-    import torch
-    import torch.nn as nn
+def _norm(cfg: "UNetConfig", c: int) -> list:
+    if cfg.norm == "group":
+        return [nn.GroupNorm(min(8, c), c)]
+    return [nn.BatchNorm2d(c)] if cfg.norm == "batch" else []
 
-    return torch, nn
+
+def _block(cfg: "UNetConfig", cin: int, cout: int):
+    bias = cfg.norm == "none"
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=bias), *_norm(cfg, cout), nn.ReLU(inplace=True),
+                         nn.Conv2d(cout, cout, 3, padding=1, bias=bias), *_norm(cfg, cout), nn.ReLU(inplace=True))
 
 
-def build_unet(cfg: UNetConfig):
+class UNet(nn.Module):
+    """The U-Net of :class:`UNetConfig`: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture."""
+
+    def __init__(self, cfg: "UNetConfig"):
+        super().__init__()
+        self.config = cfg
+        ch = [cfg.base * 2**i for i in range(cfg.depth)]
+        self.downs = nn.ModuleList([_block(cfg, cfg.in_channels, ch[0])] +
+                                   [_block(cfg, ch[i - 1], ch[i]) for i in range(1, cfg.depth)])
+        self.ups = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2)
+                                  for i in range(cfg.depth - 1, 0, -1)])
+        self.upblocks = nn.ModuleList([_block(cfg, 2 * ch[i - 1], ch[i - 1]) for i in range(cfg.depth - 1, 0, -1)])
+        # no bias: a constant phase (piston) changes no loss, so its gradient is rounding noise, which
+        # Adam would amplify into a random walk
+        self.head = nn.Conv2d(ch[0], 1, 1, bias=False)
+        nn.init.zeros_(self.head.weight)  # start at the flat phase: the uncorrected beam
+        self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
+
+    def forward(self, x):
+        cfg = self.config
+        skips = []
+        for i, d in enumerate(self.downs):
+            x = d(x)
+            if i < cfg.depth - 1:
+                skips.append(x)
+                x = F.max_pool2d(x, 2)
+        for up, blk in zip(self.ups, self.upblocks):
+            x = up(x)
+            x = blk(torch.cat([skips.pop(), x], dim=1))
+        phi = self.head(x)
+        if phi.shape[-1] != cfg.aperture_size:
+            phi = F.interpolate(phi, size=(cfg.aperture_size, cfg.aperture_size), mode="bilinear",
+                                align_corners=True)
+        return phi[:, 0].float() * self.mask
+
+
+def build_unet(cfg: "UNetConfig") -> UNet:
     """A ``torch.nn.Module``: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture."""
-    torch, nn = _torch()
-    F = torch.nn.functional
-
-    def norm(c):
-        if cfg.norm == "group":
-            return [nn.GroupNorm(min(8, c), c)]
-        return [nn.BatchNorm2d(c)] if cfg.norm == "batch" else []
-
-    def block(cin, cout):
-        bias = cfg.norm == "none"
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=bias), *norm(cout), nn.ReLU(inplace=True),
-                             nn.Conv2d(cout, cout, 3, padding=1, bias=bias), *norm(cout), nn.ReLU(inplace=True))
-
-    class UNet(nn.Module):
-        def __init__(self):
-            super().__init__()
-            ch = [cfg.base * 2**i for i in range(cfg.depth)]
-            self.downs = nn.ModuleList([block(cfg.in_channels, ch[0])] +
-                                       [block(ch[i - 1], ch[i]) for i in range(1, cfg.depth)])
-            self.ups = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2)
-                                      for i in range(cfg.depth - 1, 0, -1)])
-            self.upblocks = nn.ModuleList([block(2 * ch[i - 1], ch[i - 1]) for i in range(cfg.depth - 1, 0, -1)])
-            # no bias: a constant phase (piston) changes no loss, so its gradient is rounding noise, which
-            # Adam would amplify into a random walk
-            self.head = nn.Conv2d(ch[0], 1, 1, bias=False)
-            nn.init.zeros_(self.head.weight)  # start at the flat phase: the uncorrected beam
-            self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
-
-        def forward(self, x):
-            skips = []
-            for i, d in enumerate(self.downs):
-                x = d(x)
-                if i < cfg.depth - 1:
-                    skips.append(x)
-                    x = F.max_pool2d(x, 2)
-            for up, blk in zip(self.ups, self.upblocks):
-                x = up(x)
-                x = blk(torch.cat([skips.pop(), x], dim=1))
-            phi = self.head(x)
-            if phi.shape[-1] != cfg.aperture_size:
-                phi = F.interpolate(phi, size=(cfg.aperture_size, cfg.aperture_size), mode="bilinear",
-                                    align_corners=True)
-            return phi[:, 0].float() * self.mask
-
-    m = UNet()
-    m.config = cfg
-    return m
+    return UNet(cfg)
 
 
-UNet = build_unet  # the architecture's name
 
 
 def save_model(model, path: str | Path, card: dict) -> tuple[Path, Path]:
