@@ -115,7 +115,8 @@ _LEGACY_FOLDERS: dict[str, tuple[tuple[str, str], ...]] = {
     "psf": (("psf.npz", "psf-file"),),
     "phasemap": (("phasemap.npz", "phasemap-file"),),
     "dataset": (("zarr.json", "dataset"),),
-    "training-run": (("model.safetensors", "unet"), ("model.safetensors", "refiner")),
+    "training-run": (("model.safetensors", "unet"), ("model.safetensors", "refiner"),
+                     ("checkpoint.pt", "torch-checkpoint")),
 }
 
 #: folders written before the marker existed whose summary carries no format tag: kind -> (the summary's
@@ -238,8 +239,18 @@ def _csv_kind(path: Path) -> str | None:
     return "library-csv" if first == LIBRARY_CSV_HEADER else None
 
 
-_FILE_SNIFFERS = {".npz": _npz_kind, ".safetensors": _safetensors_kind, ".png": _png_kind, ".onnx": _onnx_kind,
-                  ".oas": _layout_kind, ".gds": _layout_kind, ".csv": _csv_kind, ".json": _json_format}
+def _checkpoint_kind(path: Path) -> str | None:
+    """A torch checkpoint (``torch.save``: a zip holding ``*/data.pkl``), recognised without unpickling."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return "torch-checkpoint" if any(n.endswith("/data.pkl") for n in zf.namelist()) else None
+    except (OSError, zipfile.BadZipFile):
+        return None
+
+
+_FILE_SNIFFERS = {".pt": _checkpoint_kind, ".npz": _npz_kind, ".safetensors": _safetensors_kind, ".png": _png_kind,
+                  ".onnx": _onnx_kind, ".oas": _layout_kind, ".gds": _layout_kind, ".csv": _csv_kind,
+                  ".json": _json_format}
 
 
 def _marker_kind(folder: Path) -> str | None:
@@ -408,7 +419,7 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
     if not out.parent.resolve().is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist (create it first)")
     _check_existing(out, kind, what, folder)
-    if not folder:
+    if not folder and not out.exists():  # an existing product vouches for its companions (card, figure)
         for extra in also:
             extra = Path(extra)
             if extra.exists() or extra.is_symlink():
@@ -439,6 +450,8 @@ def _check_existing(out: Path, kind: str, what: str, folder: bool) -> None:
     have = identify(out)
     if have == kind:
         return
+    if have is None and kind == "figure" and identify(out.parent) is not None:
+        return  # a figure inside a metadesign product folder, drawn before figures carried their mark
     if have is not None:
         raise InputError(f"{out}: holds a {_what(have)}, not a {what} (refusing to "
                          f"{'write into' if folder else 'replace'} it: choose another output)")

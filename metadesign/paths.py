@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["repo_root", "default_library_path", "product", "shipped_root"]
+__all__ = ["repo_root", "default_library_path", "product", "shipped_root", "recipe_path"]
 
 _CHECKOUT = Path(__file__).resolve().parents[1]
 _SHIPPED = Path(__file__).resolve().parent / "products"
@@ -35,3 +35,13 @@ def product(*parts: str) -> Path:
 
 def default_library_path() -> Path:
     return product("library", "paper.npz")
+
+
+def recipe_path(name: str | Path, folder: str) -> Path:
+    """A recipe given by path, or by the name of a packaged one (``pipeline-demo`` ->
+    ``sensing/pipeline-demo.toml`` of the checkout or the wheel): a path that exists wins."""
+    p = Path(name)
+    if p.exists() or p.suffix or len(p.parts) > 1:
+        return p
+    packaged = product(folder, f"{p.name}.toml")
+    return packaged if packaged.is_file() else p

@@ -77,6 +77,10 @@ def test_the_pupil_goes_out_to_hcipy_and_prysm_and_back():
     one = sampled(pf.data[0], dx=cp.pitch, wavelength=LAM)
     w = to_prysm(one)
     assert w.dx == pytest.approx(cp.pitch * 1e3) and w.wavelength == pytest.approx(1.55)
+    both = to_prysm(pf)  # one Wavefront per polarisation, as to_hcipy gives two fields
+    assert len(both) == 2 and all(x.data.shape == (40, 40) for x in both)
+    np.testing.assert_array_equal(both[1].data, pf.data[1])
+    assert both[0].focus(1.0, Q=2).data.shape == (80, 80)  # prysm's own propagation takes each as it is
 
 
 def test_a_tilted_hcipy_wave_moves_every_spot_by_z_tan_theta(demo_products):

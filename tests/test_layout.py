@@ -199,3 +199,31 @@ def test_one_top_cell_even_when_atoms_go_unused(tmp_path, fmt):
     for reader in (read_layout, read_layout_klayout):
         v = verify_against_design(reader(tmp_path / f"l.{fmt}"), d)
         assert v["exact"], v["problems"]
+
+
+def test_layout_library_in_a_micrometre_host(demo_products, tmp_path):
+    """#32: the metasurface placed into a 1 um host library (gdsfactory's and most masks' unit) keeps its
+    size: KLayout reads the host and finds the metasurface 2 mm right of the chip origin at its true size
+    (before: 1000x too large, +-250,000 um for the 0.5 mm demo)."""
+    import gdstk
+    import klayout.db as kdb
+
+    from metadesign.design.store import load_design
+    from metadesign.layouts import layout_library
+
+    d = load_design(demo_products["design"])
+    nm = layout_library(d)
+    (x0, y0), (x1, y1) = nm.top_level()[0].bounding_box()  # nm
+    um = layout_library(d, unit=1e-6)
+    assert um.unit == 1e-6
+    host = gdstk.Library("MASK", unit=1e-6, precision=1e-9)
+    chip = host.new_cell("CHIP")
+    chip.add(gdstk.Reference(um.top_level()[0], origin=(2000, 0)))  # 2 mm, in um
+    host.add(*um.cells)
+    host.write_oas(str(tmp_path / "mask.oas"))
+    ly = kdb.Layout()
+    ly.read(str(tmp_path / "mask.oas"))
+    box = ly.top_cell().dbbox()  # um
+    assert box.width() == pytest.approx((x1 - x0) * 1e-3, abs=2e-3)
+    assert box.center().x == pytest.approx(2000 + (x0 + x1) / 2 * 1e-3, abs=2e-3)
+    assert 0.4 < box.width() / 1000 < 0.6  # the 0.5 mm demo aperture, in mm

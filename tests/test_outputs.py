@@ -286,3 +286,45 @@ def test_no_module_writes_files_by_hand():
             if raw.search(line) and not re.search(r"atomic|\btmp\b|\bbuf\b|\(fh\b", line):
                 bad.append(f"{p.relative_to(REPO)}:{i}: {line.strip()}")
     assert not bad, "\n".join(bad)
+
+
+def test_products_written_before_their_marks_stay_replaceable(tmp_path):
+    """A coupling model vouches for its card and figure; a figure inside a product folder, a run folder
+    holding only a torch checkpoint: metadesign's own, replaceable.  The same files elsewhere: refused."""
+    import zipfile
+
+    from metadesign.cards import card_path
+    from metadesign.outputs import check_output, identify
+    from metadesign.validation import InputError
+
+    c = tmp_path / "c.safetensors"
+    shutil.copy(REPO / "library" / "paper-coupling.safetensors", c)
+    shutil.copy(REPO / "library" / "paper-coupling.safetensors.json", card_path(c))
+    shutil.copy(REPO / "library" / "paper-coupling.png", c.with_suffix(".png"))  # drawn before PNGs were marked
+    check_output(c, "coupling", also=(card_path(c), c.with_suffix(".png")))
+    c2 = tmp_path / "new.safetensors"
+    shutil.copy(REPO / "library" / "paper-coupling.png", c2.with_suffix(".png"))
+    with pytest.raises(InputError, match="did not write"):
+        check_output(c2, "coupling", also=(card_path(c2), c2.with_suffix(".png")))
+    d = tmp_path / "d"
+    shutil.copytree(REPO / "sensing" / "compare-demo", d)  # a legacy product folder
+    check_output(d / "compare.png", "figure")
+    with pytest.raises(InputError):
+        check_output(tmp_path / "new.png", "figure")  # a PNG metadesign did not draw, in a user's folder
+    run = tmp_path / "run"
+    run.mkdir()
+    with zipfile.ZipFile(run / "checkpoint.pt", "w") as zf:
+        zf.writestr("checkpoint/data.pkl", b"\x80")
+    assert identify(run) == "training-run"
+
+
+def test_packaged_recipes_by_name(tmp_path, monkeypatch):
+    """`metadesign run pipeline-demo` finds the packaged recipe (a checkout's or a wheel's); a path that
+    exists wins over a name."""
+    from metadesign.paths import recipe_path
+
+    assert recipe_path("pipeline-demo", "sensing") == REPO / "sensing" / "pipeline-demo.toml"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pipeline-demo").write_text("mine")
+    assert recipe_path("pipeline-demo", "sensing") == Path("pipeline-demo")
+    assert recipe_path("nothing-of-that-name", "sensing") == Path("nothing-of-that-name")

@@ -31,13 +31,16 @@ recipe = "train.toml"
 noise_percent = [0.0, 5.0]
 split = "all"
 """)
-    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == 0
+    rc = main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"])
     rep = json.loads(capsys.readouterr().out)
+    assert rc == (0 if rep["passed"] else 1)  # a failed check is a failed run (as the demo)
+    pv = rep["provenance"]  # the report is a record: what made it
+    assert pv["recipe"]["sha256"] and pv["model"]["path"].endswith("model.safetensors") and pv["elapsed_seconds"] > 0
     assert set(rep["stages"]) == {"library", "design", "layout", "psf", "turbulence", "dataset", "train", "evaluate"}
     assert not any(v["skipped"] for v in rep["stages"].values())
     html = (tmp_path / "out" / "report.html").read_text()
-    for title in ("Fig. S1", "Fig. S2", "Layout preview", "Fig. 2c", "Fab study", "turbulence-fig-s5",
-                  "turbulence-fig-s6", "fig-3b", "fig-3cd", "Design metrics", "Table S1 focal check", "NPiB summary"):
+    for title in ("Fig. S1", "Fig. S2", "Layout preview", "Fig. 2c", "Fab study", "Fig. S5", "Fig. S6", "Fig. 3b",
+                  "Fig. 3c/d", "Design metrics", "Table S1 focal check", "NPiB summary"):
         assert title in html, title
     assert html.count("data:image/png;base64,") >= 10 and "src='http" not in html  # self-contained
     noise = [r["noise_percent"] for r in rep["tables"]["NPiB summary"]]
@@ -46,12 +49,14 @@ split = "all"
     top = html[:html.index("<h2>1.")]
     assert "checks passed" in top or "checks FAILED" in top
     assert "What it achieved" in top and "captured fraction" in top and "threshold" in top
+    assert "<h2>Provenance</h2>" in html
+    assert "<h3>turbulence-fig-s5" not in html and "<h3>Evaluation: fig-3b" not in html  # headings in words
     for c in rep["checks"]:
         assert html_escape(c["check"]) in top
     assert {c["check"].split(":")[0] for c in rep["checks"]} >= {
         "design phase error (RMSE, worse polarisation)", "layout read-back", "focal lengths (Table S1)"}
     assert "npib_phase_conjugate" not in top and "gaussian:" not in html  # human labels, not raw keys
-    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == 0
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "out"), "--json"]) == rc
     again = json.loads(capsys.readouterr().out)
     assert all(v["skipped"] for v in again["stages"].values())
     # a second run still says how long each stage took when it ran
@@ -62,11 +67,11 @@ split = "all"
     import shutil
 
     shutil.copytree(tmp_path / "out", tmp_path / "copy")
-    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"]) == 0
+    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"]) == rc
     assert all(v["skipped"] for v in json.loads(capsys.readouterr().out)["stages"].values())
     # ... and more validation samples rerun the validation only (the dataset depends on the scenario alone)
     (tmp_path / "p.toml").write_text((tmp_path / "p.toml").read_text().replace("turbulence_samples = 3",
                                                                                "turbulence_samples = 4"))
-    assert main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"]) == 0
+    main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"])
     st = json.loads(capsys.readouterr().out)["stages"]
     assert [k for k, v in st.items() if not v["skipped"]] == ["turbulence"], st

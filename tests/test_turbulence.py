@@ -174,3 +174,20 @@ def test_torch_split_step_gradient_equals_finite_differences():
         return (out.abs() ** 2)[12:20, 12:20].sum().reshape(1)
 
     assert torch.autograd.gradcheck(bucket_power, (u, ph), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_coherence_levels_off_at_the_finite_ensembles_floor():
+    """Fig. S5b: beyond r0, where theory goes to 0, the measured |mu| of N beacons levels off at the finite
+    ensemble's floor (each beacon's own coherence c across the aperture times sqrt(pi / 4N), the mean
+    modulus of N random phasors), and both fall as N grows: the plateau is the ensemble's size, not a
+    property of the screens."""
+    tb = Turbulence(replace(SC, rytov=0.5))
+    fields = [tb.sample(300 + s).field for s in range(16)]
+    sep, mu, floor = coherence(tb, fields, floor=True)
+    th = np.exp(-wave_structure_theory(tb, sep) / 2)
+    far = th < 0.02
+    assert far.sum() >= 3
+    assert 0.4 < mu[far].mean() / floor[far].mean() < 2.5, (mu[far].mean(), floor[far].mean())
+    small = [coherence(tb, fields[k:k + 4], floor=True) for k in range(0, 16, 4)]
+    assert np.mean([f[2][far].mean() for f in small]) > 1.5 * floor[far].mean()  # 1/sqrt(N): 2x in expectation
+    assert np.mean([f[1][far].mean() for f in small]) > 1.3 * mu[far].mean()

@@ -28,6 +28,7 @@ from .. import __version__
 from ..config import InputError
 from ..io import atomic_path, atomic_write_text
 from ..library.locate import relative_to_product
+from ..validation import check_number
 
 __all__ = ["LayoutOptions", "write_layout", "snap_widths", "layout_geometry", "outline_polygons", "provenance_of",
            "TOP_CELL", "PROPERTY"]
@@ -191,12 +192,32 @@ def provenance_of(design, opts: LayoutOptions) -> dict:
     }
 
 
-def layout_library(design, opts: LayoutOptions = LayoutOptions()):
+def layout_library(design, opts: LayoutOptions = LayoutOptions(), unit: float = 1e-9):
     """The ``gdstk.Library`` :func:`write_layout` would write for ``design``, in memory, for users who place
     the metasurface into a larger mask: one top cell (``lib.top_level()[0]``) referencing one cell per
-    placed atom, coordinates in nm (``lib.unit`` = 1e-9: a host library must use the same unit, or scale
-    its references), the provenance as the top cell's properties."""
-    return build_gdstk_library(design, opts, provenance_of(design, opts))[0]
+    placed atom, the provenance as the top cell's properties.  Coordinates are in ``unit`` (metres per
+    user unit: 1e-9, the layout's nm, by default; give the host library's, e.g. 1e-6 for a gdsfactory
+    or gdstk library in um): gdstk cells carry no unit of their own, so a cell placed into a host of
+    another unit would be scaled by the ratio (a 1 nm cell in a 1 um host: 1000x too large)."""
+    import gdstk
+
+    check_number("unit", unit, 1e-12, 1.0)
+    lib = build_gdstk_library(design, opts, provenance_of(design, opts))[0]
+    if unit == lib.unit:
+        return lib
+    f = lib.unit / unit
+    for cell in lib.cells:
+        for poly in cell.polygons:
+            poly.scale(f)
+        for ref in cell.references:
+            ref.origin = (ref.origin[0] * f, ref.origin[1] * f)
+            if ref.repetition is not None and ref.repetition.offsets is not None:
+                ref.repetition = gdstk.Repetition(offsets=(np.asarray(ref.repetition.offsets) * f).tolist())
+        for lab in cell.labels:
+            lab.origin = (lab.origin[0] * f, lab.origin[1] * f)
+    lib.unit = unit
+    lib.precision = min(lib.precision, unit)
+    return lib
 
 
 def write_layout(design, out: Path, fmt: str = "oas", opts: LayoutOptions = LayoutOptions()) -> dict:

@@ -121,9 +121,14 @@ def to_hcipy(f: SampledField):
 
 
 def to_prysm(f: SampledField):
-    """A ``prysm.propagation.Wavefront`` (dx in mm, wavelength in um) of a 2-D field on a uniform grid."""
+    """A ``prysm.propagation.Wavefront`` (dx in mm, wavelength in um) of a 2-D field on a uniform grid; for
+    a stack (the pupil's two polarisations), a list of them, one per polarisation, as :func:`to_hcipy`
+    returns (a Wavefront holds one 2-D field: prysm's ``plot2d`` and ``focus`` expect that)."""
     from prysm.propagation import Wavefront
 
     if f.wavelength is None:
         raise ValidationError("to_prysm: the field's wavelength is unknown")
-    return Wavefront(np.asarray(f.data), f.wavelength * 1e6, f.dx * 1e3)
+    data = np.asarray(f.data)
+    if data.ndim == 2:
+        return Wavefront(data, f.wavelength * 1e6, f.dx * 1e3)
+    return [Wavefront(np.asarray(d), f.wavelength * 1e6, f.dx * 1e3) for d in data]

@@ -11,6 +11,7 @@ from pathlib import Path
 from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
 from ..cards import card_path
 from ..outputs import Need, path_fields, product, zarr_input
+from ..paths import recipe_path, repo_root
 from ..validation import InputError
 
 __all__ = ["register"]
@@ -179,10 +180,14 @@ def _cmd_demo(a: argparse.Namespace) -> int:
 def _cmd_run(a: argparse.Namespace) -> int:
     from .pipeline import run_pipeline
 
-    out = out_dir(a.output or Path(a.recipe).with_suffix("").with_name(Path(a.recipe).stem + "-out"))
-    with product(out, "pipeline", {"recipe": a.recipe}):
-        rep = run_pipeline(a.recipe, out, log=log_to(a.json))
-    lines = [f"pipeline {a.recipe} -> {out}"]
+    recipe = recipe_path(a.recipe, "sensing")  # a path, or a packaged recipe's name: `run pipeline-demo`
+    # the default output: beside a recipe of the user's, in the working directory for a packaged one
+    packaged = recipe.resolve().is_relative_to(repo_root().resolve()) and not recipe.resolve().is_relative_to(
+        Path.cwd().resolve())
+    out = out_dir(a.output or (Path.cwd() if packaged else recipe.parent) / f"{recipe.stem}-out")
+    with product(out, "pipeline", {"recipe": recipe}):
+        rep = run_pipeline(recipe, out, log=log_to(a.json))
+    lines = [f"pipeline {recipe} -> {out}"]
     for k, v in rep["stages"].items():
         lines.append(f"  {k:<11} " + (f"up to date (ran in {v.get('ran_seconds', float('nan')):.1f} s)"
                                       if v.get("skipped") else f"{v['seconds']:.1f} s"))
@@ -198,8 +203,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
                  + "".join(f"\n    FAILED: {c['check']}: {c['value']} (needs {c['threshold']})" for c in failed))
     lines.append(f"  report     {rep['report']}")
     emit({"stages": rep["stages"], "tables": rep["tables"], "checks": rep["checks"], "passed": not failed,
-          "report": rep["report"]}, a.json, "\n".join(lines))
-    return 0
+          "report": rep["report"], "provenance": rep.get("provenance")}, a.json, "\n".join(lines))
+    return 1 if failed else 0  # as the demo: a failed check is a failed run
 
 
 def _cmd_table_s2(a: argparse.Namespace) -> int:
@@ -665,7 +670,9 @@ def register_main(sub) -> None:
                          "PSFs and fab study, turbulence validation, dataset, training (or a given model), "
                          "evaluation; stages whose inputs did not change are skipped; writes OUT/report.html "
                          "(self-contained: every figure and table).")
-    run.add_argument("recipe", help="pipeline recipe (TOML), e.g. sensing/pipeline-demo.toml")
-    run.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe)")
+    run.add_argument("recipe", help="pipeline recipe (TOML), e.g. sensing/pipeline-demo.toml, or the name of a "
+                     "packaged one (pipeline-demo: works from a wheel install)")
+    run.add_argument("-o", "--output", help="output folder (default: RECIPE-out beside the recipe; for a packaged "
+                     "recipe, in the working directory)")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
     run.set_defaults(func=_cmd_run)

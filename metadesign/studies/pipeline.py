@@ -121,6 +121,7 @@ def _h(*parts) -> str:
 def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] = print) -> dict:
     """Every stage of a pipeline recipe into ``out`` (stages whose inputs did not change are skipped), and
     ``report.html``; returns the report (stages, tables, figures)."""
+    t_start = time.perf_counter()
     rec = load_pipeline_recipe(recipe_path)
     out = Path(out)
     if rec["train"]["model"] is not None:  # a given model must fit the dataset it will be evaluated on: check now
@@ -131,6 +132,7 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     run = _Pipeline(rec, out, log)
     for step in (run.library, run.design, run.layout, run.psf, run.turbulence, run.dataset, run.train, run.evaluate):
         step()
+    run.report["provenance"] = _provenance(Path(recipe_path), rec, run, time.perf_counter() - t_start)
     html_path = out / "report.html"
     atomic_write_text(html_path, _html(rec["name"], run.report))
     run.report["report"] = str(html_path)
@@ -234,8 +236,10 @@ class _Pipeline:
                 {"quantity": "cells in the aperture", "value": f"{m['n_cells_in_aperture']:,}"}]
         self.section("2. Design", ("Design metrics", rows), [(
             "Fig. S2: design", out / "fig-s2.png",
-            "The target phases of the supercell lenses and the discretised ones: the error map should be "
-            "uniform noise within +- pi/16, with no structure following the lenses.")])
+            "(a) the atoms' phases, x- against y-polarisation (the 16 x 16 bins should be covered evenly); (b) the "
+            "atoms' widths; (c, d) the discretised phase of one supercell lens (QI) per polarisation: smooth rings "
+            "centred on the lens's offset; (e, f) the pillar widths across that lens; (g) how many cells use each "
+            "atom. The phase error itself is in the table (RMSE against the 16-bin quantiser's).")])
 
     def layout(self) -> None:
         out = self.out
@@ -261,7 +265,8 @@ class _Pipeline:
             {"quantity": "read-back", "value": "exact" if li["exact"] else "differs"},
             {"quantity": "design rules", "value": "passed" if li["drc_passed"] else "violated"}]), [(
             "Layout preview", out / "layout-preview.png",
-            "A corner of the written OASIS layout, as a mask shop would see it.")])
+            "16 x 16 cells at the centre of the written OASIS layout, read back from the file: every rectangle "
+            "one pillar at its drawn width, as a mask shop would see it.")])
 
     def psf(self) -> None:
         """As-fabricated PSFs, the Table S1 focal check and a fab study."""
@@ -305,8 +310,9 @@ class _Pipeline:
             "compact and centred in their quadrant.")])
         self.section("4. As-fabricated sensor", ("Fab study", study), raw=ps["fab_study"], figures=[(
             "Fab study", out / "fab-study.png",
-            "Strehl ratio and focusing efficiency of each spot against a uniform etch bias: how much a fab "
-            "process may drift before the spots degrade.")])
+            "Per spot (8 markers per device, x-pol filled, y-pol open) and per etch bias: focusing efficiency, "
+            "Strehl ratio at best focus, best-focus shift from the design focal length, and crosstalk into the "
+            "other quadrants: how much a fab process may drift before the spots degrade.")])
 
     def turbulence(self) -> None:
         p, out = self.p, self.out
@@ -340,16 +346,19 @@ class _Pipeline:
                    f"{self.p['turbulence_samples']} beacons per level against weak-fluctuation theory with the inner "
                    "scale (the nominal Rytov number leaves the inner scale out; saturation lowers the measured "
                    "value above ~0.5)")
-        captions = {"fig-s5": "Fig. S5: phase structure function of the screens against Kolmogorov/von Karman theory "
-                              "(the lines should overlap up to a quarter of the grid), and the scintillation of the "
-                              "path model.",
+        captions = {"fig-s5": "Fig. S5: the screens' phase structure function against theory (the points should sit "
+                              "on the line); (S5a) the log-amplitude variance against the nominal Rytov number "
+                              "and weak-fluctuation theory; (S5b) the coherence factor against theory: beyond r0 "
+                              "the points level off at the finite ensemble's floor (dotted: each beacon's own "
+                              "coherence x sqrt(pi / 4N), falling as 1 / sqrt(beacons)) instead of 0; (S5c) the "
+                              "long-exposure MTF.",
                     "fig-s6": "Fig. S6: normalised power in bucket (NPiB, the power a corrected beam puts in the "
                               "target bucket over a vacuum beam's) for uncorrected, phase-conjugate and complex-"
-                              "conjugate correction; triangles: the complex conjugate. NPiB can exceed 1: "
+                              "conjugate correction per beacon; triangles: the mean of each group. NPiB can exceed 1: "
                               "turbulence can focus more power into the bucket than vacuum does."}
         self.section("5. Turbulence", ("Turbulence: Rytov nominal vs measured", rows), raw=tu["levels"], figures=[
-            (f"Turbulence: {Path(f).stem}", Path(f), next((c for k, c in captions.items() if k in Path(f).stem), ""))
-            for f in tu["figures"]])
+            (next((c.split(":")[0] for k, c in captions.items() if k in Path(f).stem), Path(f).stem), Path(f),
+             next((c for k, c in captions.items() if k in Path(f).stem), "")) for f in tu["figures"]])
 
     def dataset(self) -> None:
         p = self.p
@@ -435,11 +444,12 @@ class _Pipeline:
         captions = {"fig-3b": "Fig. 3b: NPiB of each test beacon against its measured Rytov number; the estimator "
                               "should sit close under the phase conjugate and far above the uncorrected beam. NPiB "
                               "(power in the bucket over a vacuum beam's) can exceed 1 where turbulence focuses.",
-                    "fig-3cd": "Fig. 3c/d: NPiB against the sensor noise (% of each frame's peak).",
-                    "phase": "Predicted against true received phase for a few test beacons (piston removed)."}
+                    "fig-3cd": "Fig. 3c/d: NPiB against the sensor noise (% of each channel's peak: each of the 8 "
+                               "channels is exposed on its own spot).",
+                    "phase": "Phases: predicted against true received phase for a few test beacons (piston removed)."}
         self.section("6. Reconstruction", ("NPiB summary", rows), raw=summary, figures=[
-            (f"Evaluation: {Path(f).stem}", Path(f), next((c for k, c in captions.items() if k in Path(f).stem), ""))
-            for f in ev["figures"]])
+            (next((c.split(":")[0] for k, c in captions.items() if k in Path(f).stem), Path(f).stem), Path(f),
+             next((c for k, c in captions.items() if k in Path(f).stem), "")) for f in ev["figures"]])
 
 
 def _table(obj, raw: tuple = ()) -> str:
@@ -475,6 +485,41 @@ def _img(title: str, f: Path) -> str:
     return f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>"
 
 
+def _git_commit() -> str | None:
+    """The checkout's commit (None outside a git checkout, e.g. a wheel install)."""
+    import subprocess
+
+    try:
+        r = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent), "rev-parse", "HEAD"],
+                           capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def _provenance(recipe_path: Path, rec: dict, run: "_Pipeline", elapsed: float) -> dict:
+    """What the report is a record of: recipe, design, model, seeds, code, machine, date, time taken."""
+    import os
+    import platform
+
+    def named(p):
+        p = Path(p)
+        return {"path": str(p), "sha256": file_key(p) if p.is_file() else None}
+
+    t = rec["train"]
+    model = getattr(run, "model", None)
+    return {"recipe": named(recipe_path), "design_recipe": named(rec["pipeline"]["design"]),
+            "library": named(run.lib_path), "sensor": named(rec["pipeline"]["sensor"]),
+            "turbulence": named(rec["pipeline"]["turbulence"]),
+            "model": named(model) if model is not None else None,
+            "training_recipe": named(t["recipe"]) if t.get("recipe") else None,
+            "dataset_seed": rec["dataset"].get("seed"), "metadesign": __version__, "commit": _git_commit(),
+            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+            "machine": f"{platform.node()} ({platform.system()} {platform.machine()}, {os.cpu_count()} cores, "
+                       f"Python {platform.python_version()})",
+            "elapsed_seconds": round(elapsed, 1)}
+
+
 def _html(name: str, rep: dict) -> str:
     """The report: a headline (did it pass, what it achieved) first, then a section per stage, each table
     beside its figures with a caption saying what to look at."""
@@ -501,6 +546,14 @@ def _html(name: str, rep: dict) -> str:
         {"check": c["check"], "value": c["value"], "threshold": c["threshold"],
          "result": "<span class='pass'>pass</span>" if c["passed"] else "<span class='fail'>FAIL</span>",
          "why": c["why"]} for c in checks], raw=("result",)))
+    pv = rep.get("provenance")
+    if pv:
+        rows = []
+        for k, v in pv.items():
+            if isinstance(v, dict):
+                v = f"{v['path']}" + (f" (sha256 {v['sha256'][:16]}...)" if v.get("sha256") else "")
+            rows.append({"what": k.replace("_", " "), "value": "-" if v is None else str(v)})
+        parts.append("<h2>Provenance</h2>" + _table(rows))
     parts.append("<p class='small'>metadesign " + html.escape(__version__) + "; stages: " + ", ".join(
         f"{k} ({'up to date, ran in %.1f s' % v.get('ran_seconds', float('nan')) if v.get('skipped') else '%.1f s' % v['seconds']})"
         for k, v in rep["stages"].items()) + "</p>")

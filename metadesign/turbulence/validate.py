@@ -39,23 +39,39 @@ def log_amplitude(tb: Turbulence, field: np.ndarray) -> np.ndarray:
     return np.log(np.abs(field[tb.aperture]) / np.abs(tb.vacuum[tb.aperture]))
 
 
-def coherence(tb: Turbulence, fields: list[np.ndarray], max_sep: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def coherence(tb: Turbulence, fields: list[np.ndarray], max_sep: int | None = None,
+              floor: bool = False) -> tuple[np.ndarray, ...]:
     """Modulus of the ensemble coherence factor of the collimated aperture
-    field vs separation (m), from separations along x and y."""
+    field vs separation (m), from separations along x and y.
+
+    With ``floor``, also the finite ensemble's floor.  Beyond r0, where theory goes to 0, each beacon's own
+    field stays partly coherent across the aperture (its tilt and low orders: a phase difference nearly
+    constant over the aperture), with a random phase from beacon to beacon; the ensemble mean of N such
+    terms of magnitude c does not vanish but has the expected modulus c sqrt(pi / (4 N)).  The floor is
+    that, with c measured per beacon: the plateau of Fig. S5b, which falls as 1 / sqrt(N) (test)."""
     n = tb.sc.n_grid
     max_sep = max_sep or int(tb.sc.receiver_aperture / tb.sc.dx * 0.75)
     m = tb.aperture.astype(np.float64)
     G = np.zeros(max_sep + 1, complex)
     I1 = np.zeros(max_sep + 1)
+    single = np.zeros(max_sep + 1)  # sum over beacons of each beacon's own |coherence|
     for f in fields:
         u = tb.collimated(f)
+        g = np.zeros(max_sep + 1, complex)
+        i1 = np.zeros(max_sep + 1)
         for s in range(max_sep + 1):
             for a, b, ma, mb in ((u[:, s:], u[:, :n - s], m[:, s:], m[:, :n - s]),
                                  (u[s:, :], u[:n - s, :], m[s:, :], m[:n - s, :])):
                 w = ma * mb
-                G[s] += np.sum(a * np.conj(b) * w) / max(w.sum(), 1)
-                I1[s] += np.sqrt(np.sum(np.abs(a) ** 2 * w) * np.sum(np.abs(b) ** 2 * w)) / max(w.sum(), 1)
-    return np.arange(max_sep + 1) * tb.sc.dx, np.abs(G) / I1
+                g[s] += np.sum(a * np.conj(b) * w) / max(w.sum(), 1)
+                i1[s] += np.sqrt(np.sum(np.abs(a) ** 2 * w) * np.sum(np.abs(b) ** 2 * w)) / max(w.sum(), 1)
+        G += g
+        I1 += i1
+        single += np.abs(g) / np.maximum(i1, 1e-300)
+    sep = np.arange(max_sep + 1) * tb.sc.dx
+    if not floor:
+        return sep, np.abs(G) / I1
+    return sep, np.abs(G) / I1, single / len(fields) * np.sqrt(np.pi / (4 * len(fields)))
 
 
 def wave_structure_theory(tb: Turbulence, r: np.ndarray) -> np.ndarray:
@@ -109,7 +125,7 @@ def validate(sc: Scenario, rytovs=(0.1, 0.3, 0.5, 0.7), samples: int = 40, seed:
             if progress:
                 progress(done, total)
         chis = np.array(chi_var)
-        sep, mu = coherence(tb, fields)
+        sep, mu, mu_floor = coherence(tb, fields, floor=True)
         D = wave_structure_theory(tb, sep)
         msep, mtf, mdl = mtf_long_exposure(tb, fields)
         Dm = wave_structure_theory(tb, msep)
@@ -121,7 +137,8 @@ def validate(sc: Scenario, rytovs=(0.1, 0.3, 0.5, 0.7), samples: int = 40, seed:
             "rytov_weak_theory_inner_scale": log_amplitude_variance_theory(tb.path.r0_screens, d, sc.wavelength,
                                                                            sc.inner_scale, sc.outer_scale),
             "r0_m": tb.path.r0, "D_over_r0": sc.receiver_aperture / tb.path.r0,
-            "coherence": {"sep_m": sep.tolist(), "measured": mu.tolist(), "theory": np.exp(-D / 2).tolist()},
+            "coherence": {"sep_m": sep.tolist(), "measured": mu.tolist(), "theory": np.exp(-D / 2).tolist(),
+                          "estimator_floor": mu_floor.tolist()},
             "mtf": {"sep_m": msep.tolist(), "measured": mtf.tolist(), "diffraction": mdl.tolist(),
                     "theory": (mdl * np.exp(-Dm / 2)).tolist()},
             "npib": pib,
@@ -157,11 +174,15 @@ def plot_validation(res: dict, out_dir: Path) -> list[Path]:
         x = np.array(c["sep_m"]) / l_["r0_m"]
         h = ax[2].plot(x, c["theory"], "-")[0]
         ax[2].plot(x, c["measured"], "o", ms=3, color=h.get_color(), label=f"Rytov {l_['rytov_nominal']:g}")
+        if "estimator_floor" in c:  # where theory has gone (the floor describes the plateau, not the core)
+            far = np.asarray(c["theory"]) < 0.1
+            ax[2].plot(x[far], np.asarray(c["estimator_floor"])[far], ":", color=h.get_color(), lw=1.2)
         m = l_["mtf"]
         x = np.array(m["sep_m"]) / res["scenario"]["receiver_aperture"]
         h = ax[3].plot(x, m["theory"], "-")[0]
         ax[3].plot(x, m["measured"], "o", ms=3, color=h.get_color(), label=f"Rytov {l_['rytov_nominal']:g}")
-    ax[2].set(xlabel="r / r0", ylabel="|mu|", title="(S5b) coherence factor (lines: theory)", xlim=(0, 3))
+    ax[2].set(xlabel="r / r0", ylabel="|mu|", title="(S5b) coherence factor\n(lines: theory; dotted: the finite ensemble's floor)",
+              xlim=(0, 3))
     ax[2].legend(fontsize=8)
     ax[3].plot(x, lv[0]["mtf"]["diffraction"], "k:", label="diffraction limit")
     ax[3].set(xlabel="separation / D (normalised frequency)", ylabel="MTF", title="(S5c) long-exposure MTF")
