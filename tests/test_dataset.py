@@ -223,8 +223,8 @@ def test_xarray_opens_a_dataset_with_coordinates_and_no_foreign_files(tiny_datas
     from metadesign.reconstruction.dataset import load_device, open_dataset
 
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # zarr's "not recognized as a component of a Zarr hierarchy" included
-        ds = xr.open_zarr(tiny_dataset, consolidated=False)
+        warnings.simplefilter("error")  # zarr's "not recognized as a component of a Zarr hierarchy" included,
+        ds = xr.open_zarr(tiny_dataset)  # and xarray's "not consolidated" (the store is consolidated)
     info = open_dataset(tiny_dataset)
     assert ds["psf"].dims == ("sample", "channel", "row", "col")
     assert {"rytov", "rytov_measured", "seed", "split"} <= set(ds["psf"].coords)
@@ -235,8 +235,35 @@ def test_xarray_opens_a_dataset_with_coordinates_and_no_foreign_files(tiny_datas
     assert len(x) == crop["size"] and np.allclose(np.diff(x), crop["dx_m"])
     assert x[crop["size"] // 2] == pytest.approx((crop["start"] + crop["size"] // 2 - crop["n_grid"] // 2) * crop["dx_m"])
     assert list(ds["channel"].attrs["labels"])[4] == "y-pol QI"
+    # CF: a string channel coordinate, units and long names, the split's flag meanings (#32)
+    assert ds.sel(channel="y-pol QI")["psf"].dims == ("sample", "row", "col")
+    for v in ("psf", "received", "psf_power", "rytov", "rytov_measured", "seed", "split"):
+        assert ds[v].attrs.get("long_name"), v
+    assert ds["psf"].attrs["units"] == "1" and ds["psf_power"].attrs["units"] == "W"
+    assert ds["split"].attrs["flag_meanings"].split() == ["train", "val", "test"]
+    assert list(ds["split"].attrs["flag_values"]) == [0, 1, 2]
     assert not any(p.suffix == ".npz" for p in tiny_dataset.iterdir())
     dev = load_device(tiny_dataset)
     assert dev.pupil.G.ndim == 4 and dev.pupil.G.shape[0] == 2
     one = ds["psf"].isel(sample=0).values
     np.testing.assert_allclose(one.sum(), 8.0, rtol=1e-4)
+
+
+def test_dataset_round_trips_through_netcdf(tiny_dataset, tmp_path):
+    """#32: open_xarray(DATASET).to_netcdf(FILE) writes a netCDF-4 file (structured attributes as JSON,
+    complex fields as real and imaginary parts) that reads back to the store's numbers."""
+    import json
+
+    xr = pytest.importorskip("xarray")
+    from metadesign.reconstruction.dataset import open_dataset, open_xarray
+
+    ds = open_xarray(tiny_dataset)
+    ds.to_netcdf(tmp_path / "d.nc", engine="h5netcdf")
+    back = xr.open_dataset(tmp_path / "d.nc", engine="h5netcdf")
+    ref = xr.open_zarr(tiny_dataset)
+    np.testing.assert_array_equal(back["psf"].values, ref["psf"].values)
+    np.testing.assert_array_equal(back["received_real"].values + 1j * back["received_imag"].values,
+                                  ref["received"].values)
+    np.testing.assert_array_equal(back["seed"].values, open_dataset(tiny_dataset).seed)
+    assert list(back["channel"].values)[0] == "x-pol QI"
+    assert json.loads(back.attrs["provenance"])["layout_sha256"] == ref.attrs["provenance"]["layout_sha256"]

@@ -58,7 +58,8 @@ from ..sensing.camera import Alignment
 from ..sensing.forward import sensor_frames
 from ..sensing.sensor import area_resample, quadrant_slices
 from ..validation import ValidationError
-from .dataset import DATASET_FORMAT, _create_store, _read_attrs, load_device, normalise_psf, open_dataset, split_labels
+from .dataset import (DATASET_FORMAT, _create_store, consolidate, load_device, normalise_psf, open_dataset, open_store,
+                      split_labels)
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
@@ -424,8 +425,6 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
 
 def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, progress, log,
             t0: float) -> dict:
-    import zarr
-
     manifest = folder / "manifest.csv" if folder.is_dir() else folder
     rows = read_manifest(manifest, ("sample", "frame_x", "frame_y", "slm_phase"))
     names = [r["sample"] for r in rows]
@@ -528,7 +527,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         _create_store(tmp, n, S, options.shard_size, a, attrs, split, rytov_fill=-1.0)
-        g = zarr.open_group(str(tmp), mode="r+")
+        g = open_store(tmp, "r+")
         g["psf"][:] = np.stack(psf)
         g["received"][:] = np.stack(rec)
         g["psf_power"][:] = np.array(power, np.float32)
@@ -546,6 +545,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
 
         atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
         _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
+        consolidate(tmp)
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)

@@ -13,7 +13,7 @@ import numpy as np
 from ..turbulence.propagate import Turbulence
 from ..validation import ValidationError, check_int, check_number
 from ..sensing.sensor import NoiseSpec, add_noise
-from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, sample_rytov
+from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, open_store, sample_rytov
 
 __all__ = ["PSFDataset", "apply_noise", "NoiseRange"]
 
@@ -159,9 +159,7 @@ class PSFDataset:
         """The store's arrays by name, opened once per process (a group look-up costs ~0.5 ms: a tenth
         of a sample's load)."""
         if self._g is None:
-            import zarr
-
-            g = zarr.open_group(self.path, mode="r")
+            g = open_store(self.path)
             self._g = {k: g[k] for k in ("psf", "received", *(("pib_operator",) if "pib_operator" in g else ()))}
         return self._g
 

@@ -58,7 +58,7 @@ from ..turbulence.path import check_sampling, solve_path
 from ..turbulence.scenario import load_scenario, scenario_from_dict
 from ..validation import ValidationError
 
-__all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",
+__all__ = ["open_xarray", "open_store", "DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "build_dataset", "open_dataset",
            "DatasetInfo", "DATASET_FORMAT", "sample_seed", "sample_rytov", "make_sample", "ShardContext",
            "received_crop", "normalise_psf", "load_device", "expected_sizes", "verify_dataset", "check_psf", "damaged"]
 
@@ -291,7 +291,7 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
     with threadpool_limits(limits=1):
         rows = [make_sample(ctx, i) for i in range(i0, i1)]
     t0 = time.perf_counter()
-    g = zarr.open_group(ctx.out, mode="r+")
+    g = open_store(ctx.out, "r+")
     g["psf"][i0:i1] = np.stack([r["psf"] for r in rows])
     g["received"][i0:i1] = np.stack([r["received"] for r in rows])
     for k, dt in (("psf_power", np.float32), ("rytov", np.float32), ("rytov_measured", np.float32),
@@ -353,7 +353,7 @@ def write_store_pupil(store: Path, cp, key: dict) -> None:
     its scalars and cache key as the group's attributes."""
     import zarr
 
-    g = zarr.open_group(str(store), mode="r+")
+    g = open_store(store, "r+")
     d = g.require_group(PUPIL_GROUP)
     d.attrs.update({"complete": False})
     G = d.create_array("G", shape=cp.G.shape, chunks=cp.G.shape, dtype="complex64", overwrite=True,
@@ -374,7 +374,7 @@ def read_store_pupil(store: Path):
 
     legacy = Path(store) / "device-pupil.npz"
     try:
-        d = zarr.open_group(str(store), mode="r")[PUPIL_GROUP]
+        d = open_store(store)[PUPIL_GROUP]
     except (KeyError, FileNotFoundError, ValueError, OSError):
         d = None
     if d is None or not d.attrs.get("complete"):
@@ -419,6 +419,73 @@ def _recipe_hash(parts: dict) -> str:
     return content_key(parts)  # = sha256 of json.dumps(parts, sort_keys=True): the same value as before
 
 
+def open_store(path: str | Path, mode: str = "r"):
+    """The dataset's zarr group, read from the store itself (never from consolidated metadata, which a
+    build or an operators run in progress has not refreshed yet)."""
+    import zarr
+
+    return zarr.open_group(str(path), mode=mode, use_consolidated=False)
+
+
+def consolidate(path: str | Path) -> None:
+    """Consolidate the store's metadata (what ``xarray.open_zarr`` reads in one request, without a
+    warning); done when a build, an import or an operators run completes."""
+    import warnings
+
+    import zarr
+
+    with warnings.catch_warnings():  # "not part of the Zarr format 3 specification": xarray reads it all the same
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        zarr.consolidate_metadata(str(path))
+
+
+def open_xarray(path: str | Path):
+    """The dataset as a netCDF-ready ``xarray.Dataset``: structured attributes (the provenance, ...) as
+    JSON strings, each complex variable as ``NAME_real`` and ``NAME_imag`` (netCDF has no complex type),
+    the channel names as plain strings; so ``open_xarray(DATASET).to_netcdf(FILE)`` writes a netCDF-4 file
+    (h5netcdf).  The store itself opens with plain ``xarray.open_zarr(DATASET)`` (consolidated, every axis
+    labelled, CF units and long names, complex ``received``)."""
+    import json
+
+    import xarray as xr
+
+    open_dataset(path)  # a missing, damaged or unfinished store: one line
+
+    def safe(attrs: dict) -> dict:
+        return {k: (v if isinstance(v, (str, int, float)) and not isinstance(v, bool) else
+                    json.dumps(v, sort_keys=True, default=str)) for k, v in attrs.items()}
+
+    ds = xr.open_zarr(str(path), consolidated=True)
+    for name in [k for k, v in ds.data_vars.items() if np.iscomplexobj(v.dtype.type(0))]:
+        v = ds[name]
+        ds = ds.drop_vars(name).assign({
+            f"{name}_real": v.real.assign_attrs({**v.attrs, "long_name": f"real part of {name}: "
+                                                 + v.attrs.get("long_name", name)}),
+            f"{name}_imag": v.imag.assign_attrs({**v.attrs, "long_name": f"imaginary part of {name}: "
+                                                 + v.attrs.get("long_name", name)})})
+    ds = ds.assign_coords(channel=np.asarray(ds["channel"].values, dtype=object))
+    ds.attrs = safe(ds.attrs)
+    for v in ds.variables.values():
+        v.attrs = safe(v.attrs)
+    return ds
+
+
+#: CF attributes of the store's variables (xarray shows them; units "1": dimensionless)
+CF_ATTRS = {
+    "psf": {"long_name": "PSF tensor: the 8 sensor quadrants, each area-resampled to S x S pixels; each sample's "
+                         "8 channels sum to 8", "units": "1"},
+    "received": {"long_name": "received complex field on the receiver-aperture crop (vacuum removed)", "units": "1"},
+    "psf_power": {"long_name": "power on the 8 quadrants before normalisation, for a 1 W m-2 incident irradiance",
+                  "units": "W"},
+    "rytov": {"long_name": "nominal Rytov number of the sample's path", "units": "1"},
+    "rytov_measured": {"long_name": "log-amplitude variance of the sample's received field", "units": "1"},
+    "seed": {"long_name": "seed of the sample's phase screens"},
+    "split": {"long_name": "split of the sample", "flag_values": [0, 1, 2], "flag_meanings": "train val test"},
+    "sample": {"long_name": "sample index"},
+    "channel": {"long_name": "sensor channel: polarisation and quadrant"},
+}
+
+
 def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray,
                   rytov_fill: float = float("nan")):
     """The store's arrays and attributes.  ``rytov_fill``: imported captures store an unknown Rytov number as
@@ -442,6 +509,9 @@ def _create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, sp
                         dimension_names=("sample",))
     sp[:] = split
     _write_coordinates(g, n, s, a, attrs)
+    for k, v in CF_ATTRS.items():
+        if k in g:
+            g[k].attrs.update(v)
     g.attrs.update(attrs)
     return g
 
@@ -458,10 +528,10 @@ def _write_coordinates(g, n: int, s: int, a: int, attrs: dict) -> None:
     crop = attrs.get("received_crop") or {}
     c = g.create_array("sample", shape=(n,), chunks=(max(n, 1),), dtype="int64", dimension_names=("sample",))
     c[:] = np.arange(n)
-    ch = g.create_array("channel", shape=(8,), chunks=(8,), dtype="int8", dimension_names=("channel",))
-    ch[:] = np.arange(8)
-    ch.attrs.update({"labels": ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV",
-                                "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]})
+    labels = ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV", "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]
+    ch = g.create_array("channel", shape=(8,), chunks=(8,), dtype=str, dimension_names=("channel",))
+    ch[:] = np.array(labels)  # a string coordinate: ds.sel(channel="x-pol QI")
+    ch.attrs.update({"labels": labels})
     for k in ("row", "col"):
         r = g.create_array(k, shape=(s,), chunks=(s,), dtype="int32", dimension_names=(k,))
         r[:] = np.arange(s)
@@ -612,11 +682,9 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
         for k, v in results[nm]["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
     sweep = time.perf_counter() - t_sweep
-    import zarr
-
-    g = zarr.open_group(str(out), mode="r+")
-    g.attrs.update({"complete": True})
+    open_store(out, "r+").attrs.update({"complete": True})
     folder.remove()
+    consolidate(out)
     info = open_dataset(out)
     computed = sum(size[nm] for nm in computed_now)
     return {"output": str(out), "samples": n, "shards": n_shards, "resumed_shards": len(done),
@@ -730,7 +798,7 @@ def open_dataset(path: str | Path) -> DatasetInfo:
             raise ValidationError(f"{path}: damaged dataset: the store lacks its {key!r} attribute")
     n = int(attrs["samples"])
     try:
-        g = zarr.open_group(str(path), mode="r")
+        g = open_store(path)
         arrays = {k: g[k] for k in _ARRAYS}
     except (KeyError, ValueError, OSError, FileNotFoundError) as exc:
         raise ValidationError(f"{path}: truncated or damaged dataset ({exc.__class__.__name__}: {exc})") from None
@@ -781,7 +849,7 @@ def verify_dataset(path: str | Path, progress: Callable[[int, int], None] | None
     import zarr
 
     info = open_dataset(path)
-    g = zarr.open_group(str(path), mode="r")
+    g = open_store(path)
     shard = int(info.attrs["shard_size"])
     names = [k for k in ("psf", "received", "psf_power", OPERATOR_ARRAY) if k in g]
     bad: dict[int, str] = {}

@@ -27,7 +27,8 @@ from ..outputs import Need, check_need, product
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
 from .dataset import OPERATOR_ARRAY as ARRAY
-from .dataset import has_operators, open_dataset, operator_info, run_shards, shard_folder, shard_name
+from .dataset import (consolidate, has_operators, open_dataset, open_store, operator_info, run_shards, shard_folder,
+                      shard_name)
 from .losses import PiB
 
 __all__ = ["OperatorContext", "build_operators", "operator_info", "has_operators"]
@@ -58,11 +59,10 @@ class OperatorContext:
 
     def make(self, shard: int) -> dict:
         import torch
-        import zarr
 
         i0, i1 = shard * self.shard_size, min(self.n, (shard + 1) * self.shard_size)
         ds, pib = self.dataset_and_pib()
-        g = zarr.open_group(self.out, mode="r+")
+        g = open_store(self.out, "r+")
         arr = g[ARRAY]
         block = np.zeros((i1 - i0, *arr.shape[1:]), np.complex64)
         t0 = time.perf_counter()
@@ -91,8 +91,6 @@ def build_operators(path: str | Path, splits=("train",), workers: int = 1, sched
 
 
 def _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client) -> dict:
-    import zarr
-
     splits = tuple(dict.fromkeys(splits))
     bad = [s for s in splits if s not in SPLITS]
     if bad or not splits:
@@ -113,7 +111,7 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
                   "meaning": "bucket power of a unit-power aperture correction u is ||A u||^2; NPiB = that / "
                              "the ideal beam's bucket power (PiB.npib_quadratic)"}
     old = operator_info(info.attrs)
-    g = zarr.open_group(str(out), mode="r+")
+    g = open_store(out, "r+")
     if old is not None and {k: old.get(k) for k in want_attrs} != want_attrs:
         if not overwrite:
             raise ValidationError(f"{out}: holds operators of splits {'/'.join(old.get('splits', []))}; "
@@ -152,7 +150,8 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
     results, computed = run_shards(ctx, shards, folder, workers, scheduler, client,
                                    weight=lambda nm: int(per_shard[shards[nm]]), progress=progress)
     tim = sum(results[nm]["timings"]["operator"] for nm in computed)
-    g = zarr.open_group(str(out), mode="r+")
+    g = open_store(out, "r+")
     g.attrs.update({ARRAY: {**want_attrs, "complete": True}})
     folder.remove()
+    consolidate(out)
     return report(todo, len(done), tim)
