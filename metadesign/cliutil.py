@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .validation import ConfigError, ValidationError, check_int, check_number
 
-__all__ = ["Parser", "num", "integer", "emit", "progress_bar", "log_to", "out_dir", "out_file", "MAX_WORKERS",
+__all__ = ["limit_arg", "Parser", "num", "integer", "emit", "progress_bar", "log_to", "out_dir", "out_file", "MAX_WORKERS",
            "json_safe", "workers_arg"]
 
 #: cap on worker processes (-j): more than this is a typo, not a cluster
@@ -68,6 +68,20 @@ def integer(lo=None, hi=None):
 
 #: seeds: what numpy.random.SeedSequence accepts, bounded for JSON/zarr storage
 SEED = integer(0, 2**63 - 1)
+
+
+def limit_arg(p: argparse.ArgumentParser, help: str, **kw) -> None:
+    """``--limit N``: at most N samples of an existing split (dest ``samples``).  ``--samples`` has one meaning
+    everywhere, how many samples to make (``dataset build``, ``turbulence validate``): given here it is one
+    line naming ``--limit``."""
+    p.add_argument("--limit", dest="samples", metavar="N", help=help, **kw)
+    p.add_argument("--samples", nargs=1, action=_Renamed, help=argparse.SUPPRESS)
+
+
+class _Renamed(argparse.Action):
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} means how many samples to make (dataset build, turbulence validate); "
+                     "for at most N samples of an existing split use --limit N")
 
 
 def workers_arg(p: argparse.ArgumentParser, default: int | None = None, what: str = "worker processes") -> None:

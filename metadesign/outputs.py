@@ -416,6 +416,10 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
         if _overlaps(out, inp):
             raise InputError(f"{out}: the output overlaps the input {name} {inp.path} "
                              "(an input is never its own output)")
+    pkg = Path(__file__).resolve().parent
+    if pkg == out.resolve() or pkg in out.resolve().parents:
+        raise InputError(f"{out}: inside the installed metadesign package ({pkg}); outputs go to a folder of "
+                         "yours (-o, or run the command from your working directory)")
     if not out.parent.resolve().is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist (create it first)")
     _check_existing(out, kind, what, folder)

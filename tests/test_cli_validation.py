@@ -291,13 +291,26 @@ def test_json_summaries_are_strict_json(demo_products, tmp_path, capsys):
     (["export", "M", "-o", "m.onnx"], "onnx", "m.onnx"),
     (["library", "export", "--csv", "l.csv"], "csv", "l.csv"),
     (["library", "export", "--output", "l.csv"], "csv", "l.csv"),
-    (["dataset", "synth-captures", "P", "--device", "D", "-o", "C", "--samples", "3"], "samples", 3),
     (["dataset", "synth-captures", "P", "--device", "D", "-o", "C", "--limit", "3"], "samples", 3),
-    (["library", "lpa-check", "L", "--samples", "7"], "samples", 7),
     (["library", "lpa-check", "L", "--limit", "7", "--noise-percent", "2"], "samples", 7),
+    (["dataset", "plot", "D", "--limit", "2"], "samples", 2),
+    (["dataset", "build", "R", "--samples", "20"], "samples", 20),
 ])
 def test_one_option_convention_with_the_old_spellings_as_aliases(argv, dest, value):
     """Units in option names (--noise-percent), --limit for 'at most N samples', --split, -o/--output for
     every output; the old spellings still parse to the same thing."""
     a = build_parser().parse_args(argv)
     assert getattr(a, dest) == value
+
+
+@pytest.mark.parametrize("argv", [["dataset", "synth-captures", "P", "--device", "D", "-o", "C", "--samples", "3"],
+                                  ["library", "lpa-check", "L", "--samples", "7"],
+                                  ["library", "coupling-check", "D", "--samples", "7"],
+                                  ["dataset", "plot", "D", "--samples", "2"]])
+def test_samples_has_one_meaning(argv, capsys):
+    """#32: --samples is how many samples to make (dataset build, turbulence validate); where a command
+    takes at most N samples of a split, --samples is one line naming --limit."""
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--limit N" in err[0]

@@ -328,3 +328,16 @@ def test_packaged_recipes_by_name(tmp_path, monkeypatch):
     (tmp_path / "pipeline-demo").write_text("mine")
     assert recipe_path("pipeline-demo", "sensing") == Path("pipeline-demo")
     assert recipe_path("nothing-of-that-name", "sensing") == Path("nothing-of-that-name")
+
+
+def test_nothing_is_written_into_the_package(tmp_path):
+    """Outputs never land in the installed package (a wheel's products/ included): one line."""
+    import metadesign
+    from metadesign.outputs import check_output
+    from metadesign.validation import InputError
+
+    pkg = Path(metadesign.__file__).resolve().parent
+    for out, kind in ((pkg / "products" / "library" / "fig.png", "figure"), (pkg / "demo-out", "demo")):
+        with pytest.raises(InputError, match="inside the installed metadesign package"):
+            check_output(out, kind)
+    check_output(tmp_path / "fig.png", "figure")

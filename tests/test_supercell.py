@@ -103,7 +103,7 @@ def test_lpa_check_command_end_to_end(tmp_path, demo_products, tiny_dataset):
     tiny_model(tmp_path)
     r = run_cli("library", "lpa-check", str(demo_products["layout"]), "--supercells", "2", "--harmonics", "120",
                 "--check", "1", "--dataset", str(tiny_dataset), "--model", str(tmp_path / "m.safetensors"),
-                "--samples", "2", "--noise", "0", "-j", "1", "-o", str(tmp_path / "lpa"), "--json")
+                "--limit", "2", "--noise", "0", "-j", "1", "-o", str(tmp_path / "lpa"), "--json")
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     assert len(rep["rows"]) == 2 and rep["n_harmonics_supercell"] > 3.5 * rep["n_harmonics_unit"]

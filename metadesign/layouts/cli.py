@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..cliutil import emit, integer, out_dir, out_file, progress_bar, workers_arg
 from ..config import InputError
-from ..outputs import Input, product
+from ..outputs import product
 from .rules import DESIGN_RULES
 
 __all__ = ["register", "SUBCOMMANDS", "DEFAULT", "MAX_PREVIEW_CELLS"]

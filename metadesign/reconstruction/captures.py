@@ -542,10 +542,10 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
                             dimension_names=("sample",))
         nm[:] = np.array(kept, np.int64)  # row of the manifest
         g.attrs.update({"complete": True})
+        consolidate(tmp)  # before the calibration files beside the arrays (zarr would warn of them)
 
         atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
         _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
-        consolidate(tmp)
         if out.exists():
             shutil.rmtree(out)
         tmp.rename(out)

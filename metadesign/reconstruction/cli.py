@@ -5,10 +5,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
-from ..outputs import Input, product, zarr_input
+from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, progress_bar, workers_arg
+from ..outputs import product, zarr_input
 
 __all__ = ["register"]
 
@@ -189,8 +190,11 @@ def _cmd_export(a: argparse.Namespace) -> int:
     from .export import export_onnx
 
     out = out_file(a.onnx, "-o/--output", suffixes=(".onnx",))
-    with product(out, "onnx", {"model": a.model}):
-        rep = export_onnx(a.model, out, a.opset)
+    with product(out, "onnx", {"model": a.model, "--dataset": zarr_input(a.dataset) if a.dataset else None}):
+        rep = export_onnx(a.model, out, a.opset, a.dataset)
+    if not rep["camera"]:
+        print("metadesign: warning: no --dataset: the contract lacks the camera geometry, orientation and device "
+              "(give the dataset the model was trained on)", file=sys.stderr)
     emit(rep, a.json, f"wrote {out} ({rep['bytes'] / 1e6:.1f} MB, opset {rep['opset']}, dynamic batch): onnxruntime "
          f"matches torch within {rep['max_abs_diff']:.1e} rad on random inputs")
     return 0
@@ -229,6 +233,8 @@ def register(sub) -> dict:
     ex.add_argument("model", help="model weights (.safetensors with its .json card)")
     ex.add_argument("-o", "--output", "--onnx", dest="onnx", required=True, help="output .onnx file")
     ex.add_argument("--opset", type=integer(13, 23), default=17, help="ONNX opset (default 17)")
+    ex.add_argument("--dataset", help="the dataset the model was trained on: its camera geometry, quadrant windows, "
+                    "orientation, flat-spot centroids, wavelength and device go into the contract")
     ex.add_argument("--json", action="store_true", help="print the report as JSON")
     ex.set_defaults(func=_cmd_export)
 
@@ -314,7 +320,7 @@ def register(sub) -> dict:
     p = dsub.add_parser("plot", help="draw a few samples and the Rytov histogram")
     p.add_argument("dataset", help="dataset folder")
     p.add_argument("-o", "--output", help="PNG path (default: DATASET/fig-dataset.png)")
-    p.add_argument("--samples", type=integer(1, 8), default=3, help="samples to draw (1..8, default 3)")
+    limit_arg(p, "at most this many samples drawn (1..8, default 3)", type=integer(1, 8), default=3)
     p.set_defaults(func=_cmd_plot)
     im = dsub.add_parser(
         "import", help="camera captures (frames + SLM phases + manifest) -> a dataset (propagation = slm)",

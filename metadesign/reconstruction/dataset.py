@@ -42,7 +42,7 @@ from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
-from ..io import atomic_write_text, read_npz
+from ..io import read_npz
 from ..outputs import MARKER, product
 from ..layouts.make import make_layout
 from ..library.locate import file_sha256
@@ -51,7 +51,6 @@ from ..parallel import dask_client
 from ..sensing.device import Device, ReceiverCrop, load_pupil
 from ..sensing.forward import CoarsePupil
 from ..sensing.sensor import SensorSpec
-from ..sensing.transmission import Perturbation
 from ..turbulence.system import build_system
 from ..turbulence.chain import BeaconChain
 from ..turbulence.path import check_sampling, solve_path

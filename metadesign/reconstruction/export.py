@@ -12,7 +12,12 @@ import numpy as np
 
 from .. import __version__
 from ..io import atomic_path
+from ..sensing.forward import sensor_frames
+from ..sensing.sensor import quadrant_slices
 from ..validation import ValidationError
+from .captures import spot_centroids
+from .dataset import load_device, open_dataset
+from .model import check_sizes
 from .refine import load_network
 
 __all__ = ["export_onnx", "onnx_parity", "contract", "PARITY_TOL"]
@@ -21,10 +26,11 @@ __all__ = ["export_onnx", "onnx_parity", "contract", "PARITY_TOL"]
 PARITY_TOL = 1e-3
 
 
-def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17) -> dict:
-    """Write ``out`` (atomically) from the safetensors model, with its preprocessing contract as ONNX
-    metadata (:func:`contract`); returns the parity check on random inputs.  An export whose onnxruntime
-    output is off (or NaN) is never written."""
+def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17, dataset: str | Path | None = None) -> dict:
+    """Write ``out`` (atomically) from the safetensors model, with its deployment contract as ONNX metadata
+    (:func:`contract`; with ``dataset``, the one the model was trained on, the camera and device blocks a
+    lab needs to turn raw frames into the input); returns the parity check on random inputs.  An export
+    whose onnxruntime output is off (or NaN) is never written."""
     import json
 
     import onnx
@@ -33,7 +39,11 @@ def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17) -> dic
     model, card = load_network(model_path)
     s = model.config.input_size
     x = torch.randn(2, 8, s, s)
-    meta = contract(model, card)
+    dev = None
+    if dataset is not None:
+        dev = load_device(dataset)
+        check_sizes(model.config, dev.sensor.tensor_size, dev.crop.size, f"model {model_path} on {dataset}")
+    meta = contract(model, card, dev, open_dataset(dataset).attrs if dataset is not None else None)
     with atomic_path(out) as tmp:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -50,22 +60,79 @@ def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17) -> dic
         if not np.isfinite(parity["max_abs_diff"]) or parity["max_abs_diff"] > PARITY_TOL:
             raise ValidationError(f"{out}: onnxruntime output differs from torch by {parity['max_abs_diff']:.3g} "
                                   f"rad (tolerance {PARITY_TOL:g}); nothing written")
-    return {"file": str(out), "bytes": Path(out).stat().st_size, "opset": opset,
+    return {"file": str(out), "bytes": Path(out).stat().st_size, "opset": opset, "camera": dev is not None,
             "input": ["batch", 8, s, s], "output": ["batch", model.config.aperture_size, model.config.aperture_size],
             "metadata": sorted(meta), **parity}
 
 
-def contract(model, card: dict) -> dict:
-    """The preprocessing contract a deployment needs, as ONNX metadata (strings; JSON where structured):
-    what the input tensor is and how it is normalised, the channel order, the output's grid, sampling and
-    units, and where the weights came from."""
-    c = model.config
-    crop = card.get("received_crop") or {}
+CHANNELS = ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV", "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]
+
+
+def camera_contract(dev) -> dict:
+    """Everything that turns two raw camera frames into the model's input tensor, for the sensor of device
+    ``dev``: the frame geometry, the quadrant windows, the row and column orientation, the polarisation
+    of each frame, the steps, and the flat-wavefront spot centroids a lab checks its orientation with."""
+    sen = dev.sensor
+    windows = {}
+    for k, q in enumerate(("QI", "QII", "QIII", "QIV"), 1):
+        r, c = quadrant_slices(sen, k)
+        windows[q] = {"rows": [r.start, r.stop], "cols": [c.start, c.stop]}
+    flat = sensor_frames(dev.pupil, sen, None)
+    cen = spot_centroids(flat, sen)
     return {
+        "frames": ["x-pol", "y-pol"],
+        "frame_px": {"width": sen.width_px, "height": sen.height_px},
+        "pixel_pitch_m": sen.pixel_pitch, "relay_magnification": sen.magnification,
+        "orientation": "array[row, col] with the row index increasing with the metasurface's y and the column "
+                       "index with its x (row 0 at y = -(height - 1) / 2 pixels): QI and QII are the first "
+                       "half of the rows. A frame read top-down where the camera counts bottom-up is flipped: "
+                       "check with flat_spot_centroids_px",
+        "quadrant_windows": windows,
+        "channels": CHANNELS,
+        "flat_spot_centroids_px": {ch: [round(float(x), 3), round(float(y), 3)] for ch, (x, y) in zip(CHANNELS, cen)},
+        "flat_spot_centroids_meaning": "(col, row) of each spot's thresholded centre of gravity (10 % of its "
+                                       "quadrant's peak) for a flat wavefront: a capture's centroids within a "
+                                       "few pixels of these means the frames are oriented and aligned",
+        "steps": ["subtract the mean dark frame (counts) from each frame; no flat-field (the normalisation "
+                  "removes a common gain); replace hot pixels by their neighbours' median",
+                  "channel 4 p + k - 1 = quadrant window k (QI..QIV) of frame p (x-pol, y-pol)",
+                  "area-resample each window to S x S: output pixel i covers input pixels [i, i + 1) n / S along "
+                  "each axis, weighted by overlap (every input pixel's power lands once)",
+                  "divide the 8 channels by their common total and multiply by 8 (the channels sum to 8)",
+                  "float32, shape (batch, 8, S, S), input name 'psf'"],
+        "tensor_size": sen.tensor_size,
+        "sensor_distance_m": sen.distance,
+    }
+
+
+def contract(model, card: dict, dev=None, attrs: dict | None = None) -> dict:
+    """The deployment contract, as ONNX metadata (strings; JSON where structured): what the input tensor is
+    and how a raw camera frame becomes it (with ``dev``: the camera geometry, quadrant windows, orientation,
+    steps, flat-spot centroids), the output's grid, sampling and units and how it becomes an SLM command,
+    the wavelength, the training noise with its unit, and the device and weights it belongs to."""
+    c = model.config
+    crop = card.get("received_crop") or (attrs or {}).get("received_crop") or {}
+    prov = (attrs or {}).get("provenance") or {}
+    noise = card.get("noise") or {}
+    extra = {}
+    if dev is not None:
+        extra["metadesign.camera"] = camera_contract(dev)
+        extra["metadesign.wavelength_m"] = dev.wavelength
+        extra["metadesign.device"] = {"layout_sha256": prov.get("layout_sha256"),
+                                      "library_sha256": prov.get("library_sha256"),
+                                      "design": prov.get("design"), "perturbation": prov.get("perturbation"),
+                                      "dataset_recipe_hash": attrs.get("recipe_hash") if attrs else None}
+    return {
+        **extra,
+        "metadesign.slm_command": {"phase_rad": "-phase (the conjugate of the received phase) on the output grid, "
+                                                "0 outside the aperture; add the optics' own focusing phase",
+                                   "grid": "metadesign.output.grid"},
+        "metadesign.training_noise": {**noise, "unit": "gaussian_percent: % of each channel's peak; "
+                                                       "photons_at_peak: photo-electrons at each channel's peak"},
+        "metadesign.trained_for": (card.get("dataset") or card.get("trained_on") or {}),
         "metadesign.format": "metadesign.onnx/1",
         "metadesign.input": {"name": "psf", "shape": ["batch", 8, c.input_size, c.input_size], "dtype": "float32",
-                             "channels": ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV",
-                                          "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"],
+                             "channels": CHANNELS,
                              "normalisation": card.get("input_normalisation")
                              or "each sample's 8 channels sum to 8",
                              "resampling": "each sensor quadrant area-resampled to S x S pixels (power conserved)",

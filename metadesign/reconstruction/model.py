@@ -10,7 +10,6 @@ layer: training starts at the flat (uncorrected) phase.  Weights ship as safeten
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 

@@ -11,7 +11,6 @@ restarted with ``--resume`` reproduces the loss curve of an uninterrupted run on
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -400,6 +399,7 @@ def _end_epoch(rec_row: dict, t0: float, model, va, pib, device, history: list, 
         save(model, run / "model.safetensors", {
             "dataset": {"path": str(dataset), "recipe_hash": attrs.get("recipe_hash"),
                         "layout_sha256": attrs["provenance"].get("layout_sha256")},
+            "sensor": attrs["provenance"].get("sensor"),  # the camera the model was trained for
             "recipe": recipe.raw, "epoch": epoch + 1, "metrics": rec_row, "init": init_card,
             "input_normalisation": attrs.get("normalisation"),
             "noise_percent": va.noise.describe()["gaussian_percent"], "noise": va.noise.describe(),

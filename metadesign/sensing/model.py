@@ -3,7 +3,6 @@ layout file -> pillars -> (perturbed) complex t -> coarse pupils -> sensor."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 

@@ -8,7 +8,7 @@ import contextlib
 from dataclasses import replace
 from pathlib import Path
 
-from ..cliutil import emit, integer, log_to, num, out_dir, out_file, progress_bar, workers_arg
+from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, progress_bar, workers_arg
 from ..cards import card_path
 from ..outputs import Need, path_fields, product, zarr_input
 from ..paths import recipe_path, repo_root
@@ -171,9 +171,10 @@ def _cmd_demo(a: argparse.Namespace) -> int:
     from .demo import run_demo
 
     out = out_dir(a.output)
-    with product(out, "demo"):
-        summary = run_demo(out, log=log_to(a.json))
-    emit(summary, a.json, summary["text"])
+    with product(out, "demo"):  # each line printed once, as its stage completes (--json: the summary alone)
+        summary = run_demo(out, log=(lambda s: None) if a.json else (lambda s: print(s, flush=True)))
+    if a.json:
+        emit(summary, True, "")
     return 0 if summary["passed"] else 1
 
 
@@ -565,8 +566,7 @@ def register(sub, groups: dict) -> None:
     lp.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
     lp.add_argument("--dataset", help="dataset whose device pupil and test samples serve the downstream study")
     lp.add_argument("--model", help="U-Net weights for the downstream NPiB")
-    lp.add_argument("--limit", "--samples", dest="samples", type=integer(1, 100000), default=64,
-                    help="at most this many test samples downstream (64)")
+    limit_arg(lp, "at most this many test samples downstream (64)", type=integer(1, 100000), default=64)
     lp.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), default=5.0,
                     help="sensor noise downstream, %% of peak (5)")
     lp.add_argument("-o", "--output", help="output folder (default: lpa-check/ beside the design)")
@@ -622,8 +622,7 @@ def register(sub, groups: dict) -> None:
     cc.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml; the dataset's with --dataset)")
     cc.add_argument("--dataset", help="dataset whose test samples are re-rendered (its device's sensor and grid)")
     cc.add_argument("--model", help="U-Net weights for the NPiB")
-    cc.add_argument("--limit", "--samples", dest="samples", type=integer(1, 100000), default=64,
-                    help="at most this many test samples (64)")
+    limit_arg(cc, "at most this many test samples (64)", type=integer(1, 100000), default=64)
     cc.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), default=5.0,
                     help="sensor noise, %% of peak (5)")
     cc.add_argument("-o", "--output", help="output folder (default: coupling-check/ beside the design)")
@@ -638,8 +637,7 @@ def register(sub, groups: dict) -> None:
     sy.add_argument("--device", required=True, help="dataset of the device to render (older datasets: or their device-pupil.npz)")
     sy.add_argument("-o", "--output", required=True, help="capture folder to write")
     sy.add_argument("--split", choices=("train", "val", "test", "all"), default="all", help="samples of PHASES")
-    sy.add_argument("--limit", "--samples", dest="samples", type=integer(1, 10_000_000),
-                    help="at most this many samples of the split")
+    limit_arg(sy, "at most this many samples of the split", type=integer(1, 10_000_000))
     sy.add_argument("--shift", nargs=2, type=num(-200, 200), default=(0.0, 0.0), metavar=("DX", "DY"),
                     help="relay shift, camera pixels")
     sy.add_argument("--rotation-deg", type=num(-10, 10), default=0.0)

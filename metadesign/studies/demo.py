@@ -56,7 +56,6 @@ def _stage_library(out: Path, log) -> dict:
     line = (f"{s['grid']['n_wx']}x{s['grid']['n_wy']} cells, nG {s['solver']['n_harmonics']}, convergence "
             f"{s['convergence']['max_phase_change_rad']:.4f} rad, {100 * s['fraction_above_threshold']:.1f} % "
             f"cells with T0 >= 70 %, RCWA re-check {err:.1e}")
-    log(f"library: {line}")
     return {"line": line, "summary": s, "recheck_max_abs_error": err, "figures": [str(fig)]}
 
 
@@ -70,7 +69,6 @@ def _stage_design(out: Path, log) -> dict:
     line = (f"{d.spec.n_cells}x{d.spec.n_cells} cells, {m['n_atoms']} atoms, RMSE x {m['rmse_rad'][0]:.3f} "
             f"y {m['rmse_rad'][1]:.3f} rad, peak {m['peak_error_rad'][0]:.3f}/{m['peak_error_rad'][1]:.3f} rad, "
             f"mean T0 {m['mean_T0'][0]:.3f}/{m['mean_T0'][1]:.3f}")
-    log(f"design: {line}")
     return {"line": line, "metrics": m, "path": str(path), "figures": [str(fig)]}
 
 
@@ -82,7 +80,6 @@ def _stage_layout(out: Path, log) -> dict:
     line = (f"{rep['pillars']:,} pillars, {rep['bytes'] / 1e3:.0f} kB OASIS in {rep['seconds']:.2f} s; read-back exact "
             f"{v['exact']} (gdstk) / {k['exact']} (KLayout); DRC {'pass' if drc['passed'] else 'FAIL'} (min feature "
             f"{drc['from_atom_table']['min_feature_nm']} nm, min gap {min(drc['from_atom_table']['min_gap_x_nm'], drc['from_atom_table']['min_gap_y_nm'])} nm)")
-    log(f"layout: {line}")
     return {"line": line, "write": rep, "verify_gdstk": v, "verify_klayout": k, "drc": drc, "figures": [str(fig)],
             "passed": made.passed}
 
@@ -106,7 +103,6 @@ def _stage_sensing(out: Path, log) -> dict:
             f"per channel, Strehl {min(r['strehl'] for r in nom):.3f}..{max(r['strehl'] for r in nom):.3f}, "
             f"crosstalk {max(r['crosstalk'] for r in nom):.3f}; fab study: Strehl "
             + ", ".join(f"{lab} {np.mean([r['strehl'] for r in rows if r['label'] == lab]):.3f}" for lab in names))
-    log(f"sensing: {line}")
     return {"line": line, "channels": nom, "fab_study": rows, "figures": [str(f) for f in figs]}
 
 
@@ -125,7 +121,6 @@ def _stage_turbulence(out: Path, log) -> dict:
             + ", ".join(f"{x['rytov_nominal']:g} -> {x['rytov_measured']:.3f}" for x in lv)
             + "; NPiB complex/phase/none at 0.5: "
             + "/".join(f"{np.mean(lv[-1]['npib'][m]):.2f}" for m in ("complex", "phase", "none")))
-    log(f"turbulence: {line}")
     return {"line": line, "structure_function": res["structure_function"],
             "levels": [{k: v for k, v in x.items() if k in ("rytov_nominal", "rytov_measured", "D_over_r0")}
                        for x in lv], "figures": [str(f) for f in figs]}
@@ -202,7 +197,6 @@ def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
     line = (f"{n_samples} fresh beacons through the paper design, mean NPiB at 0 % / 5 % noise: {per}; "
             f"uncorrected {m['none']:.3f}, phase conjugate {m['phase_conjugate']:.3f}, complex conjugate "
             f"{m['complex_conjugate']:.3f}; gain median {np.median(g):.1f}x")
-    log(f"reconstruction: {line}")
     return {"line": line, "npib": m, "captured_fraction": cap, "gain_median": float(np.median(g)),
             "noise_percent": list(DEMO_NOISE), "model_card": card.get("metrics"),
             "figures": [str(fig_path)], "passed": all(m[k] > m["none"] for k in cap)}
@@ -213,22 +207,29 @@ STAGES = (("library", _stage_library), ("design", _stage_design), ("layout", _st
 
 
 def run_demo(out: Path, log: Callable[[str], None] = print) -> dict:
+    """Every stage on the embedded designs into ``out``; ``log`` gets the summary's lines as they come (the
+    header, each stage's line when it completes, then figures, time and checks), each once."""
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     result: dict = {"output": str(out), "stages": {}}
+    lines = [f"metadesign demo -> {out}/"]
+    log(lines[0])
     for name, fn in STAGES:
         if name == "reconstruction" and not (repo_root() / DEMO_MODEL).exists():
-            log("reconstruction: skipped (no committed demo model at " + DEMO_MODEL + ")")
+            lines.append(f"  {len(lines)}. {name:<9} skipped (no committed demo model at {DEMO_MODEL})")
+            log(lines[-1])
             continue
-        result["stages"][name] = fn(out, log)
+        result["stages"][name] = st = fn(out, log)
+        lines.append(f"  {len(lines)}. {name:<9} {st['line']}")
+        log(lines[-1])
     result["seconds"] = time.perf_counter() - t0
     result["passed"] = all(st.get("passed", True) for st in result["stages"].values())
     figs = [Path(f).name for st in result["stages"].values() for f in st["figures"]]
-    lines = [f"metadesign demo -> {out}/"]
-    lines += [f"  {i}. {name:<9} {st['line']}" for i, (name, st) in enumerate(result["stages"].items(), 1)]
-    lines += [f"  figures      {', '.join(figs)}", f"  time         {result['seconds']:.1f} s",
-              f"  checks       {'all passed' if result['passed'] else 'FAILED (see summary.json)'}"]
-    result["text"] = "\n".join(lines)
+    tail = [f"  figures      {', '.join(figs)}", f"  time         {result['seconds']:.1f} s",
+            f"  checks       {'all passed' if result['passed'] else 'FAILED (see summary.json)'}"]
+    for t in tail:
+        log(t)
+    result["text"] = "\n".join(lines + tail)
     atomic_write_text(out / "summary.json", json.dumps({k: v for k, v in result.items() if k != "text"},
                                                       indent=2, sort_keys=True, default=float))
     return result
