@@ -103,3 +103,25 @@ def test_one_content_key():
     assert content_key(a) != content_key(a.astype(np.float64)) and content_key(a) == content_key(a.copy())
     with pytest.raises(TypeError):
         content_key({"layout": Path("/somewhere/layout.oas")})
+
+
+def test_captured_fraction_interval():
+    """The bootstrap interval holds the point estimate, shrinks as 1/sqrt(N), and collapses where every
+    sample captures the same share (an estimate exactly c of the way from uncorrected to the conjugate)."""
+    from metadesign.reconstruction.metrics import captured_fraction, captured_fraction_ci
+
+    rng = np.random.default_rng(0)
+
+    def draw(n):
+        none = rng.uniform(0.05, 0.2, n)
+        pc = none + rng.uniform(0.3, 0.6, n)
+        return none, none + rng.uniform(0.5, 1.0, n) * (pc - none), pc
+
+    small, big = draw(100), draw(1600)
+    lo, hi = captured_fraction_ci(*small)
+    assert lo < captured_fraction(*small) < hi
+    lo2, hi2 = captured_fraction_ci(*big)
+    assert 2.5 < (hi - lo) / (hi2 - lo2) < 6.0  # sqrt(16) = 4
+    none, _, pc = big
+    lo3, hi3 = captured_fraction_ci(none, none + 0.7 * (pc - none), pc)
+    assert abs(lo3 - 0.7) < 1e-9 and abs(hi3 - 0.7) < 1e-9

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EVAL_NOISE_SEED", "captured_fraction", "gain", "npib_rows"]
+__all__ = ["EVAL_NOISE_SEED", "captured_fraction", "captured_fraction_ci", "gain", "npib_rows"]
 
 #: the seed of the sensor noise of every evaluation (evaluate, compare): the same draws for every estimator
 EVAL_NOISE_SEED = 12345
@@ -23,6 +23,18 @@ def captured_fraction(none, est, pc) -> float:
     """``(mean(est) - mean(none)) / (mean(pc) - mean(none))``: the share of the phase conjugate's gain an
     estimate captures (1: all of it; 0: none)."""
     return float((np.mean(est) - np.mean(none)) / max(np.mean(pc) - np.mean(none), _EPS))
+
+
+def captured_fraction_ci(none, est, pc, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap interval of :func:`captured_fraction` (percentile, ``n_boot`` resamplings of the samples with
+    replacement, seeded): how well the test set pins the captured fraction down."""
+    none, est, pc = (np.asarray(x, np.float64) for x in (none, est, pc))
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(none), size=(n_boot, len(none)))
+    mn, me, mp = none[idx].mean(1), est[idx].mean(1), pc[idx].mean(1)
+    cf = (me - mn) / np.maximum(mp - mn, _EPS)
+    a = (1 - level) / 2
+    return float(np.quantile(cf, a)), float(np.quantile(cf, 1 - a))
 
 
 def gain(none, est) -> np.ndarray:

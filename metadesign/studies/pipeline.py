@@ -35,6 +35,7 @@ from ..library.recipe import load_recipe
 from ..library.store import load_library
 from ..reconstruction.dataset import TENSOR_SIZE, build_dataset, dataset_recipe_from_dict, received_crop
 from ..reconstruction.evaluate import evaluate_model, plot_fig3, summarise, write_results
+from ..reconstruction.metrics import captured_fraction_ci
 from ..reconstruction.model import check_sizes
 from ..reconstruction.refine import load_network
 from ..reconstruction.train import load_train_recipe, train
@@ -415,7 +416,11 @@ class _Pipeline:
                                  progress=progress_bar("evaluate", "sample"))
             write_results(res, ev_dir)
             figs = plot_fig3(res, ev_dir)
-            return {"figures": [str(f) for f in figs], "summary": {k: summarise(res["rows"][k]) for k in res["rows"]}}
+            summary = {k: summarise(res["rows"][k]) for k in res["rows"]}
+            for k, r in res["rows"].items():  # how well the test set pins the captured fraction down
+                summary[k]["captured_fraction_ci95"] = list(captured_fraction_ci(r["none"], r["unet"],
+                                                                                 r["phase_conjugate"]))
+            return {"figures": [str(f) for f in figs], "summary": summary}
 
         figs = [ev_dir / Path(f).name for f in self._previous("evaluate").get("figures", [])]
         ev = self.stage("evaluate", k_ev, figs or [ev_dir / "__none__"], do_eval)
@@ -435,6 +440,17 @@ class _Pipeline:
                  **({"captured, U-Net alone": f"{r['captured_fraction_unet_alone']:.2f}"} if refines else {}),
                  "gain (median)": f"{r['gain_median']:.1f}x"} for r in summary]
         self.report["headline"] = {"estimator": est, "rows": rows, "n": ev.get("n")}
+        card_cf = _validated_captured_fraction(self.model)
+        for k in levels:
+            v = ev["summary"][k]
+            lo, hi = v.get("captured_fraction_ci95", [float("nan")] * 2)
+            if card_cf is not None:
+                self.check(f"reconstruction at {_noise_value(k):g} % noise: captured fraction against the model card's",
+                           f"{v['captured_fraction']:.2f} (95 % interval {lo:.2f}..{hi:.2f}, n {v['n']})",
+                           f">= {card_cf - CAPTURED_MARGIN:.2f} (card's validation {card_cf:.2f} - "
+                           f"{CAPTURED_MARGIN:g})", hi >= card_cf - CAPTURED_MARGIN,
+                           "the model must do on this device and turbulence what its card says it did on its "
+                           "validation set: the interval's upper end within the margin of the card's figure")
         for r in summary:
             self.check(f"reconstruction at {r['noise_percent']:g} % noise: {est} beats uncorrected",
                        f"NPiB {r['npib_unet']:.3f} vs {r['npib_none']:.3f} (captured {r['captured_fraction']:.2f})",
@@ -483,6 +499,27 @@ def _noise_value(key: str) -> float:
 def _img(title: str, f: Path) -> str:
     b64 = base64.b64encode(Path(f).read_bytes()).decode()
     return f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>"
+
+
+#: how far below its card's validated captured fraction a model may score on the pipeline's test set
+CAPTURED_MARGIN = 0.10
+
+
+def _validated_captured_fraction(model) -> float | None:
+    """The captured fraction on the validation set recorded in a model's card (None: not recorded)."""
+    try:
+        card = json.loads(Path(str(model) + ".json").read_text())
+    except (OSError, ValueError, TypeError):
+        return None
+    m = card.get("metrics") if isinstance(card, dict) else None
+    if not isinstance(m, dict):
+        return None
+    if m.get("val_captured_fraction") is not None:
+        return float(m["val_captured_fraction"])
+    try:
+        return float((m["val_npib"] - m["val_npib_none"]) / (m["val_npib_phase_conjugate"] - m["val_npib_none"]))
+    except (KeyError, TypeError, ZeroDivisionError):
+        return None
 
 
 def _git_commit() -> str | None:
