@@ -21,7 +21,10 @@ from . import __version__  # noqa: E402
 from .cliutil import Parser  # noqa: E402
 from .validation import ValidationError  # noqa: E402
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "OPTIONAL"]
+
+#: what the `learn` extra adds (pyproject.toml): a command that needs one of them on a core install is one line
+OPTIONAL = {"torch", "zarr", "dask", "distributed", "safetensors", "onnx", "onnxruntime", "astropy"}
 
 
 def _stage_modules():
@@ -76,6 +79,13 @@ def main(argv: list[str] | None = None) -> int:
         return int(a.func(a) or 0)
     except ValidationError as exc:
         print(f"metadesign: error: {str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__}",
+              file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in OPTIONAL:
+            raise
+        print(f"metadesign: error: {a.command}: needs {exc.name}, which the core install leaves out: "
+              f"pip install 'metadesign[learn]' (torch, zarr, dask, safetensors, onnx, onnxruntime, astropy)",
               file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into `head` and friends

@@ -167,3 +167,16 @@ def test_help_imports_no_heavy_library():
     from metadesign.studies.compare import ESTIMATORS
 
     assert tuple(ESTIMATORS[:len(BUILTIN_ESTIMATORS)]) == BUILTIN_ESTIMATORS
+
+
+def test_a_core_install_says_what_it_lacks(tmp_path):
+    """A command that needs the `learn` extra on a core install (torch missing) is one line naming it."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['torch'] = None; from metadesign.cli import main; "
+            f"sys.exit(main(['export', {str(tmp_path / 'm.safetensors')!r}, '-o', {str(tmp_path / 'm.onnx')!r}]))")
+    (tmp_path / "m.safetensors").write_bytes(b"x")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1 and "metadesign[learn]" in err[0], p.stderr
