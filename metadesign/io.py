@@ -9,8 +9,7 @@
   or truncated files into one-line :class:`~metadesign.config.InputError`.
 * :func:`output_lock` keeps a second process from writing the same output while
   one is (an advisory ``flock`` the kernel releases when a writer dies, even by
-  SIGKILL); :func:`check_replaceable` lets ``--overwrite`` replace only a folder
-  this project wrote; :func:`check_not_input` keeps an output off its inputs.
+  SIGKILL).  What may be written where is :mod:`metadesign.outputs`'s (the product layer).
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ import numpy as np
 from .config import InputError
 
 __all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "NpzRows", "iter_npz_rows", "read_npz",
-           "read_product", "json_array", "from_json_array", "output_lock", "check_replaceable", "check_not_input",
+           "read_product", "json_array", "from_json_array", "output_lock",
            "lock_path", "claim", "enforce_claims", "claimed"]
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -292,8 +291,8 @@ def read_product(path: str | Path, what: str, need: tuple[str, ...], fmt: str) -
     return z, meta
 
 
-#: locks this process holds (resolved lock path -> depth): output_lock is re-entrant within a process
-_HELD: dict[str, int] = {}
+#: locks this process holds (resolved lock paths): output_lock is re-entrant within a process
+_HELD: set[str] = set()
 
 
 def lock_path(out: str | Path) -> Path:
@@ -312,11 +311,7 @@ def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
     lock = lock_path(out)
     key = str(lock.resolve())
     if key in _HELD:  # this process holds it already (an outer command writing the same output)
-        _HELD[key] += 1
-        try:
-            yield
-        finally:
-            _HELD[key] -= 1
+        yield
         return
     while True:
         try:
@@ -339,38 +334,11 @@ def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
-        _HELD[key] = 1
+        _HELD.add(key)
         yield
     finally:
-        _HELD.pop(key, None)
+        _HELD.discard(key)
         with contextlib.suppress(OSError):
             os.unlink(lock)
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
-
-
-def check_replaceable(out: str | Path, is_ours, what: str) -> None:
-    """Refuse to replace ``out`` unless it is absent, an empty folder, or a product of this project
-    (``is_ours(out)`` true: it carries the product's format marker).  Anything else, dot-files included,
-    is a user's and is never deleted."""
-    out = Path(out)
-    if not out.exists() and not out.is_symlink():
-        return
-    if out.is_symlink() or not out.is_dir():
-        raise InputError(f"{out}: exists and is not a {what} folder (refusing to replace it)")
-    if not any(out.iterdir()) or is_ours(out):
-        return
-    raise InputError(f"{out}: exists and is not a {what} (it holds files metadesign did not write; refusing to "
-                     "write into or replace it: choose another output)")
-
-
-def check_not_input(out: str | Path, inputs: Mapping[str, str | Path | None]) -> None:
-    """Refuse an output that is one of the inputs, lies inside one, or contains one."""
-    o = Path(out).resolve()
-    for name, p in inputs.items():
-        if p is None:
-            continue
-        q = Path(p).resolve()
-        if o == q or q in o.parents or o in q.parents:
-            raise InputError(f"{out}: the output overlaps the input {name} {p} (an input is never its own output)")
-

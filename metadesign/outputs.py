@@ -32,8 +32,8 @@ command cannot write around this layer (the test suite runs every command so).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
-import os
 import shutil
 import struct
 import tempfile
@@ -46,10 +46,10 @@ import numpy as np
 
 from .io import atomic_write_text, claim, output_lock
 from .plotting import PNG_KEY
-from .validation import InputError
+from .validation import MEMORY_FRACTION, InputError, available_memory
 
 __all__ = ["path_fields", "zarr_input", "temporary", "write_marker", "check_need", "MARKER", "KINDS", "Input", "Need", "product", "check_output", "identify", "kind_of_format",
-           "PNG_KEY", "free_memory", "free_disk"]
+           "PNG_KEY", "free_disk"]
 
 #: marker file of a folder product (its kind, written first)
 MARKER = ".metadesign.json"
@@ -314,8 +314,6 @@ def zarr_input(path: str | Path) -> Input:
 def path_fields(obj, prefix: str = "", depth: int = 2) -> dict[str, Path]:
     """The paths a recipe object names (its ``Path`` fields, and those of nested dataclasses): what a study
     declares as its inputs."""
-    import dataclasses
-
     out: dict[str, Path] = {}
     if not dataclasses.is_dataclass(obj) or depth < 0:
         return out
@@ -355,21 +353,6 @@ class Need:
     what: str = ""
 
 
-def free_memory() -> float:
-    """Bytes of memory available (``MemAvailable``; the physical size where /proc is absent)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return float("inf")
-
-
 def free_disk(path: Path) -> float:
     p = Path(path).resolve()
     while not p.exists():
@@ -390,7 +373,7 @@ def check_need(out: Path, need: Need | None) -> None:
         if need.disk > free:
             msgs.append(f"about {_gb(need.disk)} of disk in {out.parent} ({_gb(free)} free)")
     if need.memory > 0:
-        avail = free_memory()
+        avail = available_memory() * MEMORY_FRACTION
         if need.memory > avail:
             msgs.append(f"about {_gb(need.memory)} of memory ({_gb(avail)} available)")
     if msgs:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["repo_root", "default_library_path", "product", "shipped_root", "recipe_path"]
+__all__ = ["repo_root", "default_library_path", "product", "shipped_root", "recipe_path", "resolve_against"]
 
 _CHECKOUT = Path(__file__).resolve().parents[1]
 _SHIPPED = Path(__file__).resolve().parent / "products"
@@ -35,6 +35,14 @@ def product(*parts: str) -> Path:
 
 def default_library_path() -> Path:
     return product("library", "paper.npz")
+
+
+def resolve_against(base: str | Path | None, p) -> Path | None:
+    """A path a recipe names, relative to the recipe's folder ``base`` unless absolute (None: not given)."""
+    if not p:
+        return None
+    q = Path(p)
+    return q if q.is_absolute() or base is None else Path(base) / q
 
 
 def recipe_path(name: str | Path, folder: str) -> Path:

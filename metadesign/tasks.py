@@ -35,7 +35,7 @@ from .io import atomic_write_text, read_npz, write_npz
 from .parallel import run_tasks
 from .validation import ValidationError
 
-__all__ = ["content_key", "file_key", "TaskFolder", "run_resumable"]
+__all__ = ["content_key", "file_key", "path_key", "TaskFolder", "run_resumable"]
 
 
 def _canonical(obj):
@@ -64,6 +64,13 @@ def content_key(*parts) -> str:
 
 def _refuse(obj):
     raise TypeError(f"content_key: {type(obj).__name__} is not JSON content ({obj!r:.60})")
+
+
+def path_key(path: str | Path) -> dict:
+    """A path named as an input, by content: its file's key, or its name where it does not exist (never
+    where it lies)."""
+    p = Path(path)
+    return {"file": file_key(p)} if p.is_file() else {"missing": p.name}
 
 
 def file_key(path: str | Path) -> str:
@@ -104,6 +111,10 @@ class TaskFolder:
 
     def _file(self, name: str, kind: str) -> Path:
         return self.root / f"{name}.{kind}"
+
+    def has(self, name: str) -> bool:
+        """Whether task ``name``'s arrays are kept (without reading them back)."""
+        return self._file(name, "npz").exists()
 
     def load(self, name: str) -> dict | None:
         """A finished task's arrays, or None (not done; a damaged file is removed: it is computed again)."""
@@ -170,7 +181,7 @@ def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store:
     results: dict = {}
     for name in tasks:
         if store == "npz" and not keep:  # large results stay on disk (read back when assembled)
-            r = {} if folder._file(name, "npz").exists() else None
+            r = {} if folder.has(name) else None
         else:
             r = folder.load(name) if store == "npz" else folder.marked(name)
         if r is not None:

@@ -80,3 +80,13 @@ def test_onnxruntime_alone_reconstructs_from_fits_frames(exported, tiny_dataset,
     np.testing.assert_allclose(spot_centroids(flat, dev.sensor), want, atol=1e-3)
     flipped = spot_centroids(flat[:, ::-1], dev.sensor)  # a frame read bottom-up: caught by the centroids
     assert np.abs(flipped - want).max() > 2.0
+
+
+def test_a_bad_dataset_for_the_contract_is_one_line(exported, tmp_path, capsys):
+    """export --dataset with a missing path, a file, or a folder that is no dataset: one line, exit 2, no file."""
+    _, model = exported
+    (tmp_path / "empty").mkdir()
+    for bad in (tmp_path / "missing", REPO / "library" / "paper.npz", tmp_path / "empty"):
+        rc, _, err = run_main(["export", model, "-o", tmp_path / "m.onnx", "--dataset", bad], capsys)
+        assert rc == 2 and len(err) == 1 and "dataset" in err[0], err
+        assert not (tmp_path / "m.onnx").exists()

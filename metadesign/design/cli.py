@@ -34,12 +34,6 @@ def design_text(d, out) -> str:
     ] + ([f"time           {d.seconds['total']:.1f} s"] if d.seconds else []))
 
 
-def design_file(path) -> Path:
-    """The file a design input names (a folder holds ``design.npz``)."""
-    p = Path(path)
-    return p / "design.npz" if p.is_dir() else p
-
-
 def _cmd_build(a: argparse.Namespace) -> int:
     from .recipe import load_design_recipe
     from .store import run_design
@@ -63,7 +57,7 @@ def _cmd_show(a: argparse.Namespace) -> int:
 def _cmd_plot(a: argparse.Namespace) -> int:
     from ..validation import ValidationError
     from .plot import plot_design
-    from .store import design_library, load_design
+    from .store import design_file, design_library, load_design
 
     base = Path(a.design)
     out = out_file(Path(a.output) if a.output else (base if base.is_dir() else base.parent) / "fig-s2.png",
@@ -83,7 +77,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 def _cmd_compensate(a: argparse.Namespace) -> int:
     from ..library.coupling import find_coupling
     from .compensate import compensate_design
-    from .store import design_library, load_design, save_design
+    from .store import design_file, design_library, load_design, save_design
 
     src = Path(a.design)
     d = load_design(src)

@@ -31,7 +31,7 @@ from .discretize import AtomTable, select_atoms
 from .phase import LensChannel, SupercellSpec
 from .recipe import DesignRecipe
 
-__all__ = ["Design", "run_design", "save_design", "load_design", "DESIGN_FORMAT", "check_library", "design_meta",
+__all__ = ["Design", "run_design", "save_design", "load_design", "design_file", "DESIGN_FORMAT", "check_library", "design_meta",
            "select_recipe_atoms", "design_memory_bytes"]
 
 DESIGN_FORMAT = "metadesign.design/1"
@@ -164,10 +164,14 @@ def save_design(out_dir: Path, d: Design) -> Path:
     return out_dir / "design.npz"
 
 
+def design_file(path: str | Path) -> Path:
+    """The file a design argument names: ``DESIGN/design.npz`` for a design folder, else the path itself."""
+    p = Path(path)
+    return p / "design.npz" if p.is_dir() else p
+
+
 def load_design(path: str | Path) -> Design:
-    path = Path(path)
-    if path.is_dir():
-        path = path / "design.npz"
+    path = design_file(path)
     z, meta = read_product(path, "design file",
                            ("index_map", "atom_wx_m", "atom_wy_m", "atom_t", "atom_T0", "atom_lib_index"), DESIGN_FORMAT)
     spec = _spec_from_dict(meta["spec"])

@@ -32,7 +32,7 @@ def _find_design_for(layout: Path, given: str | None):
 
 
 def _cmd_write(a: argparse.Namespace) -> int:
-    from ..design.store import load_design
+    from ..design.store import design_file, load_design
     from . import write_layout
 
     base = Path(a.design)
@@ -51,7 +51,7 @@ def _cmd_write(a: argparse.Namespace) -> int:
     d = load_design(a.design)
     opts = _options(a)
     reports = []
-    src = base / "design.npz" if base.is_dir() else base
+    src = design_file(base)
     for fmt in fmts:
         if fmt == "gds" and d.index_map.size > 1_000_000:
             print(f"metadesign: warning: GDSII cannot store irregular repetitions: {d.index_map.size:,} pillars "
@@ -69,11 +69,10 @@ def _cmd_write(a: argparse.Namespace) -> int:
 
 
 def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
+    from ..design.store import design_file
     from .reader import verify_tiled
 
-    design = Path(a.design) if a.design else path.parent / "design.npz"
-    if design.is_dir():
-        design = design / "design.npz"
+    design = design_file(a.design if a.design else path.parent)
     if not design.exists():
         raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
     rep = verify_tiled(path, design, a.sample_tiles, a.seed, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells,

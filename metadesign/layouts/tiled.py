@@ -222,10 +222,11 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
                        "compression": opts.compression_level, "version": __version__})
     folder = TaskFolder(out_dir / ".tiled-partial", key, log)
     names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
+    rows = {names[r0]: min(tile, n - r0) for r0 in names}  # a stripe's weight in the progress
     t_stripes = time.perf_counter()
     _, computed = run_resumable(_stripe_task, {names[r0]: r0 for r0 in names}, folder, store="npz", compress=False,
                                 keep=False, workers=workers, shared=plan, scheduler=scheduler,
-                                weight=lambda nm: min(tile, n - int(nm.split("-")[1])), progress=progress,
+                                weight=rows.__getitem__, progress=progress,
                                 log=log, unit="row")
     reused = len(names) - len(computed)
     t_stripes = time.perf_counter() - t_stripes

@@ -43,14 +43,15 @@ from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..io import read_npz
-from ..outputs import MARKER, product
+from ..outputs import Need, product
 from ..layouts.make import make_layout
 from ..library.locate import file_sha256
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..parallel import dask_client
+from ..paths import resolve_against
 from ..sensing.device import Device, ReceiverCrop, load_pupil
 from ..sensing.forward import CoarsePupil
-from ..sensing.sensor import SensorSpec
+from ..sensing.sensor import CHANNELS, SensorSpec
 from ..turbulence.system import build_system
 from ..turbulence.chain import BeaconChain
 from ..turbulence.path import check_sampling, solve_path
@@ -444,8 +445,6 @@ def open_xarray(path: str | Path):
     the channel names as plain strings; so ``open_xarray(DATASET).to_netcdf(FILE)`` writes a netCDF-4 file
     (h5netcdf).  The store itself opens with plain ``xarray.open_zarr(DATASET)`` (consolidated, every axis
     labelled, CF units and long names, complex ``received``)."""
-    import json
-
     import xarray as xr
 
     open_dataset(path)  # a missing, damaged or unfinished store: one line
@@ -527,7 +526,7 @@ def _write_coordinates(g, n: int, s: int, a: int, attrs: dict) -> None:
     crop = attrs.get("received_crop") or {}
     c = g.create_array("sample", shape=(n,), chunks=(max(n, 1),), dtype="int64", dimension_names=("sample",))
     c[:] = np.arange(n)
-    labels = ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV", "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]
+    labels = list(CHANNELS)
     ch = g.create_array("channel", shape=(8,), chunks=(8,), dtype=str, dimension_names=("channel",))
     ch[:] = np.array(labels)  # a string coordinate: ds.sel(channel="x-pol QI")
     ch.attrs.update({"labels": labels})
@@ -570,11 +569,17 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
     if out.exists() and not out.is_dir():
         raise ValidationError(f"-o/--output {out}: exists and is not a folder")
     f = recipe.fabrication
+    base = recipe.source.parent if recipe.source else Path.cwd()  # what the recipe's paths are relative to
+    need = None
+    if overwrite or not (out / "zarr.json").exists():  # a new store (a resumed one holds its arrays already)
+        s, a = expected_sizes(recipe)  # the arrays uncompressed: an upper bound
+        need = Need(disk=recipe.samples * (8 * s * s * 4 + a * a * 8 + 64),
+                    what="fewer dataset.samples, a smaller tensor_size or another output")
     with product(out, "dataset", {"dataset.layout": recipe.layout, "dataset.design": recipe.design,
                                   "dataset.sensor": recipe.sensor, "dataset.turbulence": recipe.turbulence,
                                   "the recipe": recipe.source,
-                                  "fabrication.coupling_model": _recipe_path(recipe, f["coupling_model"]),
-                                  "fabrication.fab_library": _recipe_path(recipe, f["fab_library"])}):
+                                  "fabrication.coupling_model": resolve_against(base, f["coupling_model"]),
+                                  "fabrication.fab_library": resolve_against(base, f["fab_library"])}, need=need):
         own = None
         if scheduler is not None and client is None:  # an unreachable scheduler fails before anything is written
             client = own = dask_client(scheduler)
@@ -585,36 +590,9 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
                 own.close()
 
 
-def _recipe_path(recipe: DatasetRecipe, value) -> Path | None:
-    """A path named in the recipe, relative to the recipe's folder (None: not given)."""
-    if not value:
-        return None
-    p = Path(value)
-    return p if p.is_absolute() else (recipe.source.parent if recipe.source else Path.cwd()) / p
-
-
-def _is_partial_dataset(out: Path) -> bool:
-    """A folder holding only what an interrupted ``dataset build`` leaves before its store exists."""
-    return all(p.name.startswith(("device-pupil", ".device-pupil", ".shards", MARKER)) for p in out.iterdir())
-
-
-def _check_disk(out: Path, n: int, s: int, a: int) -> int:
-    """Refuse a dataset whose arrays (uncompressed: an upper bound) exceed the free disk; returns the bytes."""
-    need = n * (8 * s * s * 4 + a * a * 8 + 64)
-    free = shutil.disk_usage(out.parent if not out.exists() else out).free
-    if need > free:
-        raise ValidationError(f"dataset.samples: {n} samples of 8 x {s}^2 need up to {need / 1e9:.1f} GB on disk "
-                              f"(uncompressed), {free / 1e9:.1f} GB are free at {out.parent}: use fewer samples, a "
-                              "smaller tensor_size or another output")
-    return need
-
-
 def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, overwrite: bool, progress, log,
                    client) -> dict:
-    existing = _read_attrs(out) if (out / "zarr.json").exists() else None
-    if out.exists() and existing is None and not _is_partial_dataset(out):
-        raise ValidationError(f"{out}: exists and is not a metadesign dataset (it holds files metadesign did not "
-                              "write; refusing to write into it)")
+    existing = _read_attrs(out) if (out / "zarr.json").exists() else None  # (a foreign folder: refused already)
     scenario = load_scenario(recipe.turbulence)
     for r in ([*recipe.rytov_values] if recipe.rytov_values else list(recipe.rytov_range)):
         sc = replace(scenario, rytov=r)
@@ -645,8 +623,6 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     n_shards = (n + shard - 1) // shard
     t_start = time.perf_counter()
     c0, a = received_crop(scenario)
-    if existing is None:
-        _check_disk(out, n, recipe.tensor_size, a)
     out.mkdir(exist_ok=True)
     if existing is None:
         attrs = {

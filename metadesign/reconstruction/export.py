@@ -13,7 +13,7 @@ import numpy as np
 from .. import __version__
 from ..io import atomic_path
 from ..sensing.forward import sensor_frames
-from ..sensing.sensor import quadrant_slices
+from ..sensing.sensor import CHANNELS, QUADRANTS, quadrant_slices
 from ..validation import ValidationError
 from .captures import spot_centroids
 from .dataset import load_device, open_dataset
@@ -65,16 +65,13 @@ def export_onnx(model_path: str | Path, out: str | Path, opset: int = 17, datase
             "metadata": sorted(meta), **parity}
 
 
-CHANNELS = ["x-pol QI", "x-pol QII", "x-pol QIII", "x-pol QIV", "y-pol QI", "y-pol QII", "y-pol QIII", "y-pol QIV"]
-
-
 def camera_contract(dev) -> dict:
     """Everything that turns two raw camera frames into the model's input tensor, for the sensor of device
     ``dev``: the frame geometry, the quadrant windows, the row and column orientation, the polarisation
     of each frame, the steps, and the flat-wavefront spot centroids a lab checks its orientation with."""
     sen = dev.sensor
     windows = {}
-    for k, q in enumerate(("QI", "QII", "QIII", "QIV"), 1):
+    for k, q in enumerate(QUADRANTS, 1):
         r, c = quadrant_slices(sen, k)
         windows[q] = {"rows": [r.start, r.stop], "cols": [c.start, c.stop]}
     flat = sensor_frames(dev.pupil, sen, None)
@@ -88,7 +85,7 @@ def camera_contract(dev) -> dict:
                        "half of the rows. A frame read top-down where the camera counts bottom-up is flipped: "
                        "check with flat_spot_centroids_px",
         "quadrant_windows": windows,
-        "channels": CHANNELS,
+        "channels": list(CHANNELS),
         "flat_spot_centroids_px": {ch: [round(float(x), 3), round(float(y), 3)] for ch, (x, y) in zip(CHANNELS, cen)},
         "flat_spot_centroids_meaning": "(col, row) of each spot's thresholded centre of gravity (10 % of its "
                                        "quadrant's peak) for a flat wavefront: a capture's centroids within a "
@@ -132,7 +129,7 @@ def contract(model, card: dict, dev=None, attrs: dict | None = None) -> dict:
         "metadesign.trained_for": (card.get("dataset") or card.get("trained_on") or {}),
         "metadesign.format": "metadesign.onnx/1",
         "metadesign.input": {"name": "psf", "shape": ["batch", 8, c.input_size, c.input_size], "dtype": "float32",
-                             "channels": CHANNELS,
+                             "channels": list(CHANNELS),
                              "normalisation": card.get("input_normalisation")
                              or "each sample's 8 channels sum to 8",
                              "resampling": "each sensor quadrant area-resampled to S x S pixels (power conserved)",

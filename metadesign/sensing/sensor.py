@@ -22,7 +22,13 @@ import numpy as np
 from ..conventions import centered
 from ..validation import ConfigError, check_int, check_number
 
-__all__ = ["SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "photo_electrons", "area_weights", "area_resample"]
+__all__ = ["QUADRANTS", "CHANNELS", "SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "photo_electrons", "area_weights", "area_resample"]
+
+
+#: the four quadrants of a frame, reading order (k = 1..4), and the 8 channels of the PSF tensor (channel
+#: 4 p + k - 1: quadrant k of polarisation p's frame)
+QUADRANTS = ("QI", "QII", "QIII", "QIV")
+CHANNELS = tuple(f"{p}-pol {q}" for p in "xy" for q in QUADRANTS)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, progress_bar, workers_arg
 from ..cards import card_path
-from ..outputs import Need, path_fields, product, zarr_input
+from ..design.store import design_file
+from ..outputs import path_fields, product, zarr_input
 from ..paths import recipe_path, repo_root
 from ..validation import InputError
 
@@ -19,12 +20,6 @@ __all__ = ["register"]
 #: the estimators metadesign registers (metadesign.reconstruction.estimators), named here so that ``--help``
 #: need not import them; ``compare`` checks ``--methods`` against the live registry
 BUILTIN_ESTIMATORS = ("shack_hartmann", "retrieval", "unet", "hybrid", "refine")
-
-
-def design_input(path) -> Path:
-    """The file a design or layout input names (a design folder holds ``design.npz``)."""
-    p = Path(path)
-    return p / "design.npz" if p.is_dir() else p
 
 
 def _settings(a: argparse.Namespace, methods):
@@ -299,7 +294,7 @@ def _cmd_lpa(a: argparse.Namespace) -> int:
 
         raise ValidationError("--dataset and --model go together (the downstream NPiB needs both)")
     log = log_to(a.json)
-    inputs = {"design": design_input(src), "--dataset": zarr_input(a.dataset) if a.dataset else None,
+    inputs = {"design": design_file(src), "--dataset": zarr_input(a.dataset) if a.dataset else None,
               "--model": a.model}
     with product(out, "lpa-check", inputs):
         if src.is_dir():
@@ -354,7 +349,7 @@ def _cmd_lpa(a: argparse.Namespace) -> int:
 
 
 def _cmd_supercells(a: argparse.Namespace) -> int:
-    from .supercells import build_table, load_supercell_recipe
+    from .supercells import build_table, load_supercell_recipe, supercell_need
 
     rec = load_supercell_recipe(a.recipe)
     out = out_file(Path(a.output) if a.output else rec.default_output(), suffixes=(".npz",))
@@ -370,13 +365,6 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
                       f"{rep['n_harmonics']}; {rep['solve_seconds']:.0f} s solving here "
                       f"({rep['seconds_per_supercell_core']:.1f} s per supercell per core)")
     return 0
-
-
-def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
-    """A supercell table's peak: the rows on disk twice (chunks + the table) and, per worker, the RCWA
-    solve's matrices (about 30 complex (2 nG)^2 arrays)."""
-    return Need(disk=2 * n * 256.0, memory=workers * 30 * 16.0 * (2 * n_harmonics) ** 2,
-                what="fewer -j workers or a lower table.n_harmonics")
 
 
 def _cmd_coupling(a: argparse.Namespace) -> int:
@@ -447,7 +435,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     src = Path(a.design)
     out = out_dir(a.output or (src if src.is_dir() else src.parent) / "coupling-check")
     log = log_to(a.json)
-    inputs = {"design": design_input(src), "--compensated": design_input(a.compensated) if a.compensated else None,
+    inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model}
     with product(out, "coupling-check", inputs):

@@ -41,7 +41,7 @@ from ..validation import ValidationError
 __all__ = ["run_demo"]
 
 
-def _stage_library(out: Path, log) -> dict:
+def _stage_library(out: Path) -> dict:
     lib = load_library(default_library_path())
     s = lib.summary()
     fig = plot_library(lib, out / "library-fig-s1.png")
@@ -59,7 +59,7 @@ def _stage_library(out: Path, log) -> dict:
     return {"line": line, "summary": s, "recheck_max_abs_error": err, "figures": [str(fig)]}
 
 
-def _stage_design(out: Path, log) -> dict:
+def _stage_design(out: Path) -> dict:
     recipe = load_design_recipe(repo_root() / "layouts" / "demo.toml")
     d, path = run_design(recipe, out / "design")
     fig = plot_design(d, out / "design-fig-s2.png", load_library(recipe.library_path))
@@ -72,7 +72,7 @@ def _stage_design(out: Path, log) -> dict:
     return {"line": line, "metrics": m, "path": str(path), "figures": [str(fig)]}
 
 
-def _stage_layout(out: Path, log) -> dict:
+def _stage_layout(out: Path) -> dict:
     d = load_design(out / "design")
     made = make_layout(d, out / "design" / "layout.oas", klayout=True)
     rep, v, k, drc = made.write, made.verify, made.verify_klayout, made.drc
@@ -84,7 +84,7 @@ def _stage_layout(out: Path, log) -> dict:
             "passed": made.passed}
 
 
-def _stage_sensing(out: Path, log) -> dict:
+def _stage_sensing(out: Path) -> dict:
     system = build_system(out / "design" / "layout.oas", repo_root() / "sensing" / "demo.toml")
     fab, sr = system.device, system.sensing
     res = render_psf(fab, sr)
@@ -106,7 +106,7 @@ def _stage_sensing(out: Path, log) -> dict:
     return {"line": line, "channels": nom, "fab_study": rows, "figures": [str(f) for f in figs]}
 
 
-def _stage_turbulence(out: Path, log) -> dict:
+def _stage_turbulence(out: Path) -> dict:
     sc = load_scenario(repo_root() / "sensing" / "turbulence.toml")
     res = validate(sc, rytovs=(0.1, 0.3, 0.5), samples=10, pib_samples=5)
     figs = plot_validation(res, out)
@@ -131,7 +131,7 @@ DEMO_REFINER = "sensing/models/demo-refine.safetensors"  # names DEMO_MODEL as i
 DEMO_NOISE = (0.0, 5.0)  # % of each channel's peak: a clean camera and the paper's training noise
 
 
-def _stage_reconstruction(out: Path, log, n_samples: int = 32) -> dict:
+def _stage_reconstruction(out: Path, n_samples: int = 32) -> dict:
     """The committed robust demo U-Net and its learned refinement on freshly drawn beacons through the
     paper design (not their training samples: another root seed), at 0 % and 5 % sensor noise, against
     no correction and the phase and complex conjugates."""
@@ -219,7 +219,7 @@ def run_demo(out: Path, log: Callable[[str], None] = print) -> dict:
             lines.append(f"  {len(lines)}. {name:<9} skipped (no committed demo model at {DEMO_MODEL})")
             log(lines[-1])
             continue
-        result["stages"][name] = st = fn(out, log)
+        result["stages"][name] = st = fn(out)
         lines.append(f"  {len(lines)}. {name:<9} {st['line']}")
         log(lines[-1])
     result["seconds"] = time.perf_counter() - t0

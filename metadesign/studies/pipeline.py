@@ -43,7 +43,7 @@ from ..sensing.model import load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import fab_study, render_psf
 from ..turbulence.scenario import load_scenario
-from ..tasks import TaskFolder, content_key, file_key
+from ..tasks import TaskFolder, content_key, file_key, path_key
 from ..turbulence.scenario import load_scenario
 from ..turbulence.system import build_system
 from ..turbulence.validate import plot_validation, validate
@@ -109,7 +109,7 @@ def _h(*parts) -> str:
     their bytes (never by where they lie: a copied run folder is up to date)."""
     def content(x):
         if isinstance(x, Path):
-            return {"file": file_key(x)} if x.is_file() else {"missing": x.name}
+            return path_key(x)
         if isinstance(x, dict):
             return {k: content(v) for k, v in x.items()}
         if isinstance(x, (list, tuple)):

@@ -26,7 +26,7 @@ import numpy as np
 from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
-from ..design.store import Design, load_design, run_design
+from ..design.store import Design, design_file, load_design, run_design
 from ..library.coupling import CouplingConfig, coupling_t, fit_coupling, lpa_t, relative_error
 from ..library.locate import file_sha256
 from ..library.rcwa import Stack
@@ -39,7 +39,7 @@ from ..library.supercells import (
     solve_table,
 )
 from ..plotting import pyplot, save_figure
-from ..outputs import temporary
+from ..outputs import Need, temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "SOURCES", "certify_coupling",
            "plot_coupling"]
@@ -111,9 +111,8 @@ def _load(path: Path, log) -> tuple[Design, str]:
         log(f"  designing {path.name} (no store at {store}) ...")
         with temporary() as tmp:
             d, out = run_design(rec, tmp / "d")
-            return d, file_sha256(Path(out) / "design.npz" if Path(out).is_dir() else out)
-    p = path / "design.npz" if path.is_dir() else path
-    return load_design(p), file_sha256(p)
+            return d, file_sha256(design_file(out))
+    return load_design(path), file_sha256(design_file(path))
 
 
 def _design_widths(d: Design) -> tuple[np.ndarray, np.ndarray]:
@@ -152,6 +151,13 @@ def sample_rows(n: int, seed: int, mix, main: tuple, extra: tuple | None, w_rang
         source[k] = s
     test = (np.arange(n) % test_every) == test_every - 1
     return widths, source, test
+
+
+def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
+    """A supercell table's peak: the rows on disk twice (chunks + the table) and, per worker, the RCWA
+    solve's matrices (about 30 complex (2 nG)^2 arrays)."""
+    return Need(disk=2 * n * 256.0, memory=workers * 30 * 16.0 * (2 * n_harmonics) ** 2,
+                what="fewer -j workers or a lower table.n_harmonics")
 
 
 def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None = None, workers: int = 1,

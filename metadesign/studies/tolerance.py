@@ -31,7 +31,8 @@ from ..reconstruction.losses import LOSSES
 from ..reconstruction.metrics import captured_fraction, gain
 from ..reconstruction.model import check_sizes, load_model
 from ..reconstruction.train import load_train_recipe, train
-from ..tasks import TaskFolder, content_key, file_key
+from ..paths import resolve_against
+from ..tasks import TaskFolder, content_key, file_key, path_key
 from ..validation import ValidationError
 
 __all__ = ["run_tolerance", "load_tolerance_recipe", "TOLERANCE_SECTIONS"]
@@ -131,13 +132,10 @@ def check_architecture(cfg, train_recipe, model_path, train_path) -> None:
         raise ValidationError(f"{train_path}: [model] base/depth/norm {want} differ from the model {model_path}'s {have}")
 
 
-def _file_or_name(recipe: ToleranceRecipe, p) -> str | None:
+def _file_or_name(recipe: ToleranceRecipe, p) -> dict | None:
     """A path of the recipe by its content (its name when absent)."""
-    if not p:
-        return None
-    q = Path(p)
-    q = q if q.is_absolute() else recipe.source.parent / q
-    return file_key(q) if q.is_file() else q.name
+    q = resolve_against(recipe.source.parent, p)
+    return None if q is None else path_key(q)
 
 
 def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Callable[[str], None] = print) -> dict:

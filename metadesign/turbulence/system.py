@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..library.store import load_library
+from ..paths import resolve_against
 from ..sensing.device import check_wavelengths
 from ..sensing.model import AsFabricated, SensingRecipe, load_sensing_recipe
 from ..sensing.transmission import Perturbation
@@ -41,13 +42,6 @@ class System:
         return BeaconChain.for_device(self.device, self.sensing, self.scenario, self.perturbation, progress)
 
 
-def _relative(base: Path | None, p) -> Path | None:
-    if not p:
-        return None
-    q = Path(p)
-    return q if q.is_absolute() or base is None else base / q
-
-
 def build_system(layout: str | Path | AsFabricated, sensor: str | Path | SensingRecipe,
                  turbulence: str | Path | Scenario | None = None, fabrication: dict | None = None,
                  base: str | Path | None = None, tensor_size: int | None = None) -> System:
@@ -68,7 +62,7 @@ def build_system(layout: str | Path | AsFabricated, sensor: str | Path | Sensing
     if f.get("coupling_model"):
         if kind != "supercell":
             raise ValidationError('fabrication.coupling_model: needs coupling = "supercell"')
-        cmodel = _relative(base, f["coupling_model"])
+        cmodel = resolve_against(base, f["coupling_model"])
     if kind != "lpa":
         fab = fab.with_coupling(kind, cmodel)
     if scenario is not None:
@@ -77,7 +71,7 @@ def build_system(layout: str | Path | AsFabricated, sensor: str | Path | Sensing
         if not f.get("fab_library"):
             raise ValidationError("fabrication.fab_library: missing; height / sidewall perturbations need a "
                                   "library with fab axes")
-        lp = _relative(base, f["fab_library"])
+        lp = resolve_against(base, f["fab_library"])
         if not lp.is_file():
             raise ValidationError(f"fabrication.fab_library: {lp}: no such library")
         fab.fab_lib = load_library(lp)
