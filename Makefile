@@ -13,7 +13,7 @@ export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: demo test test-slow install clean
+.PHONY: demo test test-slow install clean docs
 
 $(BIN)/metadesign: pyproject.toml setup.py constraints/cpu.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -32,4 +32,13 @@ test-slow: install
 	$(BIN)/python -m pytest -m slow
 
 clean:
-	rm -rf demo-out .pytest_cache
+	rm -rf demo-out .pytest_cache docs/_build docs/gallery
+
+# the documentation site (Sphinx; examples execute at build time; warnings are errors): docs/_build/html
+DOCS_STAMP = $(VENV)/.docs-installed
+$(DOCS_STAMP): $(BIN)/metadesign
+	$(BIN)/python -m pip install -q $(PIP_INDEX) -c constraints/cpu.txt -e '.[test,docs]'
+	touch $@
+
+docs: $(DOCS_STAMP)
+	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html

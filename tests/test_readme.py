@@ -1,5 +1,6 @@
-"""The README's Python blocks run (the API they show exists and works), on the test session's small
-products in place of the paper-scale ones they name (same code, smaller files)."""
+"""The Python blocks of the README and of the documentation's guide pages run (the API they show exists
+and works), on the test session's small products in place of the paper-scale ones they name (same code,
+smaller files).  The gallery examples run when the docs build (``make docs``, in CI)."""
 
 import re
 
@@ -9,8 +10,11 @@ from conftest import REPO, tiny_dataset_recipe, tiny_model
 torch = pytest.importorskip("torch")
 
 
+PAGES = [REPO / "README.md", *sorted(p for p in (REPO / "docs").rglob("*.md") if not {"_build", "gallery"} & set(p.parts))]
+
+
 def _python_blocks() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), flags=re.S)
+    return [b for page in PAGES for b in re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)]
 
 
 def test_readme_has_python_blocks():
@@ -36,4 +40,4 @@ def test_readme_python_block_runs(i, demo_products, tmp_path, monkeypatch):
         code = code.replace(f'"{big}"', repr(str(small)))
     assert "paper-5mm" not in code and "dataset-demo" not in code, code
     monkeypatch.chdir(tmp_path)
-    exec(compile(code, f"README.md python block {i}", "exec"), {})
+    exec(compile(code, f"documentation python block {i}", "exec"), {})

@@ -131,6 +131,21 @@ class DatasetRecipe:
         raw["fabrication"] = dict(kinds)
         return dataset_recipe_from_dict(raw, name, self.source)
 
+    def declared_key(self) -> str:
+        """The recipe as declared, by content: its tables and the recipes and library it names (parsed TOML,
+        so a comment edit keeps the key; a built layout is a product of the design recipe and is left out).
+        A committed result records it (``made_with``) and a test checks it against the committed recipe;
+        :attr:`recipe_hash` (what shapes the bytes) also needs the built layout."""
+        def toml(p):
+            return load_toml(p) if p is not None and Path(p).is_file() else None
+
+        parts = {"recipe": json.loads(json.dumps(self.raw, default=str)), "sensor": toml(self.sensor),
+                 "turbulence": toml(self.turbulence), "design": toml(self.design)}
+        if self.design is not None and Path(self.design).is_file():
+            lib = load_design_recipe(self.design).library_path
+            parts["library_sha256"] = file_sha256(lib) if Path(lib).is_file() else None
+        return content_key(parts)
+
     def with_samples(self, n: int) -> "DatasetRecipe":
         raw = json.loads(json.dumps(self.raw))
         raw.setdefault("dataset", {})["samples"] = n
@@ -627,7 +642,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     if existing is None:
         attrs = {
             "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
-            "name": recipe.name, "samples": n, "shard_size": shard, "n_shards": n_shards,
+            "recipe_key": recipe.declared_key(), "name": recipe.name, "samples": n, "shard_size": shard, "n_shards": n_shards,
             "tensor_size": recipe.tensor_size, "root_seed": recipe.seed, "split_fractions": list(recipe.split),
             "rytov": {"range": list(recipe.rytov_range), "values": list(recipe.rytov_values or []) or None},
             "provenance": {**parts, "layout": str(layout), "design": fab.layout.provenance.get("design"),

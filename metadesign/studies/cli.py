@@ -70,6 +70,7 @@ def _lines(res, summ, out, tuning) -> list[str]:
 
 def _cmd_compare(a: argparse.Namespace) -> int:
     from .compare import ESTIMATORS, run_compare, tune, write_compare
+    from .madewith import made_with
 
     if a.methods is None:
         a.methods = list(ESTIMATORS)
@@ -87,7 +88,7 @@ def _cmd_compare(a: argparse.Namespace) -> int:
         if a.tune:
             st, tuning = tune(model, a.dataset, st, a.tune, log=log)
         res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("compare", unit="sample"))
-        files = write_compare(res, out, tuning)
+        files = write_compare(res, out, tuning, made_with(model, a.dataset))
     from .compare import summarise
 
     summ = summarise(res)
@@ -98,6 +99,7 @@ def _cmd_compare(a: argparse.Namespace) -> int:
 
 def _cmd_retrieve(a: argparse.Namespace) -> int:
     from .compare import run_compare, summarise, write_compare
+    from .madewith import made_with
 
     model = _model_arg(a.model)
     methods = ("retrieval",) if model is None else ("unet", "hybrid")
@@ -109,7 +111,7 @@ def _cmd_retrieve(a: argparse.Namespace) -> int:
     with product(out, "compare", inputs) if out else contextlib.nullcontext():
         res = run_compare(model, a.dataset, st, workers=a.workers, progress=progress_bar("retrieve", unit="sample"))
         summ = summarise(res)
-        files = write_compare(res, out) if out else []
+        files = write_compare(res, out, made_with=made_with(model, a.dataset)) if out else []
         if out:
             files.append(_plot_convergence(res, out))
     name = methods[-1]

@@ -284,8 +284,9 @@ def summarise(res: dict) -> dict:
     return out
 
 
-def write_compare(res: dict, out: Path, tuning: dict | None = None) -> list[Path]:
-    """compare.csv (per sample), compare-curves.csv, compare.json, and the figures."""
+def write_compare(res: dict, out: Path, tuning: dict | None = None, made_with: dict | None = None) -> list[Path]:
+    """compare.csv (per sample), compare-curves.csv, compare.json (with ``made_with``: the model and dataset
+    it was computed from, :mod:`metadesign.studies.madewith`), and the figures."""
     out.mkdir(parents=True, exist_ok=True)
     rows = res["rows"]
     ms = methods_present(rows)
@@ -314,7 +315,7 @@ def write_compare(res: dict, out: Path, tuning: dict | None = None) -> list[Path
     files.append(p)
     files += plot_compare(res, summ, out)
     doc = {"summary": summ, "settings": res["settings"].to_dict(), "wall_seconds": res["wall_seconds"],
-           "tuning": tuning, "files": [str(f) for f in files] + [str(out / "compare.json")]}
+           "tuning": tuning, "made_with": made_with, "files": [str(f) for f in files] + [str(out / "compare.json")]}
     atomic_write_text(out / "compare.json", json.dumps(json_safe(doc), indent=2, sort_keys=True))
     files.append(out / "compare.json")
     return files

@@ -23,6 +23,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
+from .madewith import made_with, recipe_record
 from ..io import atomic_path, atomic_write_text
 from ..plotting import pyplot, save_figure
 from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, expected_sizes, open_dataset
@@ -204,7 +205,9 @@ def run_tolerance(recipe: ToleranceRecipe, out: Path, workers: int = 2, log: Cal
         if skipped:
             log(f"{label}: done before")
         rows.append(row)
-    rep = {"rows": rows, "noise_percent": recipe.noise_percent, "model": str(recipe.model)}
+    rep = {"rows": rows, "noise_percent": recipe.noise_percent, "model": str(recipe.model),
+           "made_with": made_with(recipe.model, dataset_recipe=ds0, recipe=recipe.source,
+                                  train_recipe=recipe_record(recipe.train))}
     atomic_write_text(out / "tolerance.json", json.dumps(rep, indent=2))
     _write_csv(rows, out / "tolerance.csv")
     rep["figure"] = str(plot_tolerance(rows, out / "tolerance.png", recipe.noise_percent))

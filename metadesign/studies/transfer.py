@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
+from .madewith import dataset_record, made_with, recipe_record
 from ..io import atomic_write_text
 from ..plotting import pyplot, save_figure
 from ..reconstruction.captures import import_captures
@@ -199,7 +200,10 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
         log(f"  {name}: NPiB {r['npib_unet']:.3f}")
     rep = {"rows": {k: {kk: vv for kk, vv in v.items() if kk != "npib_per_sample"} for k, v in rows.items()},
            "truth_alignment": truth["alignment"], "fitted_alignment": imp_rep["calibration"]["alignment"],
-           "import": imp_rep, "model": str(recipe.model), "fabrication": recipe.raw["fabrication"]}
+           "import": imp_rep, "model": str(recipe.model), "fabrication": recipe.raw["fabrication"],
+           "made_with": made_with(recipe.model, dataset_recipe=rec_ds, recipe=recipe.source,
+                                  reference=dataset_record(recipe.reference),
+                                  train_recipe=recipe_record(recipe.train))}
     atomic_write_text(out / "transfer.json", json.dumps(rep, indent=1))
     rep["figure"] = str(plot_transfer(rows, curves, out / "transfer.png", rep))
     return rep
