@@ -56,6 +56,7 @@ class Param:
     open_hi: bool = False
     choices: Sequence[str] | None = None
     pairs: bool = False
+    rows: bool = False  # a list kind whose items are rows (lists) of numbers, of any length
     span: bool = False  # a float kind that also takes a range [lo, hi]: the value is always (lo, hi)
     help: str = ""
 
@@ -139,6 +140,10 @@ def _convert(where: str, p: Param, v: Any) -> Any:
                 if not isinstance(item, list) or len(item) != 2:
                     raise ConfigError(w, f"expected a pair [a, b], got {item!r}")
                 out.append(tuple(_check_number(w, p, x) * p.scale for x in item))
+            elif p.rows:
+                if not isinstance(item, list):
+                    raise ConfigError(w, f"expected a row [a, b, ...], got {item!r}")
+                out.append(tuple(_check_number(f"{w}[{j}]", p, x) * p.scale for j, x in enumerate(item)))
             else:
                 out.append(_check_number(w, p, item) * p.scale)
         return tuple(out)

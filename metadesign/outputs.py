@@ -85,6 +85,7 @@ KINDS: dict[str, tuple[str, bool]] = {
     "table-s2": ("Table S2 folder", True),
     "tolerance": ("tolerance study folder", True),
     "transfer": ("transfer study folder", True),
+    "codesign": ("co-design report folder", True),
     "demo": ("demo folder", True),
     "pipeline": ("pipeline run folder", True),
     "captures": ("capture folder", True),

@@ -175,3 +175,38 @@ def test_the_sensor_twin_fisher_sees_every_low_mode_but_piston(setup):
         tw.defocus_waves.copy_(torch.from_numpy((1 / z - 1 / lenses[..., 0]) * ops.radius ** 2 / (2 * ops.wavelength)))
     b0 = crb(zernike_fisher(tw, flat, basis, 1e6)[0])
     assert b0[3] > 5 * b[3], (b0[3], b[3])  # Noll 4, defocus
+
+
+def test_zernike_terms_in_a_design_recipe_are_the_diversity_twin_s(setup):
+    """The design side of the co-design: a design recipe whose lenses carry Zernike terms (laid out like
+    any design: binned, mapped onto atoms) gives the PSFs the diversity twin predicts for them; and its
+    layout's channel table keeps the terms."""
+    from metadesign.config import load_toml
+    from metadesign.design.recipe import design_recipe_from_dict
+    from metadesign.design.store import run_design
+    from metadesign.layouts.writer import channel_table
+    from metadesign.sensing import AsFabricated, load_sensing_recipe
+    from metadesign.sensing.model import channels_from_provenance
+    from metadesign.sensing.twin import TorchTwin, twin_operators
+    from metadesign.sensing.twin_diversity import DiversityTwin
+
+    dev, lenses, crops, ops = setup
+    raw = load_toml(REPO / "layouts" / "demo.toml")
+    raw["x_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 1.0], [0, 0], [0, 0]]}
+    raw["y_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 0], [0, 0], [0.8, 0]]}
+    d2, _ = run_design(design_recipe_from_dict(raw, "demo-z", REPO / "layouts" / "demo.toml"))
+    sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
+    cp2 = AsFabricated.from_design(d2).pupil(sr.sensor.distance, sr.pupil_grid)
+    x = torch.from_numpy(crops)
+    tw = DiversityTwin(ops)
+    with torch.no_grad():
+        tw.zernike_rad[0, 1, ops.modes.index(7)] = 1.0
+        tw.zernike_rad[1, 3, ops.modes.index(5)] = 0.8
+        new = TorchTwin(twin_operators(cp2, dev.sensor, dev.geometry)).from_crop(x)
+        old = TorchTwin.for_device(dev).from_crop(x)
+        err_div, err_old = _rel(tw(x), new), _rel(old, new)
+    assert err_div < 0.2 * err_old, (err_div, err_old)
+    table = channel_table(d2.spec)
+    assert table[1]["zernike"] == [[7, 1.0]] and "zernike" not in table[0]
+    (cx, cy), _ = channels_from_provenance({"channels": table})
+    assert cx[1].zernike == ((7, 1.0),) and cy[3].zernike == ((5, 0.8),)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import json
 import os
 import shutil
 from pathlib import Path
@@ -67,6 +68,10 @@ tensor_size = 16
 [train]
 model = "{base / 'models' / 'm.safetensors'}"
 """)
+    (base / "cd").mkdir()  # a co-design run's diversity: the device as built
+    (base / "cd" / "diversity.json").write_text(json.dumps({
+        "focal_length_mm": [[4.88, 4.92, 4.96, 5.0], [5.04, 5.08, 5.12, 5.16]], "zernike_noll": [5],
+        "zernike_rad": [[[0.0]] * 4, [[0.0]] * 4]}))
     (base / "s2.toml").write_text(f'[dataset]\nlayout = "{base / "design" / "layout.oas"}"\n')
     (base / "tiny.toml").write_text(
         f'[dataset]\nlayout = "{base / "design" / "layout.oas"}"\nsensor = "{REPO / "sensing" / "demo.toml"}"\n'
@@ -112,6 +117,8 @@ COMMANDS = {
     "retrieve": (["retrieve", "NONE", "{IN}/ds", "-o", "{OUT}"], True, "ds/psf"),
     "run": (["run", "{IN}/p.toml", "-o", "{OUT}"], True, "p.toml"),
     "table-s2": (["table-s2", "{IN}/s2.toml", "-o", "{OUT}"], True, "s2.toml"),
+    "codesign": (["codesign", "{IN}/cd", "--dataset", "{IN}/ds", "--base", "{IN}/demo.toml", "--modes", "3",
+                  "--fisher-samples", "0", "--random", "0", "-o", "{OUT}"], True, "cd/diversity.json"),
     "dataset import": (["dataset", "import", "{IN}/caps", "--calibration", "{IN}/caps/flat.csv", "--reference",
                         "{IN}/ds", "-o", "{OUT}"], True, "caps/manifest.csv"),
 }

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..conventions import centered
+from ..optics.zernike import zernike
 
 __all__ = [
     "LensChannel",
@@ -45,11 +46,28 @@ __all__ = [
 
 @dataclass(frozen=True)
 class LensChannel:
-    """One off-axis lens: focal length and PSF offset (metres)."""
+    """One off-axis lens: focal length and PSF offset (metres); optionally a diversity beyond its defocus
+    (issue #33): Zernike terms ``((noll, rad), ...)`` over the disk of ``radius`` (m) centred on the
+    aperture (Noll-normalised, ``theta = atan2(y, x)``), added to Eq. 1."""
 
     focal_length: float
     offset_x: float
     offset_y: float
+    zernike: tuple[tuple[int, float], ...] = ()
+    radius: float = 0.0
+
+    def record(self) -> dict:
+        """The lens as stored in designs and layouts (the Zernike keys only when it has terms)."""
+        out = {"focal_length_m": self.focal_length, "offset_x_m": self.offset_x, "offset_y_m": self.offset_y}
+        if self.zernike:
+            out |= {"zernike": [[int(j), float(a)] for j, a in self.zernike], "zernike_radius_m": self.radius}
+        return out
+
+    @classmethod
+    def from_record(cls, r: dict) -> "LensChannel":
+        z = tuple((int(j), float(a)) for j, a in r.get("zernike") or ())
+        return cls(float(r["focal_length_m"]), float(r["offset_x_m"]), float(r["offset_y_m"]), z,
+                   float(r.get("zernike_radius_m") or 0.0))
 
 
 @dataclass(frozen=True)
@@ -119,9 +137,16 @@ def lens_phase(x, y, lens: LensChannel, wavelength: float) -> np.ndarray:
 
     Uses ``f - sqrt(f^2 + r^2) = -r^2 / (f + sqrt(f^2 + r^2))`` (no cancellation).
     """
-    r2 = (np.asarray(x) - lens.offset_x) ** 2 + (np.asarray(y) - lens.offset_y) ** 2
+    x, y = np.asarray(x), np.asarray(y)
+    r2 = (x - lens.offset_x) ** 2 + (y - lens.offset_y) ** 2
     f = lens.focal_length
-    return -(2 * np.pi / wavelength) * r2 / (f + np.sqrt(f * f + r2))
+    ph = -(2 * np.pi / wavelength) * r2 / (f + np.sqrt(f * f + r2))
+    if lens.zernike:  # the lens's diversity beyond its defocus (aperture-centred disk of lens.radius)
+        rho = np.hypot(x, y) / lens.radius
+        th = np.arctan2(y + 0 * x, x + 0 * y)
+        for j, a in lens.zernike:
+            ph = ph + a * zernike(int(j), rho, th)
+    return ph
 
 
 def channel_of_cell(ix, iy, m: int = 2):

@@ -22,6 +22,10 @@ def _pol_section(name: str, focals: list[float]) -> Section:
         (
             Param("focal_lengths_mm", list, focals, lo=0, open_lo=True, hi=1e5),
             Param("offsets_um", list, _PAPER_OFFSETS, pairs=True, lo=-1e6, hi=1e6),
+            # a diversity beyond each lens's defocus (co-design, issue #33): Noll indices and, per lens, a
+            # row of coefficients (rad) over the aperture's inscribed disk
+            Param("zernike_noll", list, None, lo=2, hi=66),
+            Param("zernike_rad", list, None, rows=True, lo=-1000, hi=1000),
         ),
         optional=True,
     )
@@ -83,19 +87,21 @@ def design_recipe_from_dict(data: dict, name: str = "design", source: Path | Non
     if m != 2:
         raise ConfigError("design.supercell", f"expected 2 (four lenses per polarisation, one per sensor quadrant: "
                                               f"the layout, PSF and reconstruction stages need it), got {m}")
-    chans = {}
-    for pol in ("x_pol", "y_pol"):
-        f, o = v[pol]["focal_lengths_mm"], v[pol]["offsets_um"]
-        for key, seq in (("focal_lengths_mm", f), ("offsets_um", o)):
-            if len(seq) != m * m:
-                raise ConfigError(f"{pol}.{key}", f"needs {m * m} entries for a {m}x{m} supercell, got {len(seq)}")
-        chans[pol] = tuple(LensChannel(fk, ox, oy) for fk, (ox, oy) in zip(f, o))
     n_cells = int(np.floor(d["aperture_mm"] / d["period_um"] + 1e-9))
     n_cells -= n_cells % m  # whole supercells
     if n_cells < m:
         raise ConfigError("design.aperture_mm",
                           f"{d['aperture_mm'] * 1e3:g} mm is smaller than one {m}x{m} supercell "
                           f"({m * d['period_um'] * 1e3:g} mm)")
+    chans = {}
+    for pol in ("x_pol", "y_pol"):
+        f, o = v[pol]["focal_lengths_mm"], v[pol]["offsets_um"]
+        for key, seq in (("focal_lengths_mm", f), ("offsets_um", o)):
+            if len(seq) != m * m:
+                raise ConfigError(f"{pol}.{key}", f"needs {m * m} entries for a {m}x{m} supercell, got {len(seq)}")
+        zs = _zernike_rows(pol, v[pol]["zernike_noll"], v[pol]["zernike_rad"], m * m)
+        chans[pol] = tuple(LensChannel(fk, ox, oy, z, 0.5 * n_cells * d["period_um"] if z else 0.0)
+                           for fk, (ox, oy), z in zip(f, o, zs))
     wkt = _polygon_wkt(d, source, n_cells * d["period_um"])
     spec = SupercellSpec(
         wavelength=d["wavelength_nm"], period=d["period_um"], n_cells=n_cells, supercell=m,
@@ -110,6 +116,20 @@ def design_recipe_from_dict(data: dict, name: str = "design", source: Path | Non
         bins=dz["bins"], metric=Metric(dz["metric"]), optimise_offsets=dz["optimise_offsets"],
         tile_rows=dz["tile_rows"], raw=data,
     )
+
+
+def _zernike_rows(pol: str, noll, rows, n_lenses: int) -> list[tuple]:
+    """Each lens's ((noll, rad), ...) from a section's zernike_noll / zernike_rad (both or neither)."""
+    if noll is None and rows is None:
+        return [()] * n_lenses
+    if noll is None or rows is None:
+        raise ConfigError(f"{pol}.zernike_noll", "zernike_noll and zernike_rad go together (give both or neither)")
+    if any(float(j) != int(j) for j in noll) or len(set(noll)) != len(noll):
+        raise ConfigError(f"{pol}.zernike_noll", f"expected distinct Noll indices (integers 2..66), got {list(noll)}")
+    if len(rows) != n_lenses or any(len(r) != len(noll) for r in rows):
+        raise ConfigError(f"{pol}.zernike_rad", f"expected {n_lenses} rows (one per lens) of {len(noll)} "
+                                                "coefficients (one per zernike_noll)")
+    return [tuple((int(j), float(a)) for j, a in zip(noll, r) if a != 0.0) for r in rows]
 
 
 def _polygon_wkt(d: dict, source: Path | None, side: float) -> str | None:

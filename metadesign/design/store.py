@@ -67,8 +67,7 @@ def check_library(recipe: DesignRecipe, lib: UnitCellLibrary) -> None:
 
 
 def _spec_dict(spec: SupercellSpec) -> dict:
-    ch = lambda cs: [{"focal_length_m": c.focal_length, "offset_x_m": c.offset_x, "offset_y_m": c.offset_y}
-                     for c in cs]  # noqa: E731
+    ch = lambda cs: [c.record() for c in cs]  # noqa: E731
     return {"wavelength_m": spec.wavelength, "period_m": spec.period, "n_cells": spec.n_cells,
             "supercell": spec.supercell, "circular_aperture": spec.circular_aperture,
             "aperture_wkt": spec.aperture_wkt,
@@ -76,7 +75,7 @@ def _spec_dict(spec: SupercellSpec) -> dict:
 
 
 def _spec_from_dict(d: dict) -> SupercellSpec:
-    ch = lambda cs: tuple(LensChannel(c["focal_length_m"], c["offset_x_m"], c["offset_y_m"]) for c in cs)  # noqa
+    ch = lambda cs: tuple(LensChannel.from_record(c) for c in cs)  # noqa: E731
     return SupercellSpec(d["wavelength_m"], d["period_m"], int(d["n_cells"]), int(d["supercell"]),
                          ch(d["channels_x"]), ch(d["channels_y"]), bool(d["circular_aperture"]),
                          d.get("aperture_wkt"))

@@ -172,8 +172,7 @@ def _wkt_polygons_nm(wkt: str) -> list:
 
 def channel_table(spec) -> list[dict]:
     """The lenses as data: one row per (polarisation, k = 1..4)."""
-    return [{"pol": pol, "k": k, "focal_length_m": c.focal_length, "offset_x_m": c.offset_x,
-             "offset_y_m": c.offset_y}
+    return [{"pol": pol, "k": k, **c.record()}
             for pol, chans in (("x", spec.channels_x), ("y", spec.channels_y)) for k, c in enumerate(chans, 1)]
 
 

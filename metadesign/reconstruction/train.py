@@ -29,6 +29,7 @@ from ..io import atomic_path, atomic_write_text, claim
 from ..outputs import Input, product
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
+from .codesign import CodesignConfig, build_codesign, diversity_record
 from .data import PSFDataset
 from .dataset import load_device
 from .losses import LOSSES, PiB
@@ -80,6 +81,21 @@ SECTIONS = (
         Param("init", str, None),
     ), optional=True, help="a learned refinement (metadesign.reconstruction.refine) trained on top of a frozen "
                            "U-Net (refine.unet, or --init); samples = 0: every camera pixel"),
+    Section("codesign", (
+        Param("modes", list, [5, 6, 7, 8, 9, 10, 11], lo=4, hi=66),
+        Param("learn_defocus", bool, True),
+        Param("lr", float, 1e-2, lo=0, hi=10),
+        Param("init", str, "paper", choices=["paper", "random"]),
+        Param("init_waves", float, 0.5, lo=0, hi=100),
+        Param("init_rad", float, 0.5, lo=0, hi=100),
+        Param("max_step_rad", float, 0.5, lo=0, open_lo=True, hi=10),
+        Param("penalty", float, 1.0, lo=0, hi=1e6),
+        Param("rebin", int, 1, lo=1, hi=64),
+        Param("samples", int, 0, lo=0, hi=16),
+        Param("seed", int, 0, lo=0, hi=2**63 - 1),
+    ), optional=True, help="co-design (metadesign.reconstruction.codesign): the sensor's diversity (each "
+                           "channel's defocus and Zernike terms `modes`, Noll >= 4) trained with the U-Net, the "
+                           "PSFs rendered from the dataset's received fields; lr: the diversity's learning rate"),
 )
 
 
@@ -113,6 +129,7 @@ class TrainRecipe:
     refine_unet: Path | None = None
     refine_deep: float = 0.0  # weight of the intermediate steps' losses (deep supervision)
     refine_init: Path | None = None  # a trained refiner to start from
+    codesign: object = None  # CodesignConfig when the recipe co-designs the sensor's diversity
 
     def noise(self) -> dict:
         """The PSFDataset noise keywords of this recipe."""
@@ -150,7 +167,22 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
             return None if not q else Path(q) if Path(q).is_absolute() else (source.parent if source else Path.cwd()) / q
 
         refine_unet, refine_init = rel(r["unet"]), rel(r["init"])
-    return TrainRecipe(refine=refine, refine_unet=refine_unet, refine_deep=r["deep_supervision"], refine_init=refine_init,
+    codesign = None
+    if "codesign" in data:
+        c = v["codesign"]
+        if refine is not None:
+            raise ConfigError("codesign", "a recipe trains a refiner or co-designs the sensor, not both")
+        if d["photons_at_peak"][1] > 0:
+            raise ConfigError("data.photons_at_peak", "co-design renders Gaussian sensor noise only (give 0)")
+        if any(float(j) != int(j) for j in c["modes"]):
+            raise ConfigError("codesign.modes", f"expected Noll indices (integers 4..66), got {c['modes']}")
+        if 4 in [int(j) for j in c["modes"]] and c["learn_defocus"]:
+            raise ConfigError("codesign.modes", "Noll 4 (defocus) is each lens's focal length already "
+                                                "(learn_defocus); leave it out of modes")
+        codesign = CodesignConfig(tuple(int(j) for j in c["modes"]), c["learn_defocus"], c["lr"], c["init"],
+                                  c["init_waves"], c["init_rad"], c["max_step_rad"], c["penalty"], c["rebin"],
+                                  c["samples"] or None, c["seed"])
+    return TrainRecipe(codesign=codesign, refine=refine, refine_unet=refine_unet, refine_deep=r["deep_supervision"], refine_init=refine_init,
                        name=name, source=source,
                        dataset=Path(ds) if ds else None,
                        noise_percent=d["noise_percent"],
@@ -219,7 +251,8 @@ def evaluate_split(model, ds, pib, device, batch: int = 16, progress=None) -> di
     with torch.no_grad():
         for b in loader:
             scr = b["screens"].to(device)
-            r = npib_rows(pib, model(b["psf"].to(device)), scr, b["received"].to(device))
+            x = b[getattr(model, "input_key", "psf")].to(device)  # a co-design model renders its own PSFs
+            r = npib_rows(pib, model(x), scr, b["received"].to(device))
             out["unet"].append(r["estimate"].cpu())
             out["none"].append(r["none"].cpu())
             out["phase_conjugate"].append(r["phase_conjugate"].cpu())
@@ -258,7 +291,8 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         raise ConfigError("train.batch", f"{recipe.batch} is not divisible by the {world} processes")
     run = Path(run)
     ckpt = _check_run(run, resume)
-    tr = PSFDataset(dataset, "train", **recipe.noise(), noise_seed=recipe.seed,
+    noise = {} if recipe.codesign is not None else recipe.noise()  # co-design: noise on its own renderings
+    tr = PSFDataset(dataset, "train", **noise, noise_seed=recipe.seed,
                     limit=recipe.train_limit or None)
     any_pib = any(LOSSES[recipe.loss_at(e)].end_to_end for e in range(recipe.epochs))
     mode = _pib_mode(recipe, tr)
@@ -266,7 +300,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     stored = mode == "stored" and any_pib
     if stored:
         tr.require_operators("train")
-    va = PSFDataset(dataset, "val", **recipe.noise(), noise_seed=recipe.seed + 1,
+    va = PSFDataset(dataset, "val", **noise, noise_seed=recipe.seed + 1,
                     limit=recipe.val_limit or None, screens=True)
     if len(va) == 0:
         raise ValidationError(f"{dataset}: the validation split is empty (training keeps the model with the best "
@@ -278,14 +312,21 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         model, init_card = _build_refiner(recipe, dataset, tr.info.tensor_size, a, init, device)
     else:
         model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device)
+        if recipe.codesign is not None:
+            model = build_codesign(model, recipe.codesign, dataset, recipe.noise_percent).to(device)
     pib = PiB(tr.scenario(), c0, a, device)
     batch_loss = _BatchLoss(pib, stored, quadratic, device)
     if quadratic:
         n_ap = int(pib.ap.sum())
         check_memory("train.pib_operator = \"quadratic\"", len(tr) * len(pib.bucket) * n_ap * 8,
                      "use pib_operator = \"split_step\" or data.train_limit")
-    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=recipe.lr,
-                            weight_decay=recipe.weight_decay)
+    if recipe.codesign is not None:  # the diversity at its own rate, without weight decay
+        groups = [{"params": [p for p in model.unet.parameters() if p.requires_grad]},
+                  {"params": [p for p in model.twin.parameters() if p.requires_grad], "lr": recipe.codesign.lr,
+                   "weight_decay": 0.0}]
+    else:
+        groups = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(groups, lr=recipe.lr, weight_decay=recipe.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=recipe.lr_halve_every, gamma=0.5)
     history: list[dict] = []
     best = -math.inf
@@ -312,6 +353,8 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         tr.operators = stored and e2e
         tr.set_epoch(epoch)
         sampler.set_epoch(epoch)
+        if recipe.codesign is not None:  # the rendered noise: the same draws after a resume, per rank
+            model.seed_noise(int(np.random.SeedSequence([recipe.seed, epoch, rank]).generate_state(1)[0]))
         loader = torch.utils.data.DataLoader(tr, batch_size=recipe.batch // world, sampler=sampler,
                                              num_workers=recipe.loader_workers, collate_fn=_collate,
                                              drop_last=True, persistent_workers=False)
@@ -322,7 +365,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         bar = progress_bar(f"epoch {epoch + 1}/{recipe.epochs} ({loss_name})", unit="step") \
             if progress and rank == 0 else None
         for b in loader:
-            x = b["psf"].to(device, non_blocking=True)
+            x = b[getattr(model, "input_key", "psf")].to(device, non_blocking=True)
             rec = b["received"].to(device)
             deep = recipe.refine is not None and recipe.refine_deep > 0
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
@@ -333,6 +376,8 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
                     loss = loss + recipe.refine_deep * batch_loss(loss_name, p_k.float(), b, rec)[0] / (len(phi) - 2)
             else:
                 loss, npib = batch_loss(loss_name, phi.float(), b, rec)
+            if recipe.codesign is not None:
+                loss = loss + model.penalty()
             if npib is not None:
                 npib_tr.append(npib.detach().cpu())
             lv = float(loss.detach())
@@ -396,7 +441,12 @@ def _end_epoch(rec_row: dict, t0: float, model, va, pib, device, history: list, 
         best = rec_row["val_npib"]
         save = save_model if recipe.refine is None else \
             (lambda m, p, c: save_refiner(m, p, init_card["path"], c))  # noqa: E731
-        save(model, run / "model.safetensors", {
+        extra = {}
+        if recipe.codesign is not None:  # the U-Net alone (for the co-designed device) and its diversity
+            extra = {"codesign": diversity_record(model)}
+            atomic_write_text(run / "diversity.json", json.dumps(extra["codesign"], indent=1))
+        save(getattr(model, "unet", model) if recipe.codesign is not None else model, run / "model.safetensors", {
+            **extra,
             "dataset": {"path": str(dataset), "recipe_hash": attrs.get("recipe_hash"),
                         "layout_sha256": attrs["provenance"].get("layout_sha256")},
             "sensor": attrs["provenance"].get("sensor"),  # the camera the model was trained for

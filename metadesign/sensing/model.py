@@ -208,7 +208,7 @@ def channels_from_provenance(prov: dict):
     if prov.get("channels"):
         rows = prov["channels"]
         try:
-            chans = tuple(tuple(LensChannel(float(r["focal_length_m"]), float(r["offset_x_m"]), float(r["offset_y_m"]))
+            chans = tuple(tuple(LensChannel.from_record(r)
                                 for r in sorted((r for r in rows if r["pol"] == pol), key=lambda r: r["k"]))
                           for pol in ("x", "y"))
         except (KeyError, TypeError, ValueError) as exc:

@@ -20,10 +20,11 @@ __all__ = ["DiversityTwin"]
 
 class DiversityTwin(nn.Module):
     """Parameters: ``defocus_waves`` (2, 4) and ``zernike_rad`` (2, 4, J) of each channel (``[p, k-1]``).
-    ``double``: float64 / complex128 throughout (for gradient checks)."""
+    ``double``: float64 / complex128 throughout (for gradient checks); ``persistent=False`` keeps the
+    device's operators out of the state dict (a checkpoint holds the diversity, the dataset the device)."""
 
     def __init__(self, ops: DiversityOperators, double: bool = False, learn_defocus: bool = True,
-                 learn_zernike: bool = True):
+                 learn_zernike: bool = True, persistent: bool = True):
         super().__init__()
         cd, rd = (torch.complex128, torch.float64) if double else (torch.complex64, torch.float32)
         self.cdtype, self.rdtype = cd, rd
@@ -33,7 +34,8 @@ class DiversityTwin(nn.Module):
                             ("w", ops.w, rd), ("Ry", ops.Ry, rd), ("Rx", ops.Rx, rd), ("W", ops.W, cd),
                             ("r2", ops.r2, torch.float64), ("Z", ops.Z, torch.float64),
                             ("f0", ops.f0, torch.float64)):
-            self.register_buffer(name, torch.tensor(np.asarray(a), dtype=dt))
+            self.register_buffer(name, torch.tensor(np.asarray(a), dtype=dt), persistent=persistent)
+        self.register_buffer("inside", torch.from_numpy(np.asarray(ops.inside, bool)), persistent=False)
         self.defocus_waves = nn.Parameter(torch.zeros(2, 4, dtype=torch.float64), requires_grad=learn_defocus)
         self.zernike_rad = nn.Parameter(torch.zeros(2, 4, len(ops.modes), dtype=torch.float64),
                                         requires_grad=learn_zernike)

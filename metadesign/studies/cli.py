@@ -241,6 +241,25 @@ def _cmd_tolerance(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_codesign(a: argparse.Namespace) -> int:
+    from .codesign import read_diversity, run_codesign_report
+
+    read_diversity(a.run)  # a bad run is one line before anything is written
+    out = out_dir(a.output)
+    run_file = Path(a.run) / "diversity.json" if Path(a.run).is_dir() else Path(a.run)
+    with product(out, "codesign", {"run": run_file, "--dataset": zarr_input(a.dataset), "--base": a.base}):
+        rep = run_codesign_report(a.run, a.dataset, a.base, out, modes=a.modes, samples=a.fisher_samples,
+                                  photons=a.photons, read_noise_e=a.read_noise_e, random=a.random,
+                                  log=log_to(a.json))
+    m = rep["fisher"]["mean_crb_rad2"]
+    lines = [f"co-designed sensor -> {out}: design recipe {Path(rep['design_recipe']).name}, "
+             + ", ".join(Path(f).name for f in rep["figures"]),
+             f"  mean Cramer-Rao bound over Noll 2..{1 + a.modes} at {a.photons:.0e} photons (rms rad): "
+             + ", ".join(f"{k} {v ** 0.5:.3g}" for k, v in m.items())]
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
 def _cmd_synth(a: argparse.Namespace) -> int:
     from ..sensing.camera import Alignment, CameraSpec
     from .captures import synth_captures
@@ -540,6 +559,26 @@ def register(sub, groups: dict) -> None:
     workers_arg(t2)
     t2.add_argument("--json", action="store_true", help="print the table as JSON")
     t2.set_defaults(func=_cmd_table_s2)
+    cd = sub.add_parser(
+        "codesign", help="stage 6: the co-designed sensor as a device recipe, its diversity and Fisher information",
+        description="From a co-design run (metadesign train with a [codesign] section: diversity.json beside "
+        "the U-Net): the design recipe of the device with the learned diversity (OUT/design.toml: --base with "
+        "each lens's learned focal length and Zernike terms; build, lay out and simulate it like any design), "
+        "the diversity and the PSFs of a flat wavefront beside the paper's (diversity.png), and the Cramer-Rao "
+        "bounds of the first Zernike modes for the paper's, the learned and random diversities (fisher.png, "
+        "codesign.json).")
+    cd.add_argument("run", help="co-design training run folder (or its diversity.json)")
+    cd.add_argument("--dataset", required=True, help="the dataset it was trained on (its device and received fields)")
+    cd.add_argument("--base", required=True, help="the base design recipe (TOML), e.g. layouts/paper-5mm.toml")
+    cd.add_argument("--modes", type=integer(1, 64), default=20, help="Zernike modes Noll 2..N+1 (default 20)")
+    cd.add_argument("--fisher-samples", type=integer(0, 1000), default=4,
+                    help="received fields of the test split the information is averaged over, besides a flat one")
+    cd.add_argument("--photons", type=num(1.0, 1e15), default=1e6, help="photo-electrons per frame (default 1e6)")
+    cd.add_argument("--read-noise-e", type=num(0.0, 1e6), default=0.0, help="read noise per pixel (e-)")
+    cd.add_argument("--random", type=integer(0, 100), default=2, help="random diversities to compare (default 2)")
+    cd.add_argument("-o", "--output", required=True, help="output folder")
+    cd.add_argument("--json", action="store_true", help="print the summary as JSON")
+    cd.set_defaults(func=_cmd_codesign)
     lsub, dsub = groups["library"], groups["dataset"]
     lp = lsub.add_parser(
         "lpa-check", help="measure the local-periodic approximation's error with supercell RCWA",

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .. import __version__
 from ..config import load_toml
 from ..tasks import content_key, file_key
 
@@ -47,7 +48,5 @@ def recipe_record(path: str | Path | None) -> dict | None:
 
 def made_with(model=None, dataset=None, dataset_recipe=None, recipe=None, **extra) -> dict:
     """The ``made_with`` block (see the module docstring); ``extra``: further named records."""
-    from .. import __version__
-
     return {"metadesign": __version__, "model": model_record(model),
             "dataset": dataset_record(dataset, dataset_recipe), "recipe": recipe_record(recipe), **extra}

@@ -1,0 +1,148 @@
+"""Co-design of the sensor's diversity with its reconstruction (issue #33): the U-Net reads the eight PSFs
+that a learnable diversity (:class:`~metadesign.sensing.twin_diversity.DiversityTwin`) renders from the
+dataset's stored received fields, and both are trained together on the end-to-end PiB loss (the usual
+training loop, :func:`metadesign.reconstruction.train.train`, with a ``[codesign]`` recipe section).
+
+* No dataset rebuild per step: the received fields are the dataset's; the PSFs are rendered each batch
+  for the current diversity (normalised to sum 8 as the datasets are, then the sensor noise, a Gaussian
+  level per sample drawn in the recipe's range, of each channel's peak: the datasets' noise model).
+* Makeable: the diversity is a smooth phase on each channel's lens (defocus and low-order Zernike
+  terms), which the 16 x 16 library realises like any lens phase (it covers every phase bin); the loss
+  adds a penalty on the phase step between neighbouring pupil blocks above ``max_step_rad`` (a phase
+  that varies within a block would leave the block model and the local-periodic approximation), and the
+  learned design goes through the usual design -> layout -> as-fabricated path to be trained on
+  (``design.recipe`` with ``zernike_rad`` per lens: :func:`diversity_design_recipe`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from ..sensing.diversity import DEFAULT_MODES, diversity_operators, lens_table
+from ..sensing.twin import normalise
+from ..sensing.twin_diversity import DiversityTwin
+from .dataset import load_device, open_dataset
+
+__all__ = ["CodesignConfig", "CodesignNet", "build_codesign", "diversity_record", "diversity_design_recipe"]
+
+
+@dataclass(frozen=True)
+class CodesignConfig:
+    modes: tuple[int, ...] = DEFAULT_MODES  # Noll terms each channel may learn besides its defocus
+    learn_defocus: bool = True
+    lr: float = 1e-2  # the diversity's learning rate (its parameters are waves and radians)
+    init: str = "paper"  # "paper" (the device as built) or "random"
+    init_waves: float = 0.5  # "random": defocus std (waves) and Zernike std (rad)
+    init_rad: float = 0.5
+    max_step_rad: float = 0.5  # largest phase step between pupil blocks before the penalty
+    penalty: float = 1.0
+    rebin: int = 1  # the twin's approximations (1 / None: exact, as the dataset was rendered)
+    samples: int | None = None
+    seed: int = 0
+
+
+class CodesignNet(nn.Module):
+    """The learnable sensor and its U-Net: received crops (B, A, A) complex -> phase (B, A, A).  Training
+    mode draws each sample's Gaussian noise level in ``noise_percent`` (lo, hi) from the module's
+    generator; evaluation mode uses a generator re-seeded on every ``eval()`` (the same noise every
+    validation)."""
+
+    input_key = "received"
+
+    def __init__(self, twin: DiversityTwin, unet: nn.Module, cfg: CodesignConfig, noise_percent=(0.0, 0.0)):
+        super().__init__()
+        self.twin, self.unet, self.cfg = twin, unet, cfg
+        self.noise_percent = (float(noise_percent[0]), float(noise_percent[1]))
+        self._gen = torch.Generator().manual_seed(cfg.seed)
+
+    @property
+    def config(self):  # the U-Net's: what check_sizes and the evaluation read
+        return self.unet.config
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if not mode:
+            self._gen = torch.Generator().manual_seed(self.cfg.seed + 1)
+        return self
+
+    def seed_noise(self, seed: int) -> None:
+        """Re-seed the training noise (per epoch, so a resumed run draws what an uninterrupted one did)."""
+        self._gen = torch.Generator().manual_seed(int(seed))
+
+    def render(self, received):
+        """The normalised 8-channel tensor (B, 8, S, S) with the sensor noise of this mode."""
+        x = normalise(self.twin(received).to(torch.float32))
+        lo, hi = self.noise_percent
+        if hi > 0:
+            b = x.shape[0]
+            lv = lo + (hi - lo) * torch.rand(b, generator=self._gen, dtype=torch.float64)
+            peak = x.detach().amax(dim=(-2, -1), keepdim=True)
+            z = torch.randn(x.shape, generator=self._gen, dtype=torch.float32)
+            x = x + (lv.to(x.dtype) / 100.0)[:, None, None, None] * peak * z.to(x.device)
+        return x
+
+    def forward(self, received):
+        return self.unet(self.render(received))
+
+    def penalty(self):
+        """The makeability penalty: squared excess of the block-to-block diversity step over max_step_rad."""
+        psi = self.twin.phases()
+        ins = self.twin.inside
+        dx = (psi[..., :, 1:] - psi[..., :, :-1]).abs() * (ins[:, 1:] & ins[:, :-1])
+        dy = (psi[..., 1:, :] - psi[..., :-1, :]).abs() * (ins[1:, :] & ins[:-1, :])
+        ex = torch.relu(dx - self.cfg.max_step_rad) ** 2
+        ey = torch.relu(dy - self.cfg.max_step_rad) ** 2
+        return self.cfg.penalty * (ex.sum() + ey.sum())
+
+
+def build_codesign(unet: nn.Module, cfg: CodesignConfig, dataset: str | Path, noise_percent) -> CodesignNet:
+    """The co-design module of ``unet`` on the device of ``dataset`` (its stored pupil, sensor and crop;
+    its lenses from the layout's provenance)."""
+    dev = load_device(dataset)
+    lenses = lens_table(open_dataset(dataset).attrs["provenance"]["channels"])
+    ops = diversity_operators(dev.pupil, dev.sensor, lenses, dev.geometry, cfg.rebin, cfg.samples, cfg.modes)
+    twin = DiversityTwin(ops, persistent=False)  # the operators come from the dataset, not the checkpoint
+    if cfg.init == "random":
+        g = torch.Generator().manual_seed(cfg.seed)
+        with torch.no_grad():
+            if cfg.learn_defocus:
+                twin.defocus_waves.copy_(cfg.init_waves * torch.randn(2, 4, generator=g, dtype=torch.float64))
+            twin.zernike_rad.copy_(cfg.init_rad * torch.randn(twin.zernike_rad.shape, generator=g,
+                                                              dtype=torch.float64))
+    twin.defocus_waves.requires_grad_(cfg.learn_defocus)
+    return CodesignNet(twin, unet, cfg, noise_percent)
+
+
+def diversity_record(net: CodesignNet, lenses: np.ndarray | None = None) -> dict:
+    """The learned diversity as a record (``diversity.json``): per channel its focal length, the Zernike
+    terms, and the largest block-to-block step (rad)."""
+    d = net.twin.describe()
+    with torch.no_grad():
+        psi = net.twin.phases()
+        ins = net.twin.inside
+        sx = ((psi[..., :, 1:] - psi[..., :, :-1]).abs() * (ins[:, 1:] & ins[:, :-1])).amax()
+        sy = ((psi[..., 1:, :] - psi[..., :-1, :]).abs() * (ins[1:, :] & ins[:-1, :])).amax()
+    d["max_block_step_rad"] = float(max(sx, sy))
+    d["config"] = asdict(net.cfg)
+    d["aperture_radius_m"] = net.twin.radius
+    d["convention"] = ("psi[p, k] = Eq.1 lens(f) - lens(f0) + sum_j a[p, k, j] Z_j(rho, theta); rho = r / "
+                       "aperture_radius_m from the aperture centre, theta = atan2(y, x); Noll Z_j, unit RMS")
+    return json.loads(json.dumps(d))
+
+
+def diversity_design_recipe(base_recipe: dict, record: dict) -> dict:
+    """A design recipe (TOML dict) of the co-designed device: the base design's, with each lens's learned
+    focal length and its Zernike terms (``[x_pol] zernike_noll``, ``zernike_rad`` per lens)."""
+    out = json.loads(json.dumps(base_recipe))
+    for p, sec in enumerate(("x_pol", "y_pol")):
+        out.setdefault(sec, {})
+        out[sec]["focal_lengths_mm"] = [round(float(f), 9) for f in record["focal_length_mm"][p]]
+        out[sec]["zernike_noll"] = list(record["zernike_noll"])
+        out[sec]["zernike_rad"] = [[round(float(a), 9) for a in row] for row in record["zernike_rad"][p]]
+    return out

@@ -1,0 +1,84 @@
+"""Co-design training (issue #33): the diversity trains with the U-Net through the usual loop, resumes to
+the same bytes, writes the U-Net (a plain model) with its diversity; bad [codesign] keys are one line."""
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+
+def _recipe(epochs, **codesign):
+    from metadesign.reconstruction.train import train_recipe_from_dict
+
+    return train_recipe_from_dict({"data": {"noise_percent": [0.0, 10.0]}, "model": {"base": 4, "depth": 3},
+                                   "train": {"epochs": epochs, "batch": 4, "lr": 1e-3, "loss": "pib", "seed": 1},
+                                   "codesign": {"modes": [5, 6, 7], "lr": 0.05, "init": "random", "seed": 2,
+                                                **codesign}}, "cd")
+
+
+def test_codesign_trains_the_diversity_and_resumes_to_the_same_bytes(tiny_dataset, tmp_path):
+    from metadesign.reconstruction.model import load_model
+    from metadesign.reconstruction.train import train
+
+    torch.set_num_threads(1)
+    train(_recipe(2), tmp_path / "a", dataset=tiny_dataset, progress=False, log=lambda s: None)
+    train(_recipe(1), tmp_path / "b", dataset=tiny_dataset, progress=False, log=lambda s: None)
+    train(_recipe(2), tmp_path / "b", dataset=tiny_dataset, resume=True, progress=False, log=lambda s: None)
+    sa = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)["model"]
+    sb = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)["model"]
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert "twin.defocus_waves" in sa and "twin.G" not in sa  # the diversity, not the device's operators
+    # the diversity moved from its initial draw (the same seed gives the same start)
+    from metadesign.reconstruction.codesign import CodesignConfig
+
+    g = torch.Generator().manual_seed(2)
+    start = 0.5 * torch.randn(2, 4, generator=g, dtype=torch.float64)
+    assert not torch.allclose(sa["twin.defocus_waves"], start)
+    rec = json.loads((tmp_path / "a" / "diversity.json").read_text())
+    assert rec["zernike_noll"] == [5, 6, 7] and len(rec["focal_length_mm"][0]) == 4
+    assert rec["config"]["modes"] == list(CodesignConfig(modes=(5, 6, 7)).modes)
+    model, card = load_model(tmp_path / "a" / "model.safetensors")  # the U-Net alone, with its sensor
+    assert card["codesign"]["zernike_noll"] == [5, 6, 7]
+    assert model.config.input_size == 16
+
+
+@pytest.mark.parametrize("codesign, field", [({"modes": [4, 5]}, "codesign.modes"),
+                                             ({"modes": [5.5]}, "codesign.modes"),
+                                             ({"lr": float("nan")}, "codesign.lr"),
+                                             ({"init": "zero"}, "codesign.init")])
+def test_bad_codesign_keys_are_one_line(codesign, field):
+    from metadesign.config import ConfigError
+
+    with pytest.raises(ConfigError) as e:
+        _recipe(1, **codesign)
+    assert field in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_codesign_report_makes_a_design_recipe_of_the_learned_diversity(tiny_dataset, tmp_path):
+    """`metadesign codesign RUN`: design.toml is a design recipe whose lenses are the learned ones (focal
+    lengths and Zernike terms), the figures and the Fisher spectra (piston-free modes, finite) are written."""
+    from conftest import REPO
+
+    from metadesign.cli import main
+    from metadesign.design.recipe import load_design_recipe
+    from metadesign.reconstruction.train import train
+
+    torch.set_num_threads(1)
+    train(_recipe(1), tmp_path / "run", dataset=tiny_dataset, progress=False, log=lambda s: None)
+    out = tmp_path / "rep"
+    assert main(["codesign", str(tmp_path / "run"), "--dataset", str(tiny_dataset), "--base",
+                 str(REPO / "layouts" / "demo.toml"), "--modes", "6", "--random", "1", "-o", str(out), "--json"]) == 0
+    rec = json.loads((tmp_path / "run" / "diversity.json").read_text())
+    d = load_design_recipe(out / "design.toml")
+    assert d.library_path.resolve() == (REPO / "library" / "paper.npz").resolve()
+    for p, chans in enumerate((d.spec.channels_x, d.spec.channels_y)):
+        for k, ch in enumerate(chans):
+            assert ch.focal_length == pytest.approx(rec["focal_length_mm"][p][k] * 1e-3, rel=1e-8)
+            want = {j: a for j, a in zip(rec["zernike_noll"], rec["zernike_rad"][p][k]) if a}
+            assert dict(ch.zernike) == pytest.approx(want, abs=1e-8)
+            assert ch.radius == pytest.approx(0.5 * d.spec.n_cells * d.spec.period)
+    s = json.loads((out / "codesign.json").read_text())
+    assert set(s["fisher"]["crb_rad2"]) == {"paper", "learned", "random 1"}
+    assert all(x is not None and x > 0 for v in s["fisher"]["crb_rad2"].values() for x in v)
+    assert (out / "diversity.png").stat().st_size > 0 and (out / "fisher.png").stat().st_size > 0
