@@ -76,15 +76,18 @@ class CodesignNet(nn.Module):
         self._gen = torch.Generator().manual_seed(int(seed))
 
     def render(self, received):
-        """The normalised 8-channel tensor (B, 8, S, S) with the sensor noise of this mode."""
-        x = normalise(self.twin(received).to(torch.float32))
+        """The normalised 8-channel tensor (B, 8, S, S) with the sensor noise of this mode.  The rendering
+        runs in full precision even under autocast (CUDA's bfloat16 would cost the spots their dynamic
+        range); the noise is drawn on the CPU generator (the same draws on any device), then moved."""
+        with torch.autocast(received.device.type, enabled=False):
+            x = normalise(self.twin(received).to(torch.float32))
         lo, hi = self.noise_percent
         if hi > 0:
             b = x.shape[0]
             lv = lo + (hi - lo) * torch.rand(b, generator=self._gen, dtype=torch.float64)
             peak = x.detach().amax(dim=(-2, -1), keepdim=True)
-            z = torch.randn(x.shape, generator=self._gen, dtype=torch.float32)
-            x = x + (lv.to(x.dtype) / 100.0)[:, None, None, None] * peak * z.to(x.device)
+            z = torch.randn(x.shape, generator=self._gen, dtype=torch.float32).to(x.device)
+            x = x + (lv.to(device=x.device, dtype=x.dtype) / 100.0)[:, None, None, None] * peak * z
         return x
 
     def forward(self, received):
