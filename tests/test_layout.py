@@ -227,3 +227,26 @@ def test_layout_library_in_a_micrometre_host(demo_products, tmp_path):
     assert box.width() == pytest.approx((x1 - x0) * 1e-3, abs=2e-3)
     assert box.center().x == pytest.approx(2000 + (x0 + x1) / 2 * 1e-3, abs=2e-3)
     assert 0.4 < box.width() / 1000 < 0.6  # the 0.5 mm demo aperture, in mm
+
+
+def test_the_metasurface_is_a_gdsfactory_component_placed_in_micrometres(demo_products):
+    """#32: gdsfactory users get the written layout as a Component: one instance per pillar (none
+    flattened), micrometre coordinates on the layout's 1 nm grid (the aperture's extent, checked against
+    the design's), and it places into a chip like any cell."""
+    gf = pytest.importorskip("gdsfactory")
+    from metadesign.design.store import load_design
+    from metadesign.layouts import metasurface_component
+
+    d = load_design(demo_products["design"])
+    c = metasurface_component(demo_products["layout"])
+    n_pillars = int((d.index_map != (d.empty if d.empty is not None else -1)).sum())
+    assert len(c.insts) == n_pillars
+    half = d.spec.n_cells * d.spec.period / 2 * 1e6  # um
+    box = c.dbbox(c.kcl.layer(1, 0))
+    assert abs(box.right - half) < 0.36 and abs(box.left + half) < 0.36  # within half a period
+    assert abs(box.top - half) < 0.36 and abs(box.bottom + half) < 0.36
+    chip = gf.Component()
+    ref = chip.add_ref(c)
+    ref.dmove((2000.0, 0.0))
+    assert abs(chip.dbbox(chip.kcl.layer(1, 0)).center().x - 2000.0) < 0.5
+    assert metasurface_component(demo_products["layout"]).name == c.name  # named by content

@@ -7,7 +7,7 @@ _EXPORTS = {
     "LayoutContents": "reader", "check_file": "reader", "drc_check": "reader", "read_layout": "reader",
     "read_layout_klayout": "reader", "verify_against_design": "reader", "LayoutOptions": "writer",
     "layout_geometry": "writer", "layout_library": "writer", "snap_widths": "writer", "write_layout": "writer",
-    "open_layout": "reader", "MadeLayout": "make", "make_layout": "make", "DESIGN_RULES": "rules", "DesignRules": "rules",
+    "open_layout": "reader", "metasurface_component": "component", "MadeLayout": "make", "make_layout": "make", "DESIGN_RULES": "rules", "DesignRules": "rules",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
