@@ -82,3 +82,35 @@ def test_the_codesign_report_makes_a_design_recipe_of_the_learned_diversity(tiny
     assert set(s["fisher"]["crb_rad2"]) == {"paper", "learned", "random 1"}
     assert all(x is not None and x > 0 for v in s["fisher"]["crb_rad2"].values() for x in v)
     assert (out / "diversity.png").stat().st_size > 0 and (out / "fisher.png").stat().st_size > 0
+
+
+def test_codesign_in_two_gloo_processes_reaches_the_weights_of_one(tiny_dataset, tmp_path):
+    """torchrun / DistributedDataParallel with the learnable sensor inside the model (noise off: each rank
+    draws its own): the diversity and the U-Net of 2 processes x 2 samples equal 1 process x 4."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import REPO
+
+    rec = tmp_path / "cd.toml"
+    rec.write_text(f'[data]\ndataset = "{tiny_dataset}"\nnoise_percent = 0.0\n[model]\nbase = 4\ndepth = 3\n'
+                   '[train]\nepochs = 1\nbatch = 4\nlr = 1e-3\nloss = "pib"\nseed = 1\n'
+                   '[codesign]\nmodes = [5, 7]\nlr = 0.05\ninit = "random"\nseed = 2\n')
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    one = subprocess.run([sys.executable, "-m", "metadesign", "train", str(rec), "-o", str(tmp_path / "one"),
+                          "--max-steps", "2", "--json"], env=env, capture_output=True, text=True, timeout=600)
+    assert one.returncode == 0, one.stderr[-2000:]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    two = subprocess.run([str(torchrun), "--nproc_per_node", "2", "--master_port", "29519", "-m", "metadesign",
+                          "train", str(rec), "-o", str(tmp_path / "two"), "--max-steps", "2", "--json"],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert two.returncode == 0, two.stderr[-2000:]
+    a = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
+    g = torch.Generator().manual_seed(2)
+    assert not torch.allclose(a["twin.defocus_waves"], 0.5 * torch.randn(2, 4, generator=g, dtype=torch.float64))
