@@ -220,3 +220,18 @@ def test_paper_design_metrics_match_the_uniform_quantiser(tmp_path, repo):
     assert max(m["peak_error_rad"]) < 2 * np.pi / 16  # < one bin: README says 0.33
     assert m["n_atoms"] == 256 and m["n_empty_bins"] == 0
     assert min(m["mean_T0"]) > 0.95  # every atom has T0 >= 0.7; README says 0.953
+
+
+def test_distinct_supercells_counts_tuples_not_atoms():
+    """#34's measurement on a map with a known answer: 2 x 2 tuples in reading order, (a, b, c, d) and
+    (b, a, c, d) distinct; the most frequent tuple covering half of them."""
+    from metadesign.design.discretize import distinct_supercells
+
+    t1 = np.array([[1, 2], [3, 4]])
+    t2 = np.array([[2, 1], [3, 4]])
+    t3 = np.array([[300, 0], [0, 300]])
+    im = np.block([[t1, t1, t1, t2], [t1, t1, t1, t3]])  # 8 supercells: 6 x t1, t2, t3
+    r = distinct_supercells(im, 2)
+    assert r["supercells"] == 8 and r["distinct"] == 3
+    assert r["most_frequent_covering"]["0.5"] == 1 and r["most_frequent_covering"]["0.99"] == 3
+    assert distinct_supercells(np.zeros((7, 7), int), 2)["supercells"] == 9  # whole supercells only

@@ -47,10 +47,15 @@ def _cmd_build(a: argparse.Namespace) -> int:
 
 
 def _cmd_show(a: argparse.Namespace) -> int:
+    from .discretize import distinct_supercells
     from .store import load_design
 
     d = load_design(a.design)
-    emit(d.metrics, a.json, design_text(d, a.design))
+    sc = distinct_supercells(d.index_map, d.spec.supercell)
+    cov = sc["most_frequent_covering"]
+    emit({**d.metrics, "distinct_supercells": sc}, a.json, design_text(d, a.design) + "\n" + (
+        f"supercells     {sc['supercells']:,} ({d.spec.supercell}x{d.spec.supercell}), {sc['distinct']:,} distinct; the "
+        f"most frequent {cov['0.5']:,} / {cov['0.9']:,} / {cov['0.99']:,} cover 50 / 90 / 99 %"))
     return 0
 
 

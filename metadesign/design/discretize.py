@@ -244,3 +244,18 @@ def optimal_offsets(hist: np.ndarray, cost_grid: np.ndarray) -> tuple[float, flo
     i, j = np.unravel_index(np.argmin(J), J.shape)
     step = 2 * np.pi / n
     return float(wrap(i * step)), float(wrap(j * step)), float(J[i, j] / hist.sum())
+
+
+def distinct_supercells(index_map: np.ndarray, m: int = 2, cover=(0.5, 0.9, 0.99)) -> dict:
+    """How many distinct ``m x m`` supercells (tuples of atom indices, in reading order) a design has, and
+    how many of the most frequent ones cover the given fractions of all supercells: what a per-supercell
+    solver or a look-up cache would have to handle (issue #34).  Index values must be < 2^15."""
+    nr, nc = (index_map.shape[0] // m) * m, (index_map.shape[1] // m) * m
+    key = np.zeros((nr // m, nc // m), np.int64)
+    for b in range(m):
+        for a in range(m):
+            key = key * (1 << 15) + index_map[b:nr:m, a:nc:m].astype(np.int64)
+    _, counts = np.unique(key, return_counts=True)
+    cum = np.cumsum(np.sort(counts)[::-1]) / key.size
+    return {"supercells": int(key.size), "distinct": int(counts.size),
+            "most_frequent_covering": {f"{q:g}": int(np.searchsorted(cum, q - 1e-12) + 1) for q in cover}}
