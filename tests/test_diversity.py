@@ -79,10 +79,11 @@ def test_diversity_gradients_match_finite_differences(setup):
         assert abs(fd) > 1e-6  # the loss does depend on it
 
 
-def test_a_changed_focal_length_is_the_device_designed_with_it(setup):
-    """Independent reference: the demo design re-run with x-pol lens 2 at 4.96 mm (re-binned, re-mapped
-    onto atoms, its coarse pupil built from the atoms) against the diversity twin of the original
-    device with that focal length."""
+
+def _redesigned_against_twin(setup, edit, set_twin):
+    """(error of the diversity twin, error of the unchanged device) against the demo design re-run with
+    ``edit`` applied to its recipe (binned, mapped onto atoms, its coarse pupil built from the atoms), the
+    twin's parameters set by ``set_twin``; and the re-run design."""
     from metadesign.config import load_toml
     from metadesign.design.recipe import design_recipe_from_dict
     from metadesign.design.store import run_design
@@ -92,18 +93,32 @@ def test_a_changed_focal_length_is_the_device_designed_with_it(setup):
 
     dev, lenses, crops, ops = setup
     raw = load_toml(REPO / "layouts" / "demo.toml")
-    raw["x_pol"]["focal_lengths_mm"][1] = 4.96
-    d2, _ = run_design(design_recipe_from_dict(raw, "demo-f2", REPO / "layouts" / "demo.toml"))
+    edit(raw)
+    d2, _ = run_design(design_recipe_from_dict(raw, "demo-edit", REPO / "layouts" / "demo.toml"))
     sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
     cp2 = AsFabricated.from_design(d2).pupil(sr.sensor.distance, sr.pupil_grid)
     x = torch.from_numpy(crops)
     tw = DiversityTwin(ops)
     with torch.no_grad():
-        tw.defocus_waves[0, 1] = (1 / 4.96e-3 - 1 / lenses[0, 1, 0]) * ops.radius ** 2 / (2 * ops.wavelength)
-        assert abs(float(tw.focal_lengths()[0, 1]) - 4.96e-3) < 1e-12
+        set_twin(tw)
         new = TorchTwin(twin_operators(cp2, dev.sensor, dev.geometry)).from_crop(x)
         old = TorchTwin.for_device(dev).from_crop(x)
-        err_div, err_old = _rel(tw(x), new), _rel(old, new)
+        return _rel(tw(x), new), _rel(old, new), d2, tw
+
+
+def test_a_changed_focal_length_is_the_device_designed_with_it(setup):
+    """Independent reference: the demo design re-run with x-pol lens 2 at 4.96 mm against the diversity
+    twin of the original device with that focal length."""
+    dev, lenses, crops, ops = setup
+
+    def edit(raw):
+        raw["x_pol"]["focal_lengths_mm"][1] = 4.96
+
+    def set_twin(tw):
+        tw.defocus_waves[0, 1] = (1 / 4.96e-3 - 1 / lenses[0, 1, 0]) * ops.radius ** 2 / (2 * ops.wavelength)
+
+    err_div, err_old, _, tw = _redesigned_against_twin(setup, edit, set_twin)
+    assert abs(float(tw.focal_lengths()[0, 1]) - 4.96e-3) < 1e-12
     # measured: 0.0024 against 0.030 (the rest: the new design's own quantisation)
     assert err_div < 0.2 * err_old, (err_div, err_old)
 
@@ -181,30 +196,20 @@ def test_zernike_terms_in_a_design_recipe_are_the_diversity_twin_s(setup):
     """The design side of the co-design: a design recipe whose lenses carry Zernike terms (laid out like
     any design: binned, mapped onto atoms) gives the PSFs the diversity twin predicts for them; and its
     layout's channel table keeps the terms."""
-    from metadesign.config import load_toml
-    from metadesign.design.recipe import design_recipe_from_dict
-    from metadesign.design.store import run_design
     from metadesign.layouts.writer import channel_table
-    from metadesign.sensing import AsFabricated, load_sensing_recipe
     from metadesign.sensing.model import channels_from_provenance
-    from metadesign.sensing.twin import TorchTwin, twin_operators
-    from metadesign.sensing.twin_diversity import DiversityTwin
 
-    dev, lenses, crops, ops = setup
-    raw = load_toml(REPO / "layouts" / "demo.toml")
-    raw["x_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 1.0], [0, 0], [0, 0]]}
-    raw["y_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 0], [0, 0], [0.8, 0]]}
-    d2, _ = run_design(design_recipe_from_dict(raw, "demo-z", REPO / "layouts" / "demo.toml"))
-    sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
-    cp2 = AsFabricated.from_design(d2).pupil(sr.sensor.distance, sr.pupil_grid)
-    x = torch.from_numpy(crops)
-    tw = DiversityTwin(ops)
-    with torch.no_grad():
+    ops = setup[3]
+
+    def edit(raw):
+        raw["x_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 1.0], [0, 0], [0, 0]]}
+        raw["y_pol"] |= {"zernike_noll": [5, 7], "zernike_rad": [[0, 0], [0, 0], [0, 0], [0.8, 0]]}
+
+    def set_twin(tw):
         tw.zernike_rad[0, 1, ops.modes.index(7)] = 1.0
         tw.zernike_rad[1, 3, ops.modes.index(5)] = 0.8
-        new = TorchTwin(twin_operators(cp2, dev.sensor, dev.geometry)).from_crop(x)
-        old = TorchTwin.for_device(dev).from_crop(x)
-        err_div, err_old = _rel(tw(x), new), _rel(old, new)
+
+    err_div, err_old, d2, _ = _redesigned_against_twin(setup, edit, set_twin)
     assert err_div < 0.2 * err_old, (err_div, err_old)
     table = channel_table(d2.spec)
     assert table[1]["zernike"] == [[7, 1.0]] and "zernike" not in table[0]

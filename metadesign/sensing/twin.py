@@ -28,7 +28,7 @@ from .forward import CoarsePupil, _nonparaxial
 from .sensor import SensorSpec, area_weights, quadrant_slices
 
 __all__ = ["rebin_pupil", "crop_interpolator", "crop_to_pupil", "TwinOperators", "twin_operators",
-           "TorchTwin", "twin_error", "normalise"]
+           "TorchTwin", "twin_error", "normalise", "render_tensor"]
 
 
 def rebin_pupil(cp: CoarsePupil, factor: int) -> CoarsePupil:
@@ -148,6 +148,17 @@ def twin_operators(cp: CoarsePupil, sensor: SensorSpec, crop: tuple[int, int, in
                          Ry.astype(np.float32), Rx.astype(np.float32), W.astype(np.float32), rebin, samples)
 
 
+def render_tensor(K, e_in, Ay, Ax, w, Ry, Rx):
+    """The twin's kernel (torch): pupil fields ``e_in`` (B, N, N) through the per-quadrant pupils ``K``
+    (8, N, N), the matrix Fourier transforms ``Ay``, ``Ax``, the weights ``w`` and the area resampling
+    ``Ry``, ``Rx`` -> (B, 8, S, S) PSF tensors.  One kernel for :class:`TorchTwin` and the learnable
+    diversity's twin (:class:`~metadesign.sensing.twin_diversity.DiversityTwin`)."""
+    v = K * e_in[:, None]  # (B, 8, N, N)
+    U = Ay @ (v @ Ax)  # (B, 8, R, Q)
+    inten = (U.real ** 2 + U.imag ** 2) * w
+    return Ry @ inten @ Rx.transpose(-1, -2)
+
+
 def normalise(tensor):
     """The dataset's input normalisation: the 8 channels of each sample sum to 8."""
     return tensor * (8.0 / tensor.sum(dim=(-3, -2, -1), keepdim=True))
@@ -183,10 +194,7 @@ class TorchTwin:
 
     def tensor(self, e_in):
         """``e_in`` (B, N, N) complex pupil fields -> (B, 8, S, S) PSF tensors (power, unit incident intensity)."""
-        v = self.K * e_in[:, None]  # (B, 8, N, N)
-        U = self.Ay @ (v @ self.Ax)  # (B, 8, R, Q)
-        inten = (U.real ** 2 + U.imag ** 2) * self.w
-        return self.Ry @ inten @ self.Rx.transpose(-1, -2)
+        return render_tensor(self.K, e_in, self.Ay, self.Ax, self.w, self.Ry, self.Rx)
 
     def pupil_field(self, crop):
         """Received crops (B, A, A) complex -> pupil fields (B, N, N) (the metasurface mask is in ``K``)."""

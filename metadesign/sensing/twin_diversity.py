@@ -14,6 +14,7 @@ import torch
 import torch.nn as nn
 
 from .diversity import DiversityOperators, defocus_to_power, lens_delta
+from .twin import render_tensor
 
 __all__ = ["DiversityTwin"]
 
@@ -62,10 +63,7 @@ class DiversityTwin(nn.Module):
         """Pupil fields (B, N, N) complex -> (B, 8, S, S) PSF tensors (power, unit incident intensity)."""
         g = self.pupils()
         K = torch.cat([g[0:1].expand(4, -1, -1), g[1:2].expand(4, -1, -1)]) * self.P  # (8, N, N)
-        v = K * e_in[:, None].to(self.cdtype)
-        U = self.Ay @ (v @ self.Ax)
-        inten = (U.real ** 2 + U.imag ** 2) * self.w
-        return self.Ry @ inten @ self.Rx.transpose(-1, -2)
+        return render_tensor(K, e_in.to(self.cdtype), self.Ay, self.Ax, self.w, self.Ry, self.Rx)
 
     def pupil_field(self, crop):
         """Received crops (B, A, A) -> pupil fields (B, N, N)."""
