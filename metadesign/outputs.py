@@ -70,6 +70,7 @@ KINDS: dict[str, tuple[str, bool]] = {
     "design-file": ("design file", False),
     "psf-file": ("PSF file", False),
     "phasemap-file": ("phase-map file", False),
+    "design-recipe": ("generated design recipe", False),
     # folders
     "design": ("design folder", True),
     "psf": ("PSF folder", True),
@@ -107,7 +108,11 @@ _FORMATS = {
     "metadesign.psf": "psf-file",
     "metadesign.phasemap": "phasemap-file",
     "metadesign.dataset": "dataset",
+    "metadesign.design-recipe": "design-recipe",
 }
+
+#: the first line of a recipe (TOML) that metadesign generated (a recipe a user wrote has none)
+RECIPE_HEADER = "# format: metadesign.design-recipe/1"
 
 #: folders written before the marker existed: kind -> (file inside, the kind that file must be); the file
 #: must carry a metadesign format tag, or (for summaries without one) be JSON with the listed key
@@ -249,9 +254,18 @@ def _checkpoint_kind(path: Path) -> str | None:
         return None
 
 
+def _toml_kind(path: Path) -> str | None:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            first = fh.readline().strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    return kind_of_format(first.split(":", 1)[1].strip()) if first.startswith("# format:") else None
+
+
 _FILE_SNIFFERS = {".pt": _checkpoint_kind, ".npz": _npz_kind, ".safetensors": _safetensors_kind, ".png": _png_kind,
                   ".onnx": _onnx_kind, ".oas": _layout_kind, ".gds": _layout_kind, ".csv": _csv_kind,
-                  ".json": _json_format}
+                  ".json": _json_format, ".toml": _toml_kind}
 
 
 def _marker_kind(folder: Path) -> str | None:

@@ -67,11 +67,24 @@ def test_the_codesign_report_makes_a_design_recipe_of_the_learned_diversity(tiny
     torch.set_num_threads(1)
     train(_recipe(1), tmp_path / "run", dataset=tiny_dataset, progress=False, log=lambda s: None)
     out = tmp_path / "rep"
+    (tmp_path / "layouts").mkdir()
+    recipe = tmp_path / "layouts" / "cd.toml"
     assert main(["codesign", str(tmp_path / "run"), "--dataset", str(tiny_dataset), "--base",
-                 str(REPO / "layouts" / "demo.toml"), "--modes", "6", "--random", "1", "-o", str(out), "--json"]) == 0
+                 str(REPO / "layouts" / "demo.toml"), "--modes", "6", "--random", "1", "-o", str(out),
+                 "--recipe", str(recipe), "--json"]) == 0
     rec = json.loads((tmp_path / "run" / "diversity.json").read_text())
-    d = load_design_recipe(out / "design.toml")
+    d = load_design_recipe(recipe)
     assert d.library_path.resolve() == (REPO / "library" / "paper.npz").resolve()
+    assert load_design_recipe(out / "design.toml").spec == d.spec
+    from metadesign.outputs import identify
+
+    assert identify(recipe) == "design-recipe" and identify(REPO / "layouts" / "demo.toml") is None
+    # a recipe the user wrote is never replaced
+    mine = tmp_path / "layouts" / "mine.toml"
+    mine.write_text((REPO / "layouts" / "demo.toml").read_text())
+    assert main(["codesign", str(tmp_path / "run"), "--dataset", str(tiny_dataset), "--base",
+                 str(REPO / "layouts" / "demo.toml"), "-o", str(tmp_path / "rep2"), "--recipe", str(mine)]) == 2
+    assert mine.read_text() == (REPO / "layouts" / "demo.toml").read_text() and not (tmp_path / "rep2").exists()
     for p, chans in enumerate((d.spec.channels_x, d.spec.channels_y)):
         for k, ch in enumerate(chans):
             assert ch.focal_length == pytest.approx(rec["focal_length_mm"][p][k] * 1e-3, rel=1e-8)

@@ -247,10 +247,13 @@ def _cmd_codesign(a: argparse.Namespace) -> int:
     read_diversity(a.run)  # a bad run is one line before anything is written
     out = out_dir(a.output)
     run_file = Path(a.run) / "diversity.json" if Path(a.run).is_dir() else Path(a.run)
-    with product(out, "codesign", {"run": run_file, "--dataset": zarr_input(a.dataset), "--base": a.base}):
+    inputs = {"run": run_file, "--dataset": zarr_input(a.dataset), "--base": a.base}
+    recipe = out_file(a.recipe, "--recipe", suffixes=(".toml",)) if a.recipe else None
+    with product(out, "codesign", inputs), \
+            (product(recipe, "design-recipe", {**inputs, "-o": out}) if recipe else contextlib.nullcontext()):
         rep = run_codesign_report(a.run, a.dataset, a.base, out, modes=a.modes, samples=a.fisher_samples,
                                   photons=a.photons, read_noise_e=a.read_noise_e, random=a.random,
-                                  log=log_to(a.json))
+                                  recipe=recipe, log=log_to(a.json))
     m = rep["fisher"]["mean_crb_rad2"]
     lines = [f"co-designed sensor -> {out}: design recipe {Path(rep['design_recipe']).name}, "
              + ", ".join(Path(f).name for f in rep["figures"]),
@@ -577,6 +580,8 @@ def register(sub, groups: dict) -> None:
     cd.add_argument("--read-noise-e", type=num(0.0, 1e6), default=0.0, help="read noise per pixel (e-)")
     cd.add_argument("--random", type=integer(0, 100), default=2, help="random diversities to compare (default 2)")
     cd.add_argument("-o", "--output", required=True, help="output folder")
+    cd.add_argument("--recipe", help="also write the design recipe here (e.g. layouts/codesign-demo.toml: its "
+                    "library named relative to it, ready to commit beside the other design recipes)")
     cd.add_argument("--json", action="store_true", help="print the summary as JSON")
     cd.set_defaults(func=_cmd_codesign)
     lsub, dsub = groups["library"], groups["dataset"]

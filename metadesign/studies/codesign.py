@@ -23,6 +23,7 @@ import torch
 
 from ..config import load_toml
 from ..io import atomic_write_text
+from ..outputs import RECIPE_HEADER
 from ..plotting import pyplot, save_figure
 from ..reconstruction.codesign import diversity_design_recipe
 from ..reconstruction.data import PSFDataset
@@ -34,7 +35,7 @@ from ..sensing.twin_diversity import DiversityTwin
 from ..validation import InputError
 
 __all__ = ["read_diversity", "set_diversity", "random_diversity", "fisher_spectra", "run_codesign_report",
-           "toml_text"]
+           "write_design_recipe", "toml_text"]
 
 
 def read_diversity(path: str | Path) -> dict:
@@ -112,24 +113,35 @@ def toml_text(d: dict) -> str:
     return "\n".join(lines)
 
 
-def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, out: Path, modes: int = 21,
-                        samples: int = 4, photons: float = 1e6, read_noise_e: float = 0.0, random: int = 2,
-                        log: Callable[[str], None] = print) -> dict:
-    """See the module docstring; ``modes``: Zernike modes 2..modes+1 of the received wavefront (tilt
-    first), ``samples``: received fields of the test split (and a flat wavefront) the information is
-    averaged over."""
-    rec = read_diversity(run)
+def write_design_recipe(rec: dict, base: str | Path, path: Path, run: str | Path) -> Path:
+    """The co-designed device's design recipe at ``path``: ``base`` with each lens's learned focal length
+    and Zernike terms; its library named relative to ``path``'s folder (so it can be committed beside the
+    other design recipes)."""
     base = Path(base)
     base_raw = load_toml(base)
-    out.mkdir(parents=True, exist_ok=True)
-    # 1. the device recipe: library path relative to the new recipe's folder
     new = diversity_design_recipe(base_raw, rec)
     lib = base_raw.get("design", {}).get("library", "../library/paper.npz")
     lib_abs = (base.parent / lib).resolve() if not Path(lib).is_absolute() else Path(lib)
-    new["design"]["library"] = os.path.relpath(lib_abs, out.resolve())
-    header = (f"# The co-designed sensor (issue #33): {base.name} with the diversity learned in {Path(run)}\n"
-              f"# (each lens's focal length and its Zernike terms, rad, Noll-normalised over the aperture's disk).\n")
-    atomic_write_text(out / "design.toml", header + toml_text(new))
+    new["design"]["library"] = os.path.relpath(lib_abs, path.parent.resolve())
+    header = (f"{RECIPE_HEADER}\n# The co-designed sensor (issue #33): {base.name} with the diversity learned in "
+              f"{Path(run).name}\n# (each lens's focal length and its Zernike terms, rad, Noll-normalised over the "
+              "aperture's disk; written by metadesign codesign).\n")
+    atomic_write_text(path, header + toml_text(new))
+    return path
+
+
+def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, out: Path, modes: int = 21,
+                        samples: int = 4, photons: float = 1e6, read_noise_e: float = 0.0, random: int = 2,
+                        recipe: Path | None = None, log: Callable[[str], None] = print) -> dict:
+    """See the module docstring; ``modes``: Zernike modes 2..modes+1 of the received wavefront (tilt
+    first), ``samples``: received fields of the test split (and a flat wavefront) the information is
+    averaged over; ``recipe``: where the design recipe goes besides ``out/design.toml``."""
+    rec = read_diversity(run)
+    out.mkdir(parents=True, exist_ok=True)
+    # 1. the device recipe
+    write_design_recipe(rec, base, out / "design.toml", run)
+    if recipe is not None:
+        write_design_recipe(rec, base, Path(recipe), run)
     # 2. the diversity and its PSFs
     dev = load_device(dataset)
     lenses = lens_table(open_dataset(dataset).attrs["provenance"]["channels"])
@@ -151,7 +163,8 @@ def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, 
     log(f"Fisher information of {len(divs)} diversities over {len(fields)} wavefronts, {modes} modes ...")
     spectra = fisher_spectra(tw, fields, basis, divs, photons, read_noise_e)
     figs.append(_plot_fisher(spectra, photons, out / "fisher.png"))
-    summary = {"run": str(run), "dataset": str(dataset), "base_design": str(base), "design_recipe": str(out / "design.toml"),
+    summary = {"run": str(run), "dataset": str(dataset), "base_design": str(base),
+               "design_recipe": str(recipe if recipe is not None else out / "design.toml"),
                "diversity": rec, "fisher": {"modes_noll": list(range(2, 2 + modes)), "photons": photons,
                                             "read_noise_e": read_noise_e, "wavefronts": len(fields),
                                             "crb_rad2": {k: [None if not np.isfinite(x) else float(x) for x in v]
