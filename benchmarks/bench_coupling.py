@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     from metadesign.design.compensate import _descend, atom_neighbours
     from metadesign.design.store import load_design
-    from metadesign.library.coupling import (
+    from metadesign.library import (
         CouplingConfig,
         build_coupling,
         coupling_t,

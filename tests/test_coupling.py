@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from metadesign.library.coupling import (
+from metadesign.library import (
     CouplingConfig,
     build_coupling,
     coupling_t,
@@ -250,7 +250,7 @@ def test_pair_tables_reproduce_the_network(paper_library):
     """The discretizer's look-up path (pair tables over an atom set) equals running the network."""
     import torch
 
-    from metadesign.library.coupling import pair_tables, tuple_t
+    from metadesign.library import pair_tables, tuple_t
 
     torch.manual_seed(5)
     m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
@@ -274,7 +274,7 @@ def test_compensation_descends_and_its_updates_are_exact(paper_library):
     import torch
 
     from metadesign.design.compensate import _descend, atom_neighbours
-    from metadesign.library.coupling import pair_tables, tuple_t
+    from metadesign.library import pair_tables, tuple_t
 
     torch.manual_seed(8)
     m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()

@@ -180,3 +180,21 @@ def test_a_core_install_says_what_it_lacks(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     err = p.stderr.strip().splitlines()
     assert p.returncode == 2 and len(err) == 1 and "metadesign[learn]" in err[0], p.stderr
+
+
+def test_the_forward_model_and_the_coupling_cards_import_without_torch():
+    """#31: the coupling network is a torch module at module level (library.coupling_net); the forward
+    model and the coupling model's numpy side (cards, LPA, look-ups) import on a core install."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['torch'] = None; "
+            "import metadesign.sensing.model, metadesign.sensing.transmission, metadesign.library.coupling; "
+            "import metadesign.library as L; L.lpa_t; L.coupling_card; print('ok')")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.strip() == "ok", p.stderr[-1500:]
+    import inspect
+
+    from metadesign.library.coupling_net import Coupling
+
+    assert inspect.getmodule(Coupling).__name__ == "metadesign.library.coupling_net"  # not a closure's class

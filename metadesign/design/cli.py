@@ -80,7 +80,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 
 
 def _cmd_compensate(a: argparse.Namespace) -> int:
-    from ..library.coupling import find_coupling
+    from ..library.coupling_net import find_coupling
     from .compensate import compensate_design
     from .store import design_file, design_library, load_design, save_design
 

@@ -21,7 +21,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..library.coupling import pair_tables, tuple_t
+from ..library.coupling import tuple_t
+from ..library.coupling_net import pair_tables
 from .phase import design_phase_rows, wrap
 from .store import Design
 

@@ -7,6 +7,11 @@ _EXPORTS = {
     "CellResult": "rcwa", "Factorization": "rcwa", "SolverSettings": "rcwa", "Stack": "rcwa", "Truncation": "rcwa",
     "fabry_perot_t": "rcwa", "solve_cell": "rcwa", "UnitCellLibrary": "store", "export_csv": "store",
     "load_library": "store", "save_library": "store",
+    # the supercell coupling model: numpy side (no torch) and the network (torch)
+    "CouplingConfig": "coupling", "lpa_t": "coupling", "relative_error": "coupling", "save_coupling": "coupling",
+    "tuple_t": "coupling", "coupling_card": "coupling", "is_coupling": "coupling", "transpose_supercells": "coupling", "Coupling": "coupling_net", "build_coupling": "coupling_net",
+    "coupling_t": "coupling_net", "find_coupling": "coupling_net", "fit_coupling": "coupling_net",
+    "load_coupling": "coupling_net", "pair_tables": "coupling_net", "pillar_terms": "coupling_net",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import library as stage1  # its coupling network is imported on first use (torch: the learn extra)
 from ..config import ConfigError, InputError, Param, Section, load_toml, parse
 from ..design.phase import LensChannel, cell_coordinates, polygon_mask
 from ..design.recipe import design_recipe_from_dict
 from ..design.store import design_library, load_design
 from ..layouts.reader import IndexRows, LayoutContents, open_layout, read_tiled_contents
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
-from ..library.coupling import find_coupling
 from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
@@ -110,7 +110,7 @@ class AsFabricated:
             return replace(self, coupling=None, coupling_card=None)
         if kind != "supercell":
             raise ValueError(f"coupling must be 'lpa' or 'supercell', got {kind!r}")
-        m, card, _ = find_coupling(self.lib, model)
+        m, card, _ = stage1.find_coupling(self.lib, model)
         return replace(self, coupling=m, coupling_card=card)
 
     @property

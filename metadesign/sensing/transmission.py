@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..library.coupling import pair_tables, pillar_terms
 from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
@@ -199,7 +198,7 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     whole 2 x 2 supercell (rows 2I, 2I+1; columns 2J, 2J+1) has pillars; elsewhere (an aperture's edge,
     empty cells) the LPA's ``t`` stays.  Supercells are evaluated in batches (bounded memory).
     ``atoms = (index (R, C), widths (A, 2), t (A, 2))``: the pillars are drawn from a finite table (no
-    jitter), so a pair model's terms are table look-ups (:func:`metadesign.library.coupling.pair_tables`,
+    jitter), so a pair model's terms are table look-ups (:func:`metadesign.library.coupling_net.pair_tables`,
     the same numbers without running the network per supercell)."""
     R2, C2 = t.shape[0] // 2, t.shape[1] // 2
 
@@ -214,7 +213,7 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     terms = np.zeros((R2 * C2, 2, 2, 2), np.complex64)
     if atoms is not None and getattr(model.cfg, "interaction", None) == "pair":
         k_at, w_at, t_at = atoms
-        tab = _pair_table_cache(model, w_at, t_at, pair_tables)
+        tab = _pair_table_cache(model, w_at, t_at)
         ab = blocks(np.asarray(k_at))[idx]  # (n, 2, 2) atom of each pillar
         for r in range(2):
             for c in range(2):
@@ -225,7 +224,7 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
         wb, tb = blocks(w), blocks(t)
         for a in range(0, len(idx), batch):
             k = idx[a:a + batch]
-            terms[k] = pillar_terms(model, wb[k], tb[k], batch)
+            terms[k] = model.terms(wb[k], tb[k], batch)
     out = t.copy()
     out[:2 * R2, :2 * C2] += terms.reshape(R2, C2, 2, 2, 2).swapaxes(1, 2).reshape(2 * R2, 2 * C2, 2)
     return out
@@ -234,12 +233,12 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
 _TABLES: dict = {}
 
 
-def _pair_table_cache(model, w_at, t_at, make):
+def _pair_table_cache(model, w_at, t_at):
     """The pair tables of ``model`` over an atom table, kept for the row tiles of one pupil."""
     key = (id(model), np.asarray(w_at).tobytes(), np.asarray(t_at).tobytes())
     if key not in _TABLES:
         _TABLES.clear()
-        _TABLES[key] = make(model, np.asarray(w_at), np.asarray(t_at))
+        _TABLES[key] = model.tables(np.asarray(w_at), np.asarray(t_at))
     return _TABLES[key]
 
 

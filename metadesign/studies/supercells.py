@@ -27,7 +27,8 @@ from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import Design, design_file, load_design, run_design
-from ..library.coupling import CouplingConfig, coupling_t, fit_coupling, lpa_t, relative_error
+from ..library.coupling import CouplingConfig, lpa_t, relative_error
+from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
 from ..library.rcwa import Stack
 from ..library.store import interpolate_t, load_library
