@@ -188,7 +188,7 @@ def fit_coupling(lib: UnitCellLibrary, widths: np.ndarray, t_ref: np.ndarray, cf
                  *, steps: int = 4000, lr: float = 3e-3, weight_decay: float = 1e-5, val_fraction: float = 0.1,
                  seed: int = 0, log=lambda s: None) -> tuple[object, dict]:
     """Fit a coupling model to solved supercells ``widths`` (n, 2, 2, 2) m, ``t_ref`` (n, 2) complex.
-    Full-batch Adam with a cosine schedule on the squared error in units of the pillars' rms |t|; a
+    Full-batch Adam with a cosine schedule on the squared error in units of the pillars' rms ``|t|``; a
     seeded ``val_fraction`` of the rows picks the best step (none of the caller's held-out rows are
     passed here).  Deterministic for a seed (one thread)."""
     torch.manual_seed(seed)
