@@ -41,6 +41,33 @@ def test_codesign_trains_the_diversity_and_resumes_to_the_same_bytes(tiny_datase
     model, card = load_model(tmp_path / "a" / "model.safetensors")  # the U-Net alone, with its sensor
     assert card["codesign"]["zernike_noll"] == [5, 6, 7]
     assert model.config.input_size == 16
+    # evaluate renders its inputs through the recorded diversity: against the same chain written out here
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.dataset import load_device, open_dataset
+    from metadesign.reconstruction.evaluate import evaluate_model
+    from metadesign.reconstruction.losses import PiB
+    from metadesign.sensing.diversity import diversity_operators, lens_table
+    from metadesign.sensing.twin import normalise
+    from metadesign.sensing.twin_diversity import DiversityTwin
+
+    res = evaluate_model(tmp_path / "a" / "model.safetensors", tiny_dataset, "train", [0.0], device="cpu")
+    dev = load_device(tiny_dataset)
+    ops = diversity_operators(dev.pupil, dev.sensor, lens_table(open_dataset(tiny_dataset).attrs["provenance"]["channels"]),
+                              dev.geometry, 1, None, (5, 6, 7))  # the run's twin (exact: the recipe's default)
+    tw = DiversityTwin(ops)
+    cd = card["codesign"]  # the diversity of the saved (best) epoch
+    with torch.no_grad():
+        f = torch.tensor(cd["focal_length_mm"], dtype=torch.float64) * 1e-3
+        tw.defocus_waves.copy_((1 / f - 1 / tw.f0) * ops.radius ** 2 / (2 * ops.wavelength))
+        tw.zernike_rad.copy_(torch.tensor(cd["zernike_rad"], dtype=torch.float64))
+        pd = PSFDataset(tiny_dataset, "train", screens=True)
+        s = pd.get(0)
+        pib = PiB(pd.scenario(), *pd.crop())
+        rec = torch.as_tensor(s["received"])[None]
+        phi = model(normalise(tw(rec).float()))
+        want = float(pib.npib_phase(phi, torch.as_tensor(s["screens"])[None]))
+    got = float(next(iter(res["rows"].values()))["unet"][0])
+    assert got == pytest.approx(want, rel=1e-4)
 
 
 @pytest.mark.parametrize("codesign, field", [({"modes": [4, 5]}, "codesign.modes"),

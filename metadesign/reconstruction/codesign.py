@@ -27,9 +27,11 @@ import torch.nn as nn
 from ..sensing.diversity import DEFAULT_MODES, diversity_operators, lens_table
 from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
+from ..validation import ValidationError
 from .dataset import load_device, open_dataset
 
-__all__ = ["CodesignConfig", "CodesignNet", "build_codesign", "diversity_record", "diversity_design_recipe"]
+__all__ = ["CodesignConfig", "CodesignNet", "build_codesign", "apply_diversity", "codesign_for_evaluation",
+           "diversity_record", "diversity_design_recipe"]
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,34 @@ def build_codesign(unet: nn.Module, cfg: CodesignConfig, dataset: str | Path, no
                                                               dtype=torch.float64))
     twin.defocus_waves.requires_grad_(cfg.learn_defocus)
     return CodesignNet(twin, unet, cfg, noise_percent)
+
+
+def apply_diversity(twin: DiversityTwin, rec: dict | None) -> DiversityTwin:
+    """The twin at a recorded diversity (``diversity.json`` / a card's ``codesign``; None: the device as
+    built)."""
+    with torch.no_grad():
+        twin.defocus_waves.zero_()
+        twin.zernike_rad.zero_()
+        if rec is not None:
+            f = torch.tensor(rec["focal_length_mm"], dtype=torch.float64) * 1e-3
+            twin.defocus_waves.copy_((1 / f - 1 / twin.f0) * twin.radius ** 2 / (2 * twin.wavelength))
+            a = torch.tensor(rec["zernike_rad"], dtype=torch.float64)
+            for i, j in enumerate(rec["zernike_noll"]):
+                if j not in twin.modes:
+                    raise ValidationError(f"diversity: Noll {j} is not among the twin's modes {list(twin.modes)}")
+                twin.zernike_rad[..., twin.modes.index(j)] = a[..., i]
+    return twin
+
+
+def codesign_for_evaluation(unet: nn.Module, rec: dict, dataset: str | Path, device="cpu") -> CodesignNet:
+    """A trained co-design U-Net with the diversity it was trained with (its card's ``codesign``), on the
+    device of ``dataset``, in evaluation mode: received crops in, phases out; set ``noise_percent`` per
+    noise level (the evaluation's Gaussian noise, drawn from the module's generator)."""
+    c = rec.get("config", {})
+    cfg = CodesignConfig(**{**c, "modes": tuple(c.get("modes", rec["zernike_noll"]))})
+    net = build_codesign(unet, cfg, dataset, (0.0, 0.0))
+    apply_diversity(net.twin, rec)
+    return net.to(device).eval()
 
 
 def diversity_record(net: CodesignNet, lenses: np.ndarray | None = None) -> dict:

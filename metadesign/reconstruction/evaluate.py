@@ -14,6 +14,7 @@ import numpy as np
 from ..io import atomic_path
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError
+from .codesign import codesign_for_evaluation
 from .data import PSFDataset
 from .losses import PiB
 from .metrics import EVAL_NOISE_SEED, captured_fraction, gain, npib_rows
@@ -66,6 +67,12 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     dev = torch.device(device) if device else pick_device()
     model, card = load_network(model_path, device=str(dev))
     refines = "refine" in card  # rows: "unet" the refiner's estimate, "start" its U-Net's
+    cd = None
+    if card.get("codesign"):  # a co-design U-Net: its PSFs rendered by its own diversity from the received fields
+        if photons:
+            raise ValidationError(f"{model_path}: a co-design model is evaluated with Gaussian sensor noise only "
+                                  "(its twin renders the noise the datasets draw); leave out --photons")
+        cd = codesign_for_evaluation(model, card["codesign"], dataset, dev)
     rows: dict = {}
     levels = [("gaussian", float(x)) for x in noise_levels] + [("photons", float(p)) for p in (photons or [])]
     total = 0
@@ -79,7 +86,10 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     n_total = len(base) * len(levels)
     examples: dict = {"phi": [], "received": []}
     for kind, level in levels:
-        ds = PSFDataset(dataset, split, gaussian_percent=level if kind == "gaussian" else 0.0,
+        if cd is not None:  # the noise on the twin's renderings, the same draws at every evaluation
+            cd.noise_percent = (level, level)
+            cd.eval()
+        ds = PSFDataset(dataset, split, gaussian_percent=level if kind == "gaussian" and cd is None else 0.0,
                         photons_at_peak=level if kind == "photons" else None,
                         read_noise_e=3.0 if kind == "photons" else 0.0, noise_seed=EVAL_NOISE_SEED, limit=limit,
                         screens=True)
@@ -95,6 +105,8 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                     traj = model.trajectory(b["psf"].to(dev))
                     phi = traj[-1] * model.mask
                     acc["start"].append(pib.npib_phase(traj[0] * model.mask, scr).cpu().numpy())
+                elif cd is not None:
+                    phi = cd(rec)
                 else:
                     phi = model(b["psf"].to(dev))
                 if not rows and len(examples["phi"]) < 4:

@@ -25,7 +25,7 @@ from ..config import load_toml
 from ..io import atomic_write_text
 from ..outputs import RECIPE_HEADER
 from ..plotting import pyplot, save_figure
-from ..reconstruction.codesign import diversity_design_recipe
+from ..reconstruction.codesign import apply_diversity, diversity_design_recipe
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device, open_dataset
 from ..sensing.diversity import diversity_operators, lens_table
@@ -34,7 +34,7 @@ from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
 from ..validation import InputError
 
-__all__ = ["read_diversity", "set_diversity", "random_diversity", "fisher_spectra", "run_codesign_report",
+__all__ = ["read_diversity", "random_diversity", "fisher_spectra", "run_codesign_report",
            "write_design_recipe", "toml_text"]
 
 
@@ -49,21 +49,6 @@ def read_diversity(path: str | Path) -> dict:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{path}: not a co-design run or diversity.json ({type(exc).__name__}: {exc})") from None
     return rec
-
-
-def set_diversity(tw: DiversityTwin, rec: dict | None) -> DiversityTwin:
-    """The twin at a recorded diversity (None: the device as built)."""
-    with torch.no_grad():
-        tw.defocus_waves.zero_()
-        tw.zernike_rad.zero_()
-        if rec is not None:
-            f = torch.tensor(rec["focal_length_mm"], dtype=torch.float64) * 1e-3
-            tw.defocus_waves.copy_((1 / f - 1 / tw.f0) * tw.radius ** 2 / (2 * tw.wavelength))
-            for i, j in enumerate(rec["zernike_noll"]):
-                if j not in tw.modes:
-                    raise InputError(f"diversity: Noll {j} is not among the twin's modes {list(tw.modes)}")
-                tw.zernike_rad[..., tw.modes.index(j)] = torch.tensor(rec["zernike_rad"], dtype=torch.float64)[..., i]
-    return tw
 
 
 def random_diversity(tw: DiversityTwin, seed: int, waves: float, rad: float) -> dict:
@@ -84,7 +69,7 @@ def fisher_spectra(tw: DiversityTwin, fields: np.ndarray, basis: np.ndarray, div
     total flux tells it nothing)."""
     out = {}
     for i, (name, rec) in enumerate(diversities.items()):
-        set_diversity(tw, rec)
+        apply_diversity(tw, rec)
         F = zernike_fisher(tw, fields, basis, photons, read_noise_e, normalise_sum=True).mean(axis=0)
         out[name] = crb(F)
         if progress:
@@ -181,9 +166,9 @@ def _plot_diversity(tw: DiversityTwin, rec: dict, flat: np.ndarray, path: Path) 
     fig, ax = plt.subplots(3, 8, figsize=(17, 6.6), constrained_layout=True)
     x = torch.from_numpy(flat[None])
     with torch.no_grad():
-        set_diversity(tw, None)
+        apply_diversity(tw, None)
         t_paper = normalise(tw(x))[0].numpy()
-        set_diversity(tw, rec)
+        apply_diversity(tw, rec)
         psi = tw.phases().numpy()
         t_learned = normalise(tw(x))[0].numpy()
     ins = tw.inside.numpy()
