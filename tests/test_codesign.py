@@ -124,6 +124,7 @@ def test_the_codesign_report_makes_a_design_recipe_of_the_learned_diversity(tiny
     assert (out / "diversity.png").stat().st_size > 0 and (out / "fisher.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_codesign_in_two_gloo_processes_reaches_the_weights_of_one(tiny_dataset, tmp_path):
     """torchrun / DistributedDataParallel with the learnable sensor inside the model (noise off: each rank
     draws its own): the diversity and the U-Net of 2 processes x 2 samples equal 1 process x 4."""

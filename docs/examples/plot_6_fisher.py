@@ -20,7 +20,7 @@ from metadesign.design.store import run_design
 from metadesign.paths import repo_root
 from metadesign.reconstruction.dataset import received_crop
 from metadesign.sensing import AsFabricated, Device, ReceiverCrop, load_sensing_recipe
-from metadesign.sensing.diversity import diversity_operators, lens_table
+from metadesign.sensing.diversity import diversity_operators, focal_to_defocus, lens_table
 from metadesign.sensing.fisher import crb, crop_zernike_basis, zernike_fisher
 from metadesign.sensing.twin_diversity import DiversityTwin
 from metadesign.turbulence import load_scenario
@@ -54,7 +54,7 @@ def bound(defocus_waves=None, zernike_rad=None):
     return crb(zernike_fisher(twin, flat, basis, 1e6, normalise_sum=True)[0])
 
 
-focused = (1 / sr.sensor.distance - 1 / ops.f0) * ops.radius ** 2 / (2 * ops.wavelength)
+focused = focal_to_defocus(sr.sensor.distance, ops.f0, ops.wavelength, ops.radius)
 rng = np.random.default_rng(0)
 curves = {"paper's diversity": bound(),
           "no diversity (all lenses focused on the camera)": bound(focused),

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..sensing.diversity import DEFAULT_MODES, diversity_operators, lens_table
+from ..sensing.diversity import DEFAULT_MODES, diversity_operators, focal_to_defocus, lens_table
 from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
 from ..validation import ValidationError
@@ -132,7 +132,7 @@ def apply_diversity(twin: DiversityTwin, rec: dict | None) -> DiversityTwin:
         twin.zernike_rad.zero_()
         if rec is not None:
             f = torch.tensor(rec["focal_length_mm"], dtype=torch.float64) * 1e-3
-            twin.defocus_waves.copy_((1 / f - 1 / twin.f0) * twin.radius ** 2 / (2 * twin.wavelength))
+            twin.defocus_waves.copy_(focal_to_defocus(f, twin.f0, twin.wavelength, twin.radius))
             a = torch.tensor(rec["zernike_rad"], dtype=torch.float64)
             for i, j in enumerate(rec["zernike_noll"]):
                 if j not in twin.modes:

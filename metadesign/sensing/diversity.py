@@ -30,6 +30,7 @@ from .sensor import SensorSpec
 from .twin import rebin_pupil, twin_operators
 
 __all__ = ["DiversityOperators", "diversity_operators", "lens_table", "lens_delta", "defocus_to_power",
+           "focal_to_defocus",
            "block_phase_step", "DEFAULT_MODES"]
 
 #: the low-order terms a channel may learn beyond its defocus: astigmatism (5, 6), coma (7, 8),
@@ -60,6 +61,11 @@ def defocus_to_power(waves, wavelength: float, radius: float):
     """Change of optical power ``1/f - 1/f0`` (1/m) of ``waves`` of sag at the aperture edge ``radius``
     (works on numpy arrays and torch tensors)."""
     return waves * (2.0 * wavelength / radius**2)
+
+
+def focal_to_defocus(f, f0, wavelength: float, radius: float):
+    """The inverse of :func:`defocus_to_power`: the waves that take focal length ``f0`` to ``f``."""
+    return (1.0 / f - 1.0 / f0) * radius**2 / (2.0 * wavelength)
 
 
 def lens_delta(r2, f0, f, k0: float):

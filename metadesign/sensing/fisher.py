@@ -37,11 +37,14 @@ def fisher_information(model: Callable, theta0, photons: float, read_noise_e: fl
     from torch.func import jacfwd
 
     t0 = torch.as_tensor(theta0, dtype=torch.float64)
-    with torch.no_grad():
-        i0 = model(t0)
+
+    def f(t):
+        out = model(t).reshape(-1).to(torch.float64)
+        return out, out.detach()
+
+    J, i0 = jacfwd(f, has_aux=True)(t0)  # (P, M) and the intensities, from one forward pass per mode
     scale = float(photons) / float(i0.sum())
-    J = jacfwd(lambda t: model(t).reshape(-1).to(torch.float64) * scale)(t0)  # (P, M)
-    mu = i0.reshape(-1).to(torch.float64) * scale
+    J, mu = J * scale, i0 * scale
     var = mu + float(read_noise_e) ** 2
     keep = var > 0
     Jw = J[keep] / torch.sqrt(var[keep])[:, None]

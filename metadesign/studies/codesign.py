@@ -28,7 +28,7 @@ from ..plotting import pyplot, save_figure
 from ..reconstruction.codesign import apply_diversity, diversity_design_recipe
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device, open_dataset
-from ..sensing.diversity import diversity_operators, lens_table
+from ..sensing.diversity import defocus_to_power, diversity_operators, lens_table
 from ..sensing.fisher import crb, crop_zernike_basis, zernike_fisher
 from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
@@ -57,7 +57,7 @@ def random_diversity(tw: DiversityTwin, seed: int, waves: float, rad: float) -> 
     rng = np.random.default_rng(seed)
     f0 = tw.f0.numpy()
     w = rng.normal(0.0, waves, (2, 4))
-    f = 1 / (1 / f0 + w * 2 * tw.wavelength / tw.radius ** 2)
+    f = 1 / (1 / f0 + defocus_to_power(w, tw.wavelength, tw.radius))
     return {"focal_length_mm": (f * 1e3).tolist(), "zernike_noll": list(tw.modes),
             "zernike_rad": rng.normal(0.0, rad, (2, 4, len(tw.modes))).tolist()}
 
