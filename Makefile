@@ -12,6 +12,9 @@ BIN     = $(VENV)/bin
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
+# test processes (pytest-xdist; one file per worker at a time, one thread each): `make test TEST_WORKERS=1` for one
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile,)
 
 .PHONY: demo test test-slow install clean docs
 
@@ -26,10 +29,10 @@ demo: install
 	$(BIN)/metadesign demo
 
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(XDIST)
 
 test-slow: install
-	$(BIN)/python -m pytest -m slow
+	$(BIN)/python -m pytest -m slow $(XDIST)
 
 clean:
 	rm -rf demo-out .pytest_cache docs/_build docs/gallery

@@ -68,11 +68,36 @@ def dask_client(scheduler: str):
     """A ``dask.distributed.Client`` on ``scheduler``; an unreachable one is a one-line ValidationError."""
     from dask.distributed import Client
 
+    _probe(scheduler)
     try:
         return Client(scheduler, timeout="20s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
                               f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
+
+
+def _probe(scheduler: str) -> None:
+    """Fail at once when nothing listens at a ``tcp://host:port`` address (a refused connection), instead of
+    after the client's 20 s of retries; other addresses (tls://, inproc://) go to the client as they are."""
+    import socket
+    from urllib.parse import urlsplit
+
+    if not scheduler.startswith("tcp://"):
+        return
+    try:
+        u = urlsplit(scheduler)
+        host, port = u.hostname, u.port
+    except ValueError:
+        return
+    if not host or port is None:
+        return
+    try:
+        socket.create_connection((host, port), timeout=5).close()
+    except ConnectionRefusedError as exc:
+        raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
+                              f"(nothing listens there: {exc.strerror})") from None
+    except OSError:
+        return  # a timeout or an unresolved name: the client says it with its own retries
 
 
 _SHARED = None  # a worker's shared object (set once by the pool's initializer)
