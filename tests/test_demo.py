@@ -36,19 +36,28 @@ def test_demo_runs_from_an_installed_wheel_outside_the_checkout(tmp_path):
     assert p.returncode == 0, p.stderr
     tmp_path = run
     s = json.loads(p.stdout)
-    assert set(s["stages"]) >= {"library", "design", "layout", "sensing", "turbulence", "reconstruction"}
+    # the demo is `run` on the packaged recipe sensing/demo-run.toml: every stage, no dataset, fresh beacons
+    assert set(s["stages"]) == {"library", "design", "layout", "sensing", "turbulence", "beacons"}
     # the committed robust U-Net and its refinement, at a clean camera and at 5 % noise (#23)
-    cap = s["stages"]["reconstruction"]["captured_fraction"]
+    cap = s["stages"]["beacons"]["captured_fraction"]
     assert set(cap) == {"unet@0", "unet@5", "refine@0", "refine@5"}
     assert all(v > 0 for v in cap.values())
-    assert s["passed"] is True
+    assert s["passed"] is True and all(c["passed"] for c in s["checks"])
     lay = s["stages"]["layout"]
-    assert lay["verify_gdstk"]["exact"] and lay["verify_klayout"]["exact"] and lay["drc"]["passed"]
+    assert lay["gdstk_exact"] and lay["klayout_exact"] and lay["drc_passed"]
     assert s["stages"]["library"]["recheck_max_abs_error"] < 1e-6
     assert s["stages"]["design"]["metrics"]["n_empty_bins"] == 0
     for ch in s["stages"]["sensing"]["channels"]:
         assert 0.9 < ch["strehl"] <= 1.0
     for st in s["stages"].values():
-        for f in st["figures"]:
+        assert st["line"]
+        for f in st.get("figures", []):
             assert (tmp_path / "out" / f.split("/")[-1]).stat().st_size > 10_000
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["stages"]
+    assert (tmp_path / "out" / "report.html").stat().st_size > 100_000
+    # a second demo is up to date in seconds, with the same numbers
+    p2 = subprocess.run([sys.executable, "-m", "metadesign", "demo", "-o", "out"], cwd=run, env=env,
+                        capture_output=True, text=True, timeout=900)
+    assert p2.returncode == 0, p2.stderr
+    assert p2.stdout.count("(up to date)") == 6, p2.stdout
+    assert s["stages"]["beacons"]["line"] in p2.stdout

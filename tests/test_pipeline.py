@@ -36,7 +36,7 @@ split = "all"
     assert rc == (0 if rep["passed"] else 1)  # a failed check is a failed run (as the demo)
     pv = rep["provenance"]  # the report is a record: what made it
     assert pv["recipe"]["sha256"] and pv["model"]["path"].endswith("model.safetensors") and pv["elapsed_seconds"] > 0
-    assert set(rep["stages"]) == {"library", "design", "layout", "psf", "turbulence", "dataset", "train", "evaluate"}
+    assert set(rep["stages"]) == {"library", "design", "layout", "sensing", "turbulence", "dataset", "train", "evaluate"}
     assert not any(v["skipped"] for v in rep["stages"].values())
     html = (tmp_path / "out" / "report.html").read_text()
     for title in ("Fig. S1", "Fig. S2", "Layout preview", "Fig. 2c", "Fab study", "Fig. S5", "Fig. S6", "Fig. 3b",
@@ -75,3 +75,58 @@ split = "all"
     main(["run", str(tmp_path / "p.toml"), "-o", str(tmp_path / "copy"), "--json"])
     st = json.loads(capsys.readouterr().out)["stages"]
     assert [k for k, v in st.items() if not v["skipped"]] == ["turbulence"], st
+
+
+def _recipe(tmp_path, body: str):
+    p = tmp_path / "p.toml"
+    p.write_text(f"""[pipeline]
+library = "{REPO / 'library' / 'paper.npz'}"
+design = "{REPO / 'layouts' / 'demo.toml'}"
+sensor = "{REPO / 'sensing' / 'demo.toml'}"
+turbulence = "{REPO / 'sensing' / 'turbulence.toml'}"
+""" + body)
+    return p
+
+
+BEACONS = f"""[beacons]
+design = "{REPO / 'layouts' / 'paper-5mm.toml'}"
+sensor = "{REPO / 'sensing' / 'paper.toml'}"
+model = "{REPO / 'sensing' / 'models' / 'demo-refine.safetensors'}"
+"""
+
+
+import pytest  # noqa: E402
+
+
+@pytest.mark.parametrize("body, words", [
+    ("", "nothing to reconstruct"),
+    ("[dataset]\nsamples = 4\n", "[dataset] needs [train]"),
+    ("[train]\nmodel = 'x.safetensors'\n", "[train] needs [dataset]"),
+    (BEACONS.replace("[beacons]", "[pipeline.x]"), "unknown key"),
+    (BEACONS.replace("demo-refine", "no-such"), "beacons.model"),
+    (BEACONS + "rytov_min = 0.7\n", "above beacons.rytov_max"),
+    (BEACONS + "noise_percent = []\n", "at least one level"),
+    (BEACONS + "samples = 0\n", "beacons.samples"),
+    (BEACONS + "seed = nan\n", "beacons.seed"),
+])
+def test_bad_pipeline_recipes_are_one_line_and_write_nothing(tmp_path, capsys, body, words):
+    rc = main(["run", str(_recipe(tmp_path, body)), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("line, words", [
+    ("fab_bias_nm = [-10.0, 10.0]", "nominal device (0)"),
+    ("fab_jitter_nm = [-1.0]", "pipeline.fab_jitter_nm"),
+    ("library_recheck = [[0, 999]]", "outside the library"),
+    ("library_recheck = [[0]]", "pair"),
+    ("klayout = 1", "true or false"),
+])
+def test_bad_pipeline_options_are_one_line(tmp_path, capsys, line, words):
+    p = _recipe(tmp_path, BEACONS)
+    p.write_text(p.read_text().replace("[pipeline]\n", f"[pipeline]\n{line}\n"))
+    rc = main(["run", str(p), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "out").exists()

@@ -31,6 +31,7 @@ from ..layouts.preview import preview_layout
 from ..layouts.rules import DESIGN_RULES
 from ..library.build import build_library
 from ..library.plot import plot_library
+from ..library.rcwa import SolverSettings, Stack, solve_cell
 from ..library.recipe import load_recipe
 from ..library.store import load_library
 from ..reconstruction.dataset import TENSOR_SIZE, build_dataset, dataset_recipe_from_dict, received_crop
@@ -41,8 +42,7 @@ from ..reconstruction.refine import load_network
 from ..reconstruction.train import load_train_recipe, train
 from ..sensing.model import load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
-from ..sensing.render import fab_study, render_psf
-from ..turbulence.scenario import load_scenario
+from ..sensing.render import fab_study, render_psf, save_psf
 from ..tasks import TaskFolder, content_key, file_key, path_key
 from ..turbulence.scenario import load_scenario
 from ..turbulence.system import build_system
@@ -59,6 +59,11 @@ SECTIONS = (
         Param("sensor", str),
         Param("turbulence", str, "turbulence.toml"),
         Param("turbulence_samples", int, 10, lo=2, hi=10000),
+        Param("library_recheck", list, [], lo=0, hi=100_000, pairs=True,
+              help="[i, j] indices of library cells re-solved with RCWA against the table"),
+        Param("klayout", bool, False, help="also read the layout back through KLayout"),
+        Param("fab_bias_nm", list, [-10.0, 0.0, 10.0], lo=-100, hi=100),
+        Param("fab_jitter_nm", list, [], lo=0, hi=100),
     )),
     Section("dataset", (
         Param("samples", int, lo=1, hi=10_000_000),
@@ -78,12 +83,35 @@ SECTIONS = (
         Param("noise_percent", list, [0.0, 5.0], lo=0, hi=100),
         Param("split", str, "test", choices=["test", "val", "train", "all"]),
     ), optional=True),
+    Section("beacons", (
+        Param("design", str),
+        Param("sensor", str),
+        Param("model", str),
+        Param("samples", int, 32, lo=1, hi=100_000),
+        Param("seed", int, 2026, lo=0, hi=2**63 - 1),
+        Param("noise_percent", list, [0.0, 5.0], lo=0, hi=100),
+        Param("rytov_min", float, 0.25, lo=0, open_lo=True, hi=5),
+        Param("rytov_max", float, 0.6, lo=0, open_lo=True, hi=5),
+    ), optional=True),
 )
+#: sections that only a recipe with a dataset (and its model) has: [dataset] and [train] come together
+DATASET_SECTIONS = ("dataset", "train")
 
 
 def load_pipeline_recipe(path: str | Path) -> dict:
     path = Path(path)
-    v = parse(load_toml(path), SECTIONS, str(path))
+    raw = load_toml(path)
+    has = [k for k in DATASET_SECTIONS if k in raw]
+    if len(has) == 1:
+        missing = next(k for k in DATASET_SECTIONS if k not in has)
+        raise ValidationError(f"{path}: [{has[0]}] needs [{missing}] (a dataset and the model it evaluates)")
+    v = parse(raw, [s for s in SECTIONS if (s.name not in DATASET_SECTIONS or has)
+                    and (s.name != "beacons" or "beacons" in raw)], str(path))
+    if not has and "beacons" not in raw:
+        raise ValidationError(f"{path}: nothing to reconstruct: give [dataset] with [train], or [beacons]")
+    v.setdefault("dataset", None)
+    v.setdefault("train", None)
+    v.setdefault("beacons", None)
     base = path.parent
 
     def rel(p):
@@ -92,14 +120,32 @@ def load_pipeline_recipe(path: str | Path) -> dict:
     p = v["pipeline"]
     for k in ("library", "library_recipe", "design", "sensor", "turbulence"):
         p[k] = rel(p[k])
-    v["train"]["model"] = rel(v["train"]["model"])
-    v["train"]["recipe"] = rel(v["train"]["recipe"])
-    if (v["train"]["model"] is None) == (v["train"]["recipe"] is None):
-        raise ValidationError(f"{path}: [train] needs exactly one of model (weights to evaluate) or recipe "
-                              "(a training recipe)")
+    p["library_recheck"] = tuple((int(i), int(j)) for i, j in p["library_recheck"])
+    p["fab_bias_nm"] = tuple(round(x * 1e9, 6) for x in p["fab_bias_nm"])  # fab_study takes nm
+    p["fab_jitter_nm"] = tuple(round(x * 1e9, 6) for x in p["fab_jitter_nm"])
+    if 0.0 not in p["fab_bias_nm"]:
+        raise ValidationError(f"{path}: pipeline.fab_bias_nm: expected the nominal device (0) among the etch biases, "
+                              f"got {list(p['fab_bias_nm'])}")
+    if v["train"] is not None:
+        v["train"]["model"] = rel(v["train"]["model"])
+        v["train"]["recipe"] = rel(v["train"]["recipe"])
+        if (v["train"]["model"] is None) == (v["train"]["recipe"] is None):
+            raise ValidationError(f"{path}: [train] needs exactly one of model (weights to evaluate) or recipe "
+                                  "(a training recipe)")
     for k in ("design", "sensor", "turbulence"):
         if not p[k].exists():
             raise ValidationError(f"{path}: pipeline.{k}: {p[k]}: no such file")
+    b = v["beacons"]
+    if b is not None:
+        for k in ("design", "sensor", "model"):
+            b[k] = rel(b[k])
+            if not b[k].exists():
+                raise ValidationError(f"{path}: beacons.{k}: {b[k]}: no such file")
+        if b["rytov_min"] > b["rytov_max"]:
+            raise ValidationError(f"{path}: beacons.rytov_min {b['rytov_min']:g} is above beacons.rytov_max "
+                                  f"{b['rytov_max']:g}")
+        if not b["noise_percent"]:
+            raise ValidationError(f"{path}: beacons.noise_percent: expected at least one level (0: a clean camera)")
     v["name"] = path.stem
     return v
 
@@ -125,13 +171,24 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     t_start = time.perf_counter()
     rec = load_pipeline_recipe(recipe_path)
     out = Path(out)
-    if rec["train"]["model"] is not None:  # a given model must fit the dataset it will be evaluated on: check now
-        model, _ = load_network(rec["train"]["model"])  # a U-Net or a refiner (which brings its U-Net)
+    if rec["train"] is not None and rec["train"]["model"] is not None:  # a given model must fit the dataset it
+        model, _ = load_network(rec["train"]["model"])  # will be evaluated on: check now (a U-Net or a refiner)
         check_sizes(model.config, rec["dataset"]["tensor_size"],
                     received_crop(load_scenario(rec["pipeline"]["turbulence"]))[1], f"[train] model {rec['train']['model']}")
+    if rec["pipeline"]["library_recheck"] and rec["pipeline"]["library_recipe"] is None:  # cells of the table
+        _check_cells(load_library(rec["pipeline"]["library"]), rec["pipeline"]["library_recheck"])
+    if rec["beacons"] is not None:  # the beacons' model: loadable, and its output the scenario's crop
+        model, _ = load_network(rec["beacons"]["model"])
+        check_sizes(model.config, model.config.input_size,
+                    received_crop(load_scenario(rec["pipeline"]["turbulence"]))[1], f"[beacons] model {rec['beacons']['model']}")
     out.mkdir(exist_ok=True)
     run = _Pipeline(rec, out, log)
-    for step in (run.library, run.design, run.layout, run.psf, run.turbulence, run.dataset, run.train, run.evaluate):
+    steps = [run.library, run.design, run.layout, run.sensing, run.turbulence]
+    if rec["dataset"] is not None:
+        steps += [run.dataset, run.train, run.evaluate]
+    if rec["beacons"] is not None:
+        steps.append(run.beacons)
+    for step in steps:
         step()
     run.report["provenance"] = _provenance(Path(recipe_path), rec, run, time.perf_counter() - t_start)
     html_path = out / "report.html"
@@ -175,7 +232,6 @@ class _Pipeline:
         t0 = time.perf_counter()
 
         def run():
-            self.log(f"{name}: running")
             info = fn()
             info["ran_seconds"] = time.perf_counter() - t0
             info["ran_at"] = time.strftime("%Y-%m-%d %H:%M:%S")
@@ -183,12 +239,17 @@ class _Pipeline:
 
         info, skipped = self.steps.step(name, key, run, outputs)
         info["skipped"] = skipped
-        if skipped:
-            self.log(f"{name}: up to date (ran in {info.get('ran_seconds', float('nan')):.1f} s)")
         self.state[name] = {"key": key, "info": info}
         info["seconds"] = time.perf_counter() - t0
         self.report["stages"][name] = info
         return info
+
+    def say(self, name: str, line: str) -> None:
+        """A stage's summary line: recorded in its report entry and logged, numbered, as it completes."""
+        info = self.report["stages"][name]
+        info["line"] = line
+        n = list(self.report["stages"]).index(name) + 1
+        self.log(f"  {n}. {name:<10} {line}" + (" (up to date)" if info.get("skipped") else ""))
 
     def library(self) -> None:
         p, out = self.p, self.out
@@ -196,15 +257,32 @@ class _Pipeline:
         if p["library_recipe"] is not None:
             self.lib_path = lib_path = out / "library.npz"
             self.k_lib = _h(p["library_recipe"])
-            self.stage("library", self.k_lib, [lib_path], lambda: {
-                "report": build_library(load_recipe(p["library_recipe"]), lib_path, workers=2)[1]["cells"]})
+            self.stage("library", _h(self.k_lib, [list(c) for c in p["library_recheck"]]), [lib_path], lambda: {
+                "report": build_library(load_recipe(p["library_recipe"]), lib_path, workers=2)[1]["cells"],
+                **_recheck(load_library(lib_path), p["library_recheck"])})
         else:
             self.k_lib = _h(self.lib_path)
-            self.stage("library", self.k_lib, [self.lib_path], lambda: {"file": str(self.lib_path)})
+            recheck = p["library_recheck"]
+            self.stage("library", _h(self.k_lib, [list(c) for c in recheck]), [self.lib_path], lambda: {
+                "file": str(self.lib_path), **_recheck(load_library(self.lib_path), recheck)})
         self.lib = load_library(self.lib_path)
+        li = self.report["stages"]["library"]
+        sm = self.lib.summary()
+        line = (f"{sm['grid']['n_wx']}x{sm['grid']['n_wy']} cells, nG {sm['solver']['n_harmonics']}, convergence "
+                f"{sm['convergence']['max_phase_change_rad']:.4f} rad, {100 * sm['fraction_above_threshold']:.1f} % "
+                "cells with T0 >= 70 %")
+        if li.get("recheck_max_abs_error") is not None:
+            err = li["recheck_max_abs_error"]
+            line += f", RCWA re-check {err:.1e}"
+            self.check(f"library re-check: {len(li['recheck_cells'])} cells solved again with RCWA",
+                       f"{err:.1e} (largest Jones-matrix difference)", "<= 1e-6", err <= 1e-6,
+                       "the committed table against fresh solves with its own solver settings")
+        li["summary"] = sm
         fig_s1 = out / "fig-s1.png"
         if not fig_s1.exists() or not self.report["stages"]["library"]["skipped"]:
             plot_library(self.lib, fig_s1)
+        li["figures"] = [str(fig_s1)]
+        self.say("library", line)
         self.section("1. Unit-cell library", None, [(
             "Fig. S1: unit-cell library", fig_s1,
             "Phase and transmission of every pillar for x and y polarisation: the 16 x 16 birefringent bins need "
@@ -220,10 +298,17 @@ class _Pipeline:
             d, _ = run_design(dr, self.ddir)
             plot_design(d, out / "fig-s2.png", self.lib)
             return {"metrics": {k: d.metrics[k] for k in ("rmse_rad", "peak_error_rad", "mean_T0", "n_atoms",
-                                                          "n_empty_bins", "n_cells_in_aperture")}}
+                                                          "n_empty_bins", "n_cells_in_aperture")},
+                    "n_cells": int(d.spec.n_cells), "figures": [str(out / "fig-s2.png")]}
 
         des = self.stage("design", self.k_des, [self.ddir / "design.npz", out / "fig-s2.png"], do_design)
         m = des["metrics"]
+        self.say("design", f"{des.get('n_cells', 0)}x{des.get('n_cells', 0)} cells, {m['n_atoms']} atoms, RMSE x "
+                 f"{m['rmse_rad'][0]:.3f} y {m['rmse_rad'][1]:.3f} rad, peak {m['peak_error_rad'][0]:.3f}/"
+                 f"{m['peak_error_rad'][1]:.3f} rad, mean T0 {m['mean_T0'][0]:.3f}/{m['mean_T0'][1]:.3f}")
+        self.check("design: every one of the 16 x 16 phase bins has an atom", f"{m['n_empty_bins']} empty bins",
+                   "0", m["n_empty_bins"] == 0 and m["n_atoms"] > 0,
+                   "a bin without an atom falls back to a neighbour's and adds its phase error")
         q = 2 * np.pi / 16 / np.sqrt(12)  # a uniform quantiser of 16 phase bins
         rmse = max(m["rmse_rad"])
         self.check("design phase error (RMSE, worse polarisation)", f"{rmse:.3f} rad", f"<= {1.1 * q:.3f} rad",
@@ -247,15 +332,30 @@ class _Pipeline:
         self.lay = lay = self.ddir / "layout.oas"
         self.k_lay = _h(self.k_des)
 
-        def do_layout():
-            made = make_layout(load_design(self.ddir), lay)
-            preview_layout(made.contents, out / "layout-preview.png")
-            return {"pillars": made.write["pillars"], "bytes": made.write["bytes"], "exact": made.exact,
-                    "drc_passed": bool(made.drc["passed"])}
+        klayout = self.p["klayout"]
 
-        li = self.stage("layout", self.k_lay, [lay, out / "layout-preview.png"], do_layout)
+        def do_layout():
+            made = make_layout(load_design(self.ddir), lay, klayout=klayout)
+            preview_layout(made.contents, out / "layout-preview.png")
+            at = made.drc["from_atom_table"]
+            return {"pillars": made.write["pillars"], "bytes": made.write["bytes"], "exact": made.exact,
+                    "gdstk_exact": bool(made.verify["exact"]),
+                    "klayout_exact": None if made.verify_klayout is None else bool(made.verify_klayout["exact"]),
+                    "drc_passed": bool(made.drc["passed"]), "write_seconds": made.write["seconds"],
+                    "min_feature_nm": at["min_feature_nm"], "min_gap_nm": min(at["min_gap_x_nm"], at["min_gap_y_nm"]),
+                    "figures": [str(out / "layout-preview.png")]}
+
+        li = self.stage("layout", _h(self.k_lay, klayout), [lay, out / "layout-preview.png"], do_layout)
         if not (li["exact"] and li["drc_passed"]):
             raise ValidationError(f"{lay}: the layout failed its read-back or design-rule check")
+        k = li.get("klayout_exact")
+        self.say("layout", f"{li['pillars']:,} pillars, {li['bytes'] / 1e3:.0f} kB OASIS in "
+                 f"{li.get('write_seconds', float('nan')):.2f} s; read-back exact {li.get('gdstk_exact', li['exact'])} "
+                 "(gdstk)" + ("" if k is None else f" / {k} (KLayout)") + f"; DRC {'pass' if li['drc_passed'] else 'FAIL'}"
+                 f" (min feature {li.get('min_feature_nm')} nm, min gap {li.get('min_gap_nm')} nm)")
+        if k is not None:
+            self.check("layout read-back through KLayout", "exact" if k else "differs", "every pillar as designed", k,
+                       "an independent OASIS reader: the file a mask shop would open")
         self.check("layout read-back", "exact" if li["exact"] else "differs", "every pillar as designed", li["exact"],
                    "the OASIS file read back pillar by pillar against the design")
         self.check(f"design rules ({DESIGN_RULES.label()})", "passed" if li["drc_passed"] else "violated",
@@ -269,28 +369,48 @@ class _Pipeline:
             "16 x 16 cells at the centre of the written OASIS layout, read back from the file: every rectangle "
             "one pillar at its drawn width, as a mask shop would see it.")])
 
-    def psf(self) -> None:
-        """As-fabricated PSFs, the Table S1 focal check and a fab study."""
-        out = self.out
-        sr = load_sensing_recipe(self.p["sensor"])
-        self.k_psf = _h(self.k_lay, self.p["sensor"])
+    def sensing(self) -> None:
+        """As-fabricated PSFs, the Table S1 focal check, a fab study and one scintillated beacon through
+        the device."""
+        out, p = self.out, self.p
+        sr = load_sensing_recipe(p["sensor"])
+        self.k_psf = _h(self.k_lay, p["sensor"])
+        cases = [("nominal" if b == 0 else f"bias {b:+g} nm", b, 0.0, 0) for b in p["fab_bias_nm"]]
+        cases += [(f"jitter {j:g} nm", 0.0, j, 1) for j in p["fab_jitter_nm"]]
+        figs = [out / "fig-2c.png", out / "fab-study.png", out / "psf-turbulent.png"]
 
-        def do_psf():
-            fab = build_system(self.lay, sr).device
+        def do_sensing():
+            system = build_system(self.lay, sr, p["turbulence"])
+            fab = system.device
             res = render_psf(fab, sr)
-            plot_frames(res.frames, sr.sensor, out / "fig-2c.png", fab.channels, "as-fabricated sensor frames")
-            rows = fab_study(fab, sr, [-10.0, 0.0, 10.0], [0.0], [0.0])
-            plot_fab_study(rows, out / "fab-study.png")
+            save_psf(self.ddir / "psf.npz", res, fab, sr)
+            plot_frames(res.frames, sr.sensor, figs[0], fab.channels, "as-fabricated sensor frames")
+            rows = []
+            for i, (label, b, j, seed) in enumerate(cases):
+                for r in fab_study(fab, sr, [b], [j], [0.0], seed=seed):
+                    rows.append({**r, "case": i, "label": label})
+            plot_fab_study(rows, figs[1])
+            smp = system.chain().sample(seed=1, rytov=0.3)
+            plot_frames(smp.frames, sr.sensor, figs[2], fab.channels,
+                        "scintillated beacon at Rytov 0.3 through the as-fabricated device")
+            nominal = [r for r in rows if r["label"] == "nominal"]
             focal = [{"pol": r["pol"], "k": r["k"], "design_f_mm": r["design_focal_length_mm"],
                       "best_focus_mm": r["design_focal_length_mm"] + r["focal_shift_mm"], "strehl": r["strehl"]}
-                     for r in rows if r["bias_nm"] == 0]
-            study = [{"bias_nm": b, "mean_strehl": float(np.mean([r["strehl"] for r in rows if r["bias_nm"] == b])),
-                      "mean_efficiency": float(np.mean([r["focusing_efficiency"] for r in rows
-                                                        if r["bias_nm"] == b]))}
-                     for b in (-10.0, 0.0, 10.0)]
-            return {"focal_check": focal, "fab_study": study}
+                     for r in nominal]
+            study = [{"case": label, "bias_nm": b, "jitter_nm": j,
+                      "mean_strehl": float(np.mean([r["strehl"] for r in rows if r["case"] == i])),
+                      "mean_efficiency": float(np.mean([r["focusing_efficiency"] for r in rows if r["case"] == i]))}
+                     for i, (label, b, j, _) in enumerate(cases)]
+            return {"focal_check": focal, "fab_study": study, "channels": nominal,
+                    "figures": [str(f) for f in figs]}
 
-        ps = self.stage("psf", self.k_psf, [out / "fig-2c.png", out / "fab-study.png"], do_psf)
+        ps = self.stage("sensing", _h(self.k_psf, p["turbulence"], [list(c) for c in cases]), figs, do_sensing)
+        nom = ps["channels"]
+        self.say("sensing", f"8 PSFs from the layout file: focusing efficiency "
+                 f"{np.mean([r['focusing_efficiency'] for r in nom]):.3f} per channel, Strehl "
+                 f"{min(r['strehl'] for r in nom):.3f}..{max(r['strehl'] for r in nom):.3f}, crosstalk "
+                 f"{max(r['crosstalk'] for r in nom):.3f}; fab study: Strehl "
+                 + ", ".join(f"{r['case']} {r['mean_strehl']:.3f}" for r in ps["fab_study"]))
         focal = [{"channel": f"{r['pol']}-pol {['QI', 'QII', 'QIII', 'QIV'][r['k'] - 1]}",
                   "design f (mm)": f"{r['design_f_mm']:.4f}",
                   "best focus - design (um)": f"{1e3 * (r['best_focus_mm'] - r['design_f_mm']):+.1f}",
@@ -302,18 +422,21 @@ class _Pipeline:
         strehl = min(r["strehl"] for r in ps["focal_check"])
         self.check("as-fabricated Strehl ratio, worst spot", f"{strehl:.3f}", ">= 0.8", strehl >= 0.8,
                    "Marechal's criterion: a diffraction-limited spot")
-        study = [{"etch bias (nm)": f"{r['bias_nm']:+g}", "mean Strehl": f"{r['mean_strehl']:.3f}",
+        study = [{"device": r["case"], "mean Strehl": f"{r['mean_strehl']:.3f}",
                   "mean focusing efficiency (%)": f"{100 * r['mean_efficiency']:.2f}"} for r in ps["fab_study"]]
         self.section("4. As-fabricated sensor", ("Table S1 focal check (through-focus peak)", focal),
                      raw=ps["focal_check"], figures=[(
-            "Fig. 2c: sensor frames", out / "fig-2c.png",
+            "Fig. 2c: sensor frames", figs[0],
             "The 8 spots on the sensor (2 polarisations x 4 quadrants), each with its own defocus: all 8 should be "
-            "compact and centred in their quadrant.")])
+            "compact and centred in their quadrant."), (
+            "A scintillated beacon", figs[2],
+            "One beacon through the turbulence (Rytov 0.3) onto the same sensor: the 8 spots break up, each "
+            "differently, and that difference is what the reconstruction reads.")])
         self.section("4. As-fabricated sensor", ("Fab study", study), raw=ps["fab_study"], figures=[(
-            "Fab study", out / "fab-study.png",
-            "Per spot (8 markers per device, x-pol filled, y-pol open) and per etch bias: focusing efficiency, "
-            "Strehl ratio at best focus, best-focus shift from the design focal length, and crosstalk into the "
-            "other quadrants: how much a fab process may drift before the spots degrade.")])
+            "Fab study", figs[1],
+            "Per spot (8 markers per device, x-pol filled, y-pol open) and per fabrication case: focusing "
+            "efficiency, Strehl ratio at best focus, best-focus shift from the design focal length, and crosstalk "
+            "into the other quadrants: how much a fab process may drift before the spots degrade.")])
 
     def turbulence(self) -> None:
         p, out = self.p, self.out
@@ -326,11 +449,19 @@ class _Pipeline:
             figs = plot_validation(res, out)
             return {"figures": [str(f) for f in figs],
                     "levels": [{"rytov_nominal": x["rytov_nominal"], "rytov_measured": x["rytov_measured"],
-                                "rytov_theory": x["rytov_weak_theory_inner_scale"], "D_over_r0": x["D_over_r0"]}
-                               for x in res["levels"]]}
+                                "rytov_theory": x["rytov_weak_theory_inner_scale"], "D_over_r0": x["D_over_r0"],
+                                "npib_mean": {m: float(np.mean(x["npib"][m])) for m in ("complex", "phase", "none")}}
+                               for x in res["levels"]],
+                    "structure_function_ratio": [float(r) for r in res["structure_function"]["ratio"]]}
 
         figs = [out / Path(f).name for f in self._previous("turbulence").get("figures", [])]
         tu = self.stage("turbulence", self.k_tu, figs or [out / "__none__"], do_turb)
+        sf, top = tu.get("structure_function_ratio") or [float("nan")], tu["levels"][-1]
+        self.say("turbulence", f"structure function / theory {min(sf):.3f}..{max(sf):.3f}; Rytov nominal -> measured "
+                 f"({p['turbulence_samples']} samples) " + ", ".join(f"{x['rytov_nominal']:g} -> {x['rytov_measured']:.3f}"
+                                                                     for x in tu["levels"])
+                 + f"; NPiB complex/phase/none at {top['rytov_nominal']:g}: "
+                 + "/".join(f"{top.get('npib_mean', {}).get(m, float('nan')):.2f}" for m in ("complex", "phase", "none")))
         rows = [{"Rytov (nominal)": f"{x['rytov_nominal']:g}",
                  "weak theory with inner scale": f"{x.get('rytov_theory', float('nan')):.3f}",
                  "Rytov (measured)": f"{x['rytov_measured']:.3f}", "D / r0": f"{x['D_over_r0']:.1f}"}
@@ -378,6 +509,9 @@ class _Pipeline:
                                            overwrite=True, progress=progress_bar("dataset", "sample")).items()
             if k in ("samples", "bytes_per_sample", "split_counts")})
         sc = ds.get("split_counts") or {}
+        self.say("dataset", f"{ds.get('samples', 0):,} samples (train / val / test "
+                 + " / ".join(f"{sc.get(k, 0):,}" for k in ("train", "val", "test"))
+                 + f"), {ds.get('bytes_per_sample', 0) / 1e3:.1f} kB each")
         self.section("6. Reconstruction", ("Dataset", [
             {"quantity": "samples", "value": f"{ds.get('samples', 0):,}"},
             {"quantity": "train / val / test", "value": " / ".join(f"{sc.get(k, 0):,}" for k in ("train", "val", "test"))},
@@ -389,6 +523,7 @@ class _Pipeline:
         if t["model"] is not None:
             self.model = t["model"]
             self.stage("train", _h(self.model), [self.model], lambda: {"model": str(self.model)})
+            self.say("train", f"the given model {self.model}")
             return
         run = self.out / "run"
 
@@ -397,8 +532,9 @@ class _Pipeline:
             r = train(load_train_recipe(t["recipe"]), run, dataset=self.dsdir, log=self.log, progress=True)
             return {"epochs": r["epochs_done"], "best_val_npib": r["best_val_npib"]}
 
-        self.stage("train", _h(self.k_ds, t["recipe"]), [run / "model.safetensors"], do_train)
+        tr = self.stage("train", _h(self.k_ds, t["recipe"]), [run / "model.safetensors"], do_train)
         self.model = run / "model.safetensors"
+        self.say("train", f"{tr.get('epochs')} epochs, best validation NPiB {tr.get('best_val_npib', float('nan')):.3f}")
         if (run / "curves.png").exists():
             self.section("6. Reconstruction", None, [(
                 "Training curves", run / "curves.png",
@@ -440,6 +576,10 @@ class _Pipeline:
                  **({"captured, U-Net alone": f"{r['captured_fraction_unet_alone']:.2f}"} if refines else {}),
                  "gain (median)": f"{r['gain_median']:.1f}x"} for r in summary]
         self.report["headline"] = {"estimator": est, "rows": rows, "n": ev.get("n")}
+        self.say("evaluate", f"{est}, mean NPiB at " + " / ".join(f"{r['noise_percent']:g}" for r in summary)
+                 + " % noise: " + " / ".join(f"{r['npib_unet']:.3f}" for r in summary) + " (captured "
+                 + " / ".join(f"{r['captured_fraction']:.2f}" for r in summary) + f"); uncorrected "
+                 f"{summary[0]['npib_none']:.3f}, phase conjugate {summary[0]['npib_phase_conjugate']:.3f}")
         card_cf = _validated_captured_fraction(self.model)
         for k in levels:
             v = ev["summary"][k]
@@ -466,6 +606,63 @@ class _Pipeline:
         self.section("6. Reconstruction", ("NPiB summary", rows), raw=summary, figures=[
             (next((c.split(":")[0] for k, c in captions.items() if k in Path(f).stem), Path(f).stem), Path(f),
              next((c for k, c in captions.items() if k in Path(f).stem), "")) for f in ev["figures"]])
+
+    def beacons(self) -> None:
+        """Fresh beacons through a second device (the ``[beacons]`` section) estimated by a given model:
+        no dataset (:func:`metadesign.studies.beacons.fresh_beacons`)."""
+        from .beacons import LABELS, fresh_beacons
+
+        b, out = self.rec["beacons"], self.out
+        fig = out / "fig-3b-beacons.png"
+        opts = {k: v for k, v in b.items() if k not in ("design", "sensor", "model")}
+        key = _h(self.k_lib, self.k_scn, b["design"], b["sensor"], b["model"], opts)
+        info = self.stage("beacons", key, [fig], lambda: fresh_beacons(
+            b["model"], b["design"], b["sensor"], self.p["turbulence"], out / "beacon-design", fig, b["samples"],
+            b["seed"], b["noise_percent"], (b["rytov_min"], b["rytov_max"]), library=self.lib_path))
+        self.say("beacons", info["line"])
+        m, cap = info["npib"], info["captured_fraction"]
+        rows = []
+        for lv in info["noise_percent"]:
+            for k in info["methods"]:
+                rows.append({"sensor noise (% of peak)": f"{lv:g}", "estimator": LABELS[k],
+                             "NPiB": f"{m[f'{k}@{lv:g}']:.3f}", "NPiB uncorrected": f"{m['none']:.3f}",
+                             "NPiB phase conjugate": f"{m['phase_conjugate']:.3f}",
+                             "captured fraction": f"{cap[f'{k}@{lv:g}']:.2f}"})
+                self.check(f"fresh beacons at {lv:g} % noise: {LABELS[k]} beats uncorrected",
+                           f"NPiB {m[f'{k}@{lv:g}']:.3f} vs {m['none']:.3f} (captured {cap[f'{k}@{lv:g}']:.2f})",
+                           "NPiB above the uncorrected beam's", m[f"{k}@{lv:g}"] > m["none"],
+                           f"{b['samples']} beacons through {b['design'].stem} never seen in training (root seed "
+                           f"{b['seed']})")
+        if not self.report["headline"]:
+            self.report["headline"] = {"estimator": LABELS[info["methods"][-1]], "rows": rows, "n": b["samples"]}
+        self.section("6. Reconstruction: fresh beacons", ("Fresh beacons", rows), raw={"npib": m, "captured_fraction": cap},
+                     figures=[("Fig. 3b: fresh beacons", fig,
+                               "NPiB of each beacon against its measured Rytov number, at the highest noise level: "
+                               "the estimator should sit close under the phase conjugate and far above the "
+                               "uncorrected beam.")])
+
+
+def _check_cells(lib, cells) -> None:
+    n = (len(lib.wx), len(lib.wy))
+    for i, j in cells:
+        if not (0 <= i < n[0] and 0 <= j < n[1]):
+            raise ValidationError(f"pipeline.library_recheck: cell [{i}, {j}] is outside the library's "
+                                  f"{n[0]} x {n[1]} grid")
+
+
+def _recheck(lib, cells) -> dict:
+    """The library's Jones matrices at ``cells`` ((i, j) indices) against fresh RCWA solves with the
+    table's own stack and truncation: the largest absolute difference (nothing when no cell is given)."""
+    if not cells:
+        return {}
+    st = lib.meta["stack"]
+    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
+                  st["n_superstrate"])
+    settings = SolverSettings(lib.meta["solver"]["n_harmonics_requested"])
+    _check_cells(lib, cells)
+    err = max(float(np.abs(solve_cell(lib.wx[i], lib.wy[j], stack, settings).jones - lib.jones[i, j]).max())
+              for i, j in cells)
+    return {"recheck_max_abs_error": err, "recheck_cells": [list(c) for c in cells]}
 
 
 def _table(obj, raw: tuple = ()) -> str:
@@ -543,14 +740,14 @@ def _provenance(recipe_path: Path, rec: dict, run: "_Pipeline", elapsed: float) 
         p = Path(p)
         return {"path": str(p), "sha256": file_key(p) if p.is_file() else None}
 
-    t = rec["train"]
-    model = getattr(run, "model", None)
+    t = rec["train"] or {}
+    model = getattr(run, "model", None) or (rec["beacons"] or {}).get("model")
     return {"recipe": named(recipe_path), "design_recipe": named(rec["pipeline"]["design"]),
             "library": named(run.lib_path), "sensor": named(rec["pipeline"]["sensor"]),
             "turbulence": named(rec["pipeline"]["turbulence"]),
             "model": named(model) if model is not None else None,
             "training_recipe": named(t["recipe"]) if t.get("recipe") else None,
-            "dataset_seed": rec["dataset"].get("seed"), "metadesign": __version__, "commit": _git_commit(),
+            "dataset_seed": (rec["dataset"] or {}).get("seed"), "metadesign": __version__, "commit": _git_commit(),
             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
             "machine": f"{platform.node()} ({platform.system()} {platform.machine()}, {os.cpu_count()} cores, "
                        f"Python {platform.python_version()})",
