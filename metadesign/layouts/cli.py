@@ -96,11 +96,42 @@ def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
     return 0 if ok else 1
 
 
+def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
+    from ..design.store import design_file
+    from .stream import verify_stream
+
+    design = design_file(a.design if a.design else path.parent)
+    if not design.exists():
+        raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
+    rep = verify_stream(path, design, a.min_feature_nm, a.min_gap_nm, a.tile,
+                        progress=None if a.json else progress_bar("verify: the file", unit="B"))
+    d = rep["drc"]
+    ok = rep["exact"] and d["passed"]
+    rep["passed"] = ok
+    sig = rep["signature"]
+    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'} (streamed once: {rep['bytes'] / 1e6:,.1f} MB in "
+             f"{rep['seconds']:.1f} s)",
+             f"  every pillar against the design: {rep['pillars']:,} (design {rep['pillars_design']:,}) in "
+             f"{rep['tiles']:,} tiles; {rep['mismatched_cells']} cells differ, {rep['duplicates']} duplicates, "
+             f"{rep['off_lattice']} off the lattice",
+             f"  file: records well-formed {'yes' if not any('malformed' in p for p in rep['problems']) else 'NO'}, "
+             f"{sig['scheme'] or 'no'} signature {'matches' if sig['ok'] else 'DOES NOT MATCH' if sig['ok'] is False else '-'}",
+             f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm) on every placed pillar and "
+             f"each of {d['pairs_checked']:,} neighbour pairs: min feature {d['min_feature_nm']} nm, min gap "
+             f"{d['min_gap_nm']} nm; {d['width_violations']} width, {d['space_violations']} space violations -> "
+             f"{'pass' if d['passed'] else 'FAIL'}"]
+    lines += [f"    - {p}" for p in rep["problems"]]
+    emit(rep, a.json, "\n".join(lines))
+    return 0 if ok else 1
+
+
 def _cmd_verify(a: argparse.Namespace) -> int:
     from . import drc_check, read_layout, read_layout_klayout, verify_against_design
     from .reader import layout_tiling
 
     path = Path(a.layout)
+    if a.stream:
+        return _cmd_verify_stream(a, path)
     tiling = layout_tiling(path)
     if a.sample_tiles is not None or (tiling and tiling.get("hierarchy") == "tiles" and not a.all):
         if a.sample_tiles is None:
@@ -243,6 +274,11 @@ def register(sub) -> None:
                    help="tiled layouts: KLayout counts every pillar, and this many tiles (seeded) are compared "
                    "pillar by pillar (default 8; the default mode for a tiled layout)")
     v.add_argument("--seed", type=integer(0, 2**31 - 1), default=0, help="seed of the sampled tiles (0)")
+    v.add_argument("--stream", action="store_true",
+                   help="tiled layouts: read the file once in bounded memory (no KLayout): every pillar compared "
+                   "with the design, every record and the CRC checked, design rules on every neighbour pair")
+    v.add_argument("--tile", type=integer(1, 10**7),
+                   help="--stream: cells per tile side (default: the layout's side-car; checked against the file)")
     v.add_argument("--all", action="store_true",
                    help="tiled layouts: read every pillar back with gdstk instead (memory: the whole layout)")
     v.add_argument("--json", action="store_true", help="print the report as JSON")

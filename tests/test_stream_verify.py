@@ -1,0 +1,192 @@
+"""The streaming OASIS verifier (#35): the file read once in bounded memory, every pillar against the
+design, every record and the CRC, the design rules on every neighbour pair.  References: the OASIS
+definitions written out here, KLayout's independent reading, and a brute-force count on the design's
+own index map."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import run_main
+
+from metadesign.design.recipe import load_design_recipe
+from metadesign.layouts import oasis as O
+from metadesign.layouts import tiled
+from metadesign.layouts.reader import verify_tiled
+from metadesign.layouts.stream import gdelta_decode, verify_stream
+from metadesign.layouts.writer import layout_geometry, snap_widths
+
+RECIPE = """
+[design]
+library = "{lib}"
+wavelength_nm = 1550.0
+period_um = 0.7
+aperture_mm = 0.2
+clear_aperture = "circle"
+[discretizer]
+tile_rows = 16
+"""
+
+
+def leb128(v: int) -> bytes:  # the OASIS unsigned integer, from the standard's definition
+    out = []
+    while True:
+        out.append((v & 0x7F) | (0x80 if v >> 7 else 0))
+        v >>= 7
+        if not v:
+            return bytes(out)
+
+
+def test_gdeltas_decode_what_the_definition_encodes():
+    """Form 1 in all eight directions, form 2 with either sign of dx and dy, runs of odd integers (the
+    case the vectorised start-finding must get right), and bytes after the list that must not be read."""
+    rng = np.random.default_rng(3)
+    dirs = [(1, 0), (0, 1), (-1, 0), (0, -1), (1, 1), (-1, 1), (-1, -1), (1, -1)]
+    raw, want = b"", []
+    for _ in range(3000):
+        if rng.random() < 0.5:
+            d = int(rng.integers(8))
+            m = int(rng.integers(1, 300))
+            raw += leb128(m << 4 | d << 1)
+            want.append((dirs[d][0] * m, dirs[d][1] * m))
+        else:
+            dx, dy = int(rng.integers(-5000, 5000)), int(rng.integers(-5000, 5000))
+            raw += leb128(abs(dx) << 2 | (dx < 0) << 1 | 1) + leb128(abs(dy) << 1 | (dy < 0))
+            want.append((dx, dy))
+    buf = np.frombuffer(raw + b"\x81\x83\x85\x00" * 4, np.uint8)  # trailing odd integers: not g-deltas
+    dx, dy, end = gdelta_decode(buf, np.flatnonzero(buf < 128), 0, len(want))
+    np.testing.assert_array_equal(np.stack([dx, dy], 1), np.array(want))
+    assert end == len(raw)
+    # the writer's encoder, decoded again
+    ex, ey = rng.integers(-40, 40, 500), rng.integers(-3, 4, 500)
+    b = np.frombuffer(O.gdelta_grid(ex, ey), np.uint8)
+    gx, gy, end = gdelta_decode(b, np.flatnonzero(b < 128), 0, 500)
+    np.testing.assert_array_equal(gx, ex)
+    np.testing.assert_array_equal(gy, ey)
+    assert end == len(b)
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory, repo):
+    tmp = tmp_path_factory.mktemp("stream")
+    rec = tmp / "small.toml"
+    rec.write_text(RECIPE.format(lib=repo / "library" / "paper.npz"))
+    recipe = load_design_recipe(rec)
+    tiled.build_tiled(recipe, tmp / "good", tile=64)
+    return tmp, recipe
+
+
+def _altered(small, name, monkeypatch, change):
+    """The small design written tiled with ``change(block, empty)`` applied to what the writer encodes,
+    while design.npz keeps the design: a layout that differs from its design as ``change`` says."""
+    tmp, recipe = small
+    real = tiled.encode_stripe
+    state = {"done": False}
+
+    def encode(plan, blk, r0):
+        if not state["done"] and r0 == 64:  # the second stripe: inside the circle
+            blk = blk.copy()
+            change(blk, plan.empty)
+            state["done"] = True
+        return real(plan, blk, r0)
+
+    monkeypatch.setattr(tiled, "encode_stripe", encode)
+    tiled.build_tiled(recipe, tmp / name, tile=64)
+    monkeypatch.undo()
+    assert state["done"]
+    return tmp / name / "layout.oas", tmp / name / "design.npz"
+
+
+def test_a_good_layout_passes_and_agrees_with_klayout(small):
+    tmp, _ = small
+    lay, des = tmp / "good" / "layout.oas", tmp / "good" / "design.npz"
+    s = verify_stream(lay, des)
+    assert s["exact"] and s["drc"]["passed"], s["problems"]
+    assert s["signature"] == {"scheme": "crc32", "ok": True}
+    k = verify_tiled(lay, des, sample_tiles=4)
+    assert k["exact"] and s["pillars"] == k["pillars_klayout"] == k["pillars_design"] == s["pillars_design"]
+    with np.load(des) as z:
+        im = z["index_map"]
+    empty = json.loads(lay.with_suffix(".oas.json").read_text())["provenance"]["empty_index"]
+    assert s["pillars"] == int(np.count_nonzero(im != empty)) > 10_000
+
+
+def test_changed_pillars_are_caught_by_both_readers(small, monkeypatch):
+    def drop(blk, empty):
+        j, i = np.argwhere(blk != empty)[len(np.argwhere(blk != empty)) // 2]
+        blk[j, i] = empty
+
+    def move(blk, empty):
+        full, free = np.argwhere(blk != empty), np.argwhere(blk == empty)
+        (j, i), (q, p) = full[0], free[0]
+        blk[q, p], blk[j, i] = blk[j, i], empty
+
+    def swap_atom(blk, empty):  # another atom the design uses (its cell exists in the file)
+        j, i = np.argwhere(blk != empty)[100]
+        blk[j, i] = next(int(a) for a in np.unique(blk) if a not in (empty, blk[j, i]))
+
+    for name, change, words in (("drop", drop, "per-atom pillar counts"), ("move", move, "cells differ"),
+                                ("atom", swap_atom, "cells differ")):
+        lay, des = _altered(small, name, monkeypatch, change)
+        s = verify_stream(lay, des)
+        assert not s["exact"] and s["signature"]["ok"], name  # a well-formed file: geometry, not the CRC
+        assert any(words in p for p in s["problems"]), (name, s["problems"])
+        assert s["mismatched_cells"] == (2 if name == "move" else 1) or name == "drop"
+        k = verify_tiled(lay, des, sample_tiles=10**6)  # KLayout, every tile
+        assert not k["exact"], name
+
+
+def test_damaged_files_are_caught(small, tmp_path):
+    tmp, _ = small
+    lay, des = tmp / "good" / "layout.oas", tmp / "good" / "design.npz"
+    data = bytearray(lay.read_bytes())
+    flipped = tmp_path / "flipped.oas"
+    data[len(data) // 3] ^= 0x10
+    flipped.write_bytes(bytes(data))
+    shutil.copy(lay.with_suffix(".oas.json"), tmp_path / "flipped.oas.json")
+    s = verify_stream(flipped, des)
+    assert not s["exact"] and (s["signature"]["ok"] is False or any("malformed" in p for p in s["problems"]))
+    cut = tmp_path / "cut.oas"
+    cut.write_bytes(lay.read_bytes()[:len(data) // 2])
+    shutil.copy(lay.with_suffix(".oas.json"), tmp_path / "cut.oas.json")
+    s = verify_stream(cut, des)
+    assert not s["exact"] and any("truncated" in p or "no END" in p for p in s["problems"]), s["problems"]
+    # a file of another tiling than the one it is streamed with: its own record says so
+    s = verify_stream(lay, des, tile=128)
+    assert not s["exact"]
+
+
+def test_design_rules_count_every_violating_pair(small):
+    """A stricter gap rule than the design meets: the violations counted while streaming equal a brute-force
+    count over the design's index map (every horizontal and vertical neighbour pair)."""
+    tmp, _ = small
+    lay, des = tmp / "good" / "layout.oas", tmp / "good" / "design.npz"
+    with np.load(des) as z:
+        im, wx, wy = z["index_map"].astype(np.int64), z["atom_wx_m"], z["atom_wy_m"]
+    empty = int(json.loads(lay.with_suffix(".oas.json").read_text())["provenance"]["empty_index"])
+    ok = s0 = verify_stream(lay, des)
+    gap = int(ok["drc"]["min_gap_nm"]) + 20
+    s = verify_stream(lay, des, min_gap_nm=gap, min_feature_nm=int(ok["drc"]["min_feature_nm"]) + 1)
+    assert not s["drc"]["passed"] and s["exact"]  # the geometry is as designed; the rule fails
+    p_nm, _ = layout_geometry(im.shape[0], 0.7e-6)
+    w = np.stack([snap_widths(wx, 1)[0], snap_widths(wy, 1)[0]], 1)
+    filled = im != empty
+    brute = 0
+    for ax, k in ((1, 0), (0, 1)):
+        a, b = (im[:, :-1], im[:, 1:]) if ax == 1 else (im[:-1, :], im[1:, :])
+        m = (a != empty) & (b != empty)
+        brute += int(np.count_nonzero(p_nm - (w[a[m], k] + w[b[m], k]) / 2 < gap))
+    assert s["drc"]["space_violations"] == brute > 0
+    assert s["drc"]["width_violations"] == int(np.count_nonzero(filled & (w[np.where(filled, im, 0), :].min(-1)
+                                                                           < int(s0["drc"]["min_feature_nm"]) + 1)))
+
+
+def test_the_verify_command_streams(small, capsys):
+    tmp, _ = small
+    lay = tmp / "good" / "layout.oas"
+    rc, out, _ = run_main(["layout", "verify", str(lay), "--stream", "--json"], capsys)
+    rep = json.loads(out)
+    assert rc == 0 and rep["passed"] and rep["reader"] == "stream"
+    rc, _, err = run_main(["layout", "verify", str(lay), "--stream", "--tile", "0"], capsys)
+    assert rc == 2 and len(err) == 1 and "--tile" in err[0]
