@@ -16,6 +16,29 @@ threadpool_limits(1)
 
 REPO = Path(__file__).resolve().parents[1]
 
+#: the checkout's product folders: no test may leave anything new in them (tests write to tmp_path)
+PRODUCT_FOLDERS = ("library", "layouts", "sensing")
+
+
+def _product_tree() -> set:
+    return {str(p.relative_to(REPO)) for f in PRODUCT_FOLDERS for p in (REPO / f).iterdir()}
+
+
+def pytest_sessionstart(session):
+    if not hasattr(session.config, "workerinput"):  # the controller (xdist) or the only process
+        session.config._products_before = _product_tree()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    before = getattr(session.config, "_products_before", None)
+    if before is None:
+        return
+    new = sorted(_product_tree() - before)
+    if new:
+        session.config.get_terminal_writer().line(
+            f"\ntests left {len(new)} new entries in the checkout's product folders: {', '.join(new[:8])}", red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
 
 @pytest.fixture(scope="session")
 def repo() -> Path:

@@ -80,7 +80,7 @@ def test_diversity_gradients_match_finite_differences(setup):
 
 
 
-def _redesigned_against_twin(setup, edit, set_twin):
+def _redesigned_against_twin(setup, edit, set_twin, out):
     """(error of the diversity twin, error of the unchanged device) against the demo design re-run with
     ``edit`` applied to its recipe (binned, mapped onto atoms, its coarse pupil built from the atoms), the
     twin's parameters set by ``set_twin``; and the re-run design."""
@@ -94,7 +94,7 @@ def _redesigned_against_twin(setup, edit, set_twin):
     dev, lenses, crops, ops = setup
     raw = load_toml(REPO / "layouts" / "demo.toml")
     edit(raw)
-    d2, _ = run_design(design_recipe_from_dict(raw, "demo-edit", REPO / "layouts" / "demo.toml"))
+    d2, _ = run_design(design_recipe_from_dict(raw, "demo-edit", REPO / "layouts" / "demo.toml"), out)
     sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
     cp2 = AsFabricated.from_design(d2).pupil(sr.sensor.distance, sr.pupil_grid)
     x = torch.from_numpy(crops)
@@ -106,7 +106,7 @@ def _redesigned_against_twin(setup, edit, set_twin):
         return _rel(tw(x), new), _rel(old, new), d2, tw
 
 
-def test_a_changed_focal_length_is_the_device_designed_with_it(setup):
+def test_a_changed_focal_length_is_the_device_designed_with_it(setup, tmp_path):
     """Independent reference: the demo design re-run with x-pol lens 2 at 4.96 mm against the diversity
     twin of the original device with that focal length."""
     dev, lenses, crops, ops = setup
@@ -117,7 +117,7 @@ def test_a_changed_focal_length_is_the_device_designed_with_it(setup):
     def set_twin(tw):
         tw.defocus_waves[0, 1] = (1 / 4.96e-3 - 1 / lenses[0, 1, 0]) * ops.radius ** 2 / (2 * ops.wavelength)
 
-    err_div, err_old, _, tw = _redesigned_against_twin(setup, edit, set_twin)
+    err_div, err_old, _, tw = _redesigned_against_twin(setup, edit, set_twin, tmp_path / "design")
     assert abs(float(tw.focal_lengths()[0, 1]) - 4.96e-3) < 1e-12
     # measured: 0.0024 against 0.030 (the rest: the new design's own quantisation)
     assert err_div < 0.2 * err_old, (err_div, err_old)
@@ -192,7 +192,7 @@ def test_the_sensor_twin_fisher_sees_every_low_mode_but_piston(setup):
     assert b0[3] > 5 * b[3], (b0[3], b[3])  # Noll 4, defocus
 
 
-def test_zernike_terms_in_a_design_recipe_are_the_diversity_twin_s(setup):
+def test_zernike_terms_in_a_design_recipe_are_the_diversity_twin_s(setup, tmp_path):
     """The design side of the co-design: a design recipe whose lenses carry Zernike terms (laid out like
     any design: binned, mapped onto atoms) gives the PSFs the diversity twin predicts for them; and its
     layout's channel table keeps the terms."""
@@ -209,7 +209,7 @@ def test_zernike_terms_in_a_design_recipe_are_the_diversity_twin_s(setup):
         tw.zernike_rad[0, 1, ops.modes.index(7)] = 1.0
         tw.zernike_rad[1, 3, ops.modes.index(5)] = 0.8
 
-    err_div, err_old, d2, _ = _redesigned_against_twin(setup, edit, set_twin)
+    err_div, err_old, d2, _ = _redesigned_against_twin(setup, edit, set_twin, tmp_path / "design")
     assert err_div < 0.2 * err_old, (err_div, err_old)
     table = channel_table(d2.spec)
     assert table[1]["zernike"] == [[7, 1.0]] and "zernike" not in table[0]
