@@ -104,6 +104,9 @@ def test_a_good_layout_passes_and_agrees_with_klayout(small):
     s = verify_stream(lay, des)
     assert s["exact"] and s["drc"]["passed"], s["problems"]
     assert s["signature"] == {"scheme": "crc32", "ok": True}
+    two = verify_stream(lay, des, workers=2)  # stripes on two processes: the same report
+    drop = ("seconds", "scan_seconds", "workers")
+    assert {k: v for k, v in two.items() if k not in drop} == {k: v for k, v in s.items() if k not in drop}
     k = verify_tiled(lay, des, sample_tiles=4)
     assert k["exact"] and s["pillars"] == k["pillars_klayout"] == k["pillars_design"] == s["pillars_design"]
     with np.load(des) as z:

@@ -103,14 +103,14 @@ def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
     design = design_file(a.design if a.design else path.parent)
     if not design.exists():
         raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
-    rep = verify_stream(path, design, a.min_feature_nm, a.min_gap_nm, a.tile,
-                        progress=None if a.json else progress_bar("verify: the file", unit="B"))
+    rep = verify_stream(path, design, a.min_feature_nm, a.min_gap_nm, a.tile, a.workers, a.scheduler,
+                        progress=None if a.json else progress_bar("verify: stripes of tiles", unit="stripe"))
     d = rep["drc"]
     ok = rep["exact"] and d["passed"]
     rep["passed"] = ok
     sig = rep["signature"]
-    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'} (streamed once: {rep['bytes'] / 1e6:,.1f} MB in "
-             f"{rep['seconds']:.1f} s)",
+    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'} (streamed: {rep['bytes'] / 1e6:,.1f} MB in "
+             f"{rep['seconds']:.1f} s on {rep['workers']} worker{'s' if rep['workers'] > 1 else ''})",
              f"  every pillar against the design: {rep['pillars']:,} (design {rep['pillars_design']:,}) in "
              f"{rep['tiles']:,} tiles; {rep['mismatched_cells']} cells differ, {rep['duplicates']} duplicates, "
              f"{rep['off_lattice']} off the lattice",
@@ -279,6 +279,8 @@ def register(sub) -> None:
                    "with the design, every record and the CRC checked, design rules on every neighbour pair")
     v.add_argument("--tile", type=integer(1, 10**7),
                    help="--stream: cells per tile side (default: the layout's side-car; checked against the file)")
+    workers_arg(v, 1, "--stream: processes reading stripes of tiles")
+    v.add_argument("--scheduler", help="--stream: a Dask scheduler (tcp://host:8786) instead of -j")
     v.add_argument("--all", action="store_true",
                    help="tiled layouts: read every pillar back with gdstk instead (memory: the whole layout)")
     v.add_argument("--json", action="store_true", help="print the report as JSON")

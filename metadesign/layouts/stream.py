@@ -468,6 +468,28 @@ class _File(_Reader):
     def where(self) -> str:
         return f"byte {self.tell()}"
 
+    def seek(self, offset: int) -> None:
+        """Read on from ``offset`` (a worker's tile; the running signature no longer applies)."""
+        self.fh.seek(offset)
+        self.buf, self.i, self.off = b"", 0, offset
+
+    def cblock(self, inflate: bool = True) -> "_Block | None":
+        """A CBLOCK's records (its id byte read): inflated into a block, or (``inflate`` False) only read."""
+        at = self.tell() - 1
+        if self.uint() != 0:
+            raise OasisError(f"CBLOCK at byte {at} with an unknown compression type")
+        n_raw, n_z = self.uint(), self.uint()
+        z = self.read(n_z)
+        if not inflate:
+            return None
+        try:
+            data = zlib.decompressobj(-15).decompress(z, n_raw + 1)
+        except zlib.error as exc:
+            raise OasisError(f"CBLOCK at byte {at} does not inflate ({exc})") from None
+        if len(data) != n_raw:
+            raise OasisError(f"CBLOCK at byte {at}: {len(data)} bytes inflated, its header says {n_raw}")
+        return _Block(data, at)
+
     def signature_base(self) -> tuple[int, int]:
         """CRC32 and byte sum of every byte consumed so far."""
         done = self.buf[:self.i]
@@ -478,12 +500,184 @@ class _File(_Reader):
 # ----------------------------------------------------------------------------------------------------------
 # the verifier
 
-@dataclass
-class _Tile:
-    name: str
-    r: int
-    c: int
-    atoms: list = field(default_factory=list)  # (atom, x0, y0, dx offsets, dy offsets)
+class _Problems(list):
+    """Problem lines, at most ``limit`` kept (then one line saying more were found)."""
+
+    def __init__(self, limit: int = 20):
+        super().__init__()
+        self.limit = limit
+
+    def __call__(self, msg: str) -> None:
+        if len(self) < self.limit:
+            self.append(msg)
+        elif len(self) == self.limit:
+            self.append("... (more problems not listed)")
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """What a stripe worker needs (sent once per worker)."""
+
+    path: str
+    design: str
+    n: int
+    n_atoms: int
+    p_nm: int
+    x0: int
+    tile: int
+    empty: int | None
+
+
+def _design_rows(rows: NpzRows, g: _Grid, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """The design's rows ``r0:r1`` as an index map (-1 = no pillar) and their per-atom counts."""
+    raw = rows[r0:r1]
+    want = np.bincount(raw.ravel(), minlength=g.n_atoms + 1)[:g.n_atoms].astype(np.int64)
+    if g.empty is not None and g.empty < g.n_atoms:
+        want[g.empty] = 0
+    im = raw.astype(np.int32)
+    if g.empty is not None:
+        im[raw == g.empty] = -1
+    return im, want
+
+
+def _pairs(a: np.ndarray, b: np.ndarray, k: int) -> np.ndarray:
+    """Counts of neighbour pairs (a, b), both pillars, as a flat k x k table."""
+    m = (a >= 0) & (b >= 0)
+    return np.bincount(a[m].astype(np.int64) * k + b[m], minlength=k * k)
+
+
+def _tile_elements(f: "_File", offset: int, length: int, problem) -> list:
+    """The placements of one tile cell (its records at ``offset``, ``length`` bytes), as
+    ``(atom, x, y, dx offsets, dy offsets)``."""
+    f.seek(offset)
+    modal = _Modal()  # modal variables are reset at each CELL record
+    atoms = []
+    end = offset + length
+    while f.tell() < end:
+        rid = f.byte()
+        if rid == 0:
+            continue
+        if rid == 34:
+            blk = f.cblock()
+            while blk.pos < len(blk.data):
+                r = blk.byte()
+                if r:
+                    el = blk.element(r, modal)
+                    if el is not None and el.kind == "placement":
+                        atoms.append(_placed(el))
+                    elif el is not None:
+                        problem(f"a tile cell holds a {el.kind} (byte {blk.base}): tiles hold placements only")
+            continue
+        el = f.element(rid, modal)
+        if el is not None and el.kind == "placement":
+            atoms.append(_placed(el))
+        elif el is not None:
+            problem(f"a tile cell holds a {el.kind} (byte {f.tell()}): tiles hold placements only")
+    return atoms
+
+
+def _placed(el: _Element) -> tuple:
+    if el.rep is None:
+        return el.ref, el.x, el.y, np.zeros(1, np.int64), np.zeros(1, np.int64)
+    return el.ref, el.x, el.y, el.rep[1], el.rep[2]
+
+
+def _stripe_job(g: _Grid, job: tuple) -> dict:
+    """Worker: the tiles of one stripe (``job = (r, [(name, c, offset, length), ...])``) against the
+    design's rows: per-atom counts, neighbour pairs, mismatches, and the stripe's bottom and top rows (for
+    the pairs across stripes)."""
+    r, tiles = job
+    problem = _Problems()
+    k = g.n_atoms
+    out = {"r": r, "counts": np.zeros(k, np.int64), "pairs_h": np.zeros(k * k, np.int64),
+           "pairs_v": np.zeros(k * k, np.int64), "mismatched": 0, "duplicates": 0, "off_lattice": 0,
+           "problems": problem, "tiles": 0}
+    r0 = r * g.tile
+    h = min(g.tile, g.n - r0)
+    rows = NpzRows(g.design, "index_map")
+    f = _File(Path(g.path))
+    try:
+        block, out["want"] = _design_rows(rows, g, r0, r0 + h)
+        covered = np.zeros(g.n, bool)
+        top = np.full(g.n, -1, np.int32)
+        bottom = np.full(g.n, -1, np.int32)
+        left = None
+        for name, c, offset, length in sorted(tiles, key=lambda t: t[1]):
+            c0 = c * g.tile
+            if c0 >= g.n:
+                problem(f"{name}: outside the design's {g.n} columns")
+                continue
+            w = min(g.tile, g.n - c0)
+            if covered[c0:c0 + w].any():
+                problem(f"{name}: a second cell for the same tile")
+            covered[c0:c0 + w] = True
+            try:
+                placed = _tile_elements(f, offset, length, problem)
+            except OasisError as exc:
+                problem(f"malformed file: {name}: {exc}")
+                placed = []
+            out["tiles"] += 1
+            got = _tile_map(name, placed, g, r0, c0, h, w, out, problem)
+            ref = block[:, c0:c0 + w]
+            mm = int(np.count_nonzero(got != ref))
+            if mm:
+                out["mismatched"] += mm
+                j, i = np.argwhere(got != ref)[0]
+                problem(f"{name}: {mm} cells differ from the design (first: row {r0 + j}, column {c0 + i}: "
+                        f"layout {int(got[j, i])}, design {int(ref[j, i])}; -1 = no pillar)")
+            out["pairs_h"] += _pairs(got[:, :-1], got[:, 1:], k)
+            out["pairs_v"] += _pairs(got[:-1, :], got[1:, :], k)
+            if left is not None and left[0] == c - 1:
+                out["pairs_h"] += _pairs(left[1], got[:, 0], k)
+            left = (c, got[:, -1].copy())
+            bottom[c0:c0 + w], top[c0:c0 + w] = got[0], got[-1]
+        lost = int(np.count_nonzero(block[:, ~covered] >= 0))
+        if lost:
+            out["mismatched"] += lost
+            problem(f"stripe {r}: {lost} designed pillars in columns no tile cell covers")
+        out["bottom"], out["top"] = bottom, top
+    finally:
+        f.close()
+        rows.close()
+    return out
+
+
+def _tile_map(name: str, placed: list, g: _Grid, r0: int, c0: int, h: int, w: int, out: dict, problem) -> np.ndarray:
+    """The tile's pillars on its lattice cells (-1: none), counting what lies off the lattice, outside the
+    tile, on an occupied cell or is not an atom."""
+    got = np.full((h, w), -1, np.int32)
+    if not placed:
+        return got
+    ids = np.array([a for a, *_ in placed], np.int64)
+    sizes = np.array([len(ox) for *_, ox, _ in placed], np.int64)
+    aa = np.repeat(ids, sizes)
+    xs = np.concatenate([px + ox for _, px, _, ox, _ in placed])
+    ys = np.concatenate([py + oy for _, _, py, _, oy in placed])
+    foreign = (aa < 0) | (aa >= g.n_atoms)
+    if foreign.any():
+        problem(f"{name}: places cells {sorted(set(aa[foreign].tolist()))[:5]}, not atoms of the design")
+    ix, rx = np.divmod(xs - g.x0, g.p_nm)
+    iy, ry = np.divmod(ys - g.x0, g.p_nm)
+    ix -= c0
+    iy -= r0
+    bad = (rx != 0) | (ry != 0) | (ix < 0) | (ix >= w) | (iy < 0) | (iy >= h) | foreign
+    nb = int(np.count_nonzero(bad))
+    if nb:
+        out["off_lattice"] += nb
+        j = int(np.flatnonzero(bad)[0])
+        problem(f"{name}: {nb} pillars off the {g.p_nm} nm lattice or outside the tile (first: atom {int(aa[j])} "
+                f"at ({int(xs[j])}, {int(ys[j])}) nm)")
+        keep = ~bad
+        aa, ix, iy = aa[keep], ix[keep], iy[keep]
+    out["counts"] += np.bincount(aa, minlength=g.n_atoms)
+    flat = iy * w + ix
+    hits = np.bincount(flat, minlength=h * w)
+    d = int((hits[hits > 1] - 1).sum())
+    if d:
+        out["duplicates"] += d
+        problem(f"{name}: {d} pillars placed on an occupied cell")
+    got.ravel()[flat] = aa
+    return got
 
 
 def _tile_size(path: Path, given: int | None) -> int | None:
@@ -499,168 +693,48 @@ def _tile_size(path: Path, given: int | None) -> int | None:
         return None
 
 
-def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int = DESIGN_RULES.min_feature_nm,
-                  min_gap_nm: int = DESIGN_RULES.min_gap_nm, tile: int | None = None, progress=None,
-                  max_problems: int = 20) -> dict:
-    """Read the OASIS file ``path`` once, in bounded memory, and check it against the design
-    ``design_path`` (see the module's docstring); ``tile``: the tiling's cells per tile side (default:
-    the side-car's, checked against the file's own record at its end).  Returns the report: ``exact``
-    (every pillar as designed, the file well-formed, its signature right), ``drc`` (``passed``), the
-    counts and timings."""
-    path, design_path = Path(path), Path(design_path)
-    tile_size = _tile_size(path, tile)
-    if tile_size is None:
-        raise InputError(f"{path}: no tile size (no side-car {path.name}.json): pass --tile")
-    t0 = time.perf_counter()
-    problems: list[str] = []
-
-    def problem(msg: str) -> None:
-        if len(problems) < max_problems:
-            problems.append(msg)
-        elif len(problems) == max_problems:
-            problems.append("... (more problems not listed)")
-
-    # --- the design: its grid, atoms and sentinel; its index map streamed by stripes
-    try:
-        with np.load(design_path, allow_pickle=False) as z:
-            dmeta = from_json_array(z["meta"])
-            awx, awy = z["atom_wx_m"], z["atom_wy_m"]
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"{design_path}: not a design file ({exc})") from None
-    rows = NpzRows(design_path, "index_map")
-    n = rows.shape[0]
-    empty = dmeta.get("empty_index")
-    spec = dmeta.get("spec", {})
-    period = spec.get("period_m") or spec.get("period")
-    if period is None:
-        raise InputError(f"{design_path}: its metadata has no lattice period")
-    n_atoms = len(awx)
-    grid_nm = 1
-    ewx, _ = snap_widths(awx, grid_nm)
-    ewy, _ = snap_widths(awy, grid_nm)
-    p_nm, x0 = layout_geometry(n, float(period))
-
-    counts = np.zeros(n_atoms, np.int64)
-    want = np.zeros(n_atoms, np.int64)
-    pairs_h = np.zeros(n_atoms * n_atoms, np.int64)  # horizontally adjacent pillars, per (left, right) atom
-    pairs_v = np.zeros(n_atoms * n_atoms, np.int64)
-    mismatched = duplicates = off_lattice = 0
-    tiles_seen = 0
-    # the stripe of tiles being read: its design rows, which columns its tiles covered, its top row
-    stripe = {"r": None, "block": None, "covered": None, "top": None, "below": None}
-    left = {}  # the right column of the previous tile in this stripe
-
-    def design_rows(r0: int, r1: int) -> np.ndarray:
-        raw = rows[r0:r1]
-        b = np.bincount(raw.ravel(), minlength=n_atoms + 1)
-        want[:] += b[:n_atoms]
-        im = raw.astype(np.int32)
-        if empty is not None:
-            im[raw == empty] = -1
-        return im
-
-    def close_stripe() -> None:
-        """The design cells of the finished stripe that no tile covered: a missing tile drops them."""
-        nonlocal mismatched
-        if stripe["r"] is None:
-            return
-        miss = ~stripe["covered"]
-        lost = int(np.count_nonzero(stripe["block"][:, miss] >= 0))
-        if lost:
-            mismatched += lost
-            problem(f"stripe {stripe['r']}: {lost} designed pillars in columns no tile cell covers")
-
-    def open_stripe(r: int) -> None:
-        close_stripe()
-        if stripe["r"] is not None and r != stripe["r"] + 1:
-            problem(f"tile row {r} follows row {stripe['r']}: tile rows missing or out of order")
-        r0 = r * tile_size
-        if r0 >= n:
-            raise OasisError(f"tile row {r} is outside the design's {n} rows")
-        stripe["below"] = stripe["top"] if stripe["r"] == r - 1 else None
-        stripe["r"], stripe["block"] = r, design_rows(r0, min(n, r0 + tile_size))
-        stripe["covered"] = np.zeros(n, bool)
-        stripe["top"] = np.full(n, -1, np.int32)
-        left.clear()
-
-    def finish_tile(t: _Tile) -> None:
-        nonlocal mismatched, duplicates, off_lattice, tiles_seen
-        tiles_seen += 1
-        r0, c0 = t.r * tile_size, t.c * tile_size
-        if stripe["r"] != t.r:
-            open_stripe(t.r)
-        if c0 >= n:
-            problem(f"{t.name}: outside the design's {n} columns")
-            return
-        h, w = min(tile_size, n - r0), min(tile_size, n - c0)
-        if stripe["covered"][c0:c0 + w].any():
-            problem(f"{t.name}: a second cell for the same tile")
-        stripe["covered"][c0:c0 + w] = True
-        ref = stripe["block"][:, c0:c0 + w]
-        got = np.full((h, w), -1, np.int32)
-        if t.atoms:
-            ids = np.array([a for a, *_ in t.atoms], np.int64)
-            sizes = np.array([len(ox) for *_, ox, _ in t.atoms], np.int64)
-            aa = np.repeat(ids, sizes)
-            xs = np.concatenate([px + ox for _, px, _, ox, _ in t.atoms])
-            ys = np.concatenate([py + oy for _, _, py, _, oy in t.atoms])
-            foreign = (aa < 0) | (aa >= n_atoms)
-            if foreign.any():
-                problem(f"{t.name}: places cells {sorted(set(aa[foreign].tolist()))[:5]}, not atoms of the design")
-            ix, rx = np.divmod(xs - x0, p_nm)
-            iy, ry = np.divmod(ys - x0, p_nm)
-            ix -= c0
-            iy -= r0
-            bad = (rx != 0) | (ry != 0) | (ix < 0) | (ix >= w) | (iy < 0) | (iy >= h) | foreign
-            nb = int(np.count_nonzero(bad))
-            if nb:
-                off_lattice += nb
-                j = int(np.flatnonzero(bad)[0])
-                problem(f"{t.name}: {nb} pillars off the {p_nm} nm lattice or outside the tile (first: atom "
-                        f"{int(aa[j])} at ({int(xs[j])}, {int(ys[j])}) nm)")
-                keep = ~bad
-                aa, ix, iy = aa[keep], ix[keep], iy[keep]
-            np.add.at(counts, aa, 1) if len(aa) < 64 else counts.__iadd__(np.bincount(aa, minlength=n_atoms))
-            flat = iy * w + ix
-            hits = np.bincount(flat, minlength=h * w)
-            d = int((hits[hits > 1] - 1).sum())
-            if d:
-                duplicates += d
-                problem(f"{t.name}: {d} pillars placed on an occupied cell")
-            got.ravel()[flat] = aa
-        mm = int(np.count_nonzero(got != ref))
-        if mm:
-            mismatched += mm
-            j, i = np.argwhere(got != ref)[0]
-            problem(f"{t.name}: {mm} cells differ from the design (first: row {r0 + j}, column {c0 + i}: layout "
-                    f"{int(got[j, i])}, design {int(ref[j, i])}; -1 = no pillar)")
-        # lattice neighbours, inside the tile and across its left and lower borders
-        for A, B, acc in ((got[:, :-1], got[:, 1:], pairs_h), (got[:-1, :], got[1:, :], pairs_v)):
-            m = (A >= 0) & (B >= 0)
-            acc += np.bincount(A[m].astype(np.int64) * n_atoms + B[m], minlength=n_atoms * n_atoms)
-        if t.c - 1 in left:
-            A, B = left.pop(t.c - 1), got[:, 0]
-            m = (A >= 0) & (B >= 0)
-            pairs_h[:] += np.bincount(A[m].astype(np.int64) * n_atoms + B[m], minlength=n_atoms * n_atoms)
-        left[t.c] = got[:, -1].copy()
-        if stripe["below"] is not None:
-            A, B = stripe["below"][c0:c0 + w], got[0]
-            m = (A >= 0) & (B >= 0)
-            pairs_v[:] += np.bincount(A[m].astype(np.int64) * n_atoms + B[m], minlength=n_atoms * n_atoms)
-        stripe["top"][c0:c0 + w] = got[-1]
-
-    # --- the file, once
+def _scan(path: Path, problem) -> dict:
+    """One pass over the file's top-level records: the names, where each tile cell's records lie (their
+    CBLOCK payloads read for the signature, not inflated), the top cell and the atom cells parsed, END and
+    the signature checked."""
     f = _File(path)
-    modal = _Modal()
     names: dict[int, str] = {}
+    tiles: list = []  # (name, r, c, offset, length)
     atom_rects: dict[int, list] = {}
-    top_placements: list = []
+    top: list = []
     prov = None
-    cell = None  # the current cell's reference number
-    tile: _Tile | None = None
-    crc_ok = None
-    ended = False
-    scheme = unit = None
+    cell = None
+    tile_at = None  # (name, r, c, offset) of the tile cell being skipped
+    modal = _Modal()
+    res = {"ended": False, "scheme": None, "signature_ok": None, "unit": None, "bytes": f.size}
+
+    def close_cell(at: int) -> None:
+        nonlocal tile_at
+        if tile_at is not None:
+            name, r, c, off = tile_at
+            tiles.append((name, r, c, off, at - off))
+            tile_at = None
+
+    def take(el: _Element) -> None:
+        nonlocal prov
+        name = names.get(cell, "")
+        if el.kind == "placement":
+            rep = len(el.rep[1]) if el.rep else 1
+            if name == TOP_CELL:
+                top.append((el.ref, el.x, el.y, rep))
+            else:
+                problem(f"cell {name or cell!r} places cell {el.ref}: only tiles and the top cell place cells")
+        elif el.kind == "rectangle":
+            if name.startswith("ATOM_"):
+                atom_rects.setdefault(int(name[5:]), []).append((el.w, el.h, el.x, el.y, el.rep))
+            else:
+                problem(f"cell {name or cell!r} holds a rectangle: pillars belong in atom cells")
+        elif el.kind == "property" and name == TOP_CELL and el.name == b"metadesign" and el.values:
+            try:
+                prov = json.loads(el.values[0])
+            except ValueError:
+                problem("the top cell's metadesign property is not JSON")
+
     try:
         if f.read(len(MAGIC)) != MAGIC:
             raise OasisError("not an OASIS file (no magic bytes)")
@@ -669,73 +743,37 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
         version = f.string()
         if version != b"1.0":
             raise OasisError(f"OASIS version {version!r}, expected '1.0'")
-        unit_type = f.uint()
-        if unit_type != 0:
+        if f.uint() != 0:
             raise OasisError("a database unit that is not an integer per micrometre")
-        unit = f.uint()
+        res["unit"] = f.uint()
         if f.uint() != 0:
             raise OasisError("name tables at the end of the file are not supported (offset flag 1)")
         for _ in range(12):
             f.uint()
         next_ref = 0
-
-        def close_cell():
-            nonlocal tile
-            if tile is not None:
-                finish_tile(tile)
-                if progress:
-                    progress(f.tell(), f.size)
-                tile = None
-
-        def take(el: _Element):
-            nonlocal prov
-            name = names.get(cell, "")
-            if el.kind == "placement":
-                rep = el.rep[1:] if el.rep else (np.zeros(1, np.int64), np.zeros(1, np.int64))
-                if tile is not None:
-                    tile.atoms.append((el.ref, el.x, el.y, rep[0], rep[1]))
-                elif name == top_name:
-                    top_placements.append((el.ref, el.x, el.y, len(rep[0])))
-                else:
-                    problem(f"cell {name or cell!r} places cell {el.ref}: only tiles and the top cell place cells")
-            elif el.kind == "rectangle":
-                if name.startswith("ATOM_"):
-                    atom_rects.setdefault(int(name[5:]), []).append((el.w, el.h, el.x, el.y, el.rep))
-                else:
-                    problem(f"cell {name or cell!r} holds a rectangle: pillars belong in atom cells")
-            elif el.kind == "property" and name == top_name and el.name == b"metadesign" and el.values:
-                try:
-                    prov = json.loads(el.values[0])
-                except ValueError:
-                    problem("the top cell's metadesign property is not JSON")
-
-        top_name = TOP_CELL
         while True:
+            at = f.tell()
             rid = f.byte()
             if rid == 0:
                 continue
             if rid == 2:  # END: padding, validation scheme, signature; 256 bytes in all
-                start = f.tell() - 1
+                close_cell(at)
                 f.string()
                 scheme = f.uint()
                 base_crc, base_sum = f.signature_base()
-                sig = f.read(4)
-                if f.tell() - start != END_BYTES:
-                    problem(f"END record of {f.tell() - start} bytes, expected {END_BYTES}")
+                sig = int.from_bytes(f.read(4), "little")
+                if f.tell() - at != END_BYTES:
+                    problem(f"END record of {f.tell() - at} bytes, expected {END_BYTES}")
                 if f.tell() != f.size:
                     problem(f"{f.size - f.tell()} bytes after the END record")
-                if scheme == 1:
-                    crc_ok = int.from_bytes(sig, "little") == base_crc
-                elif scheme == 2:
-                    crc_ok = int.from_bytes(sig, "little") == base_sum
-                elif scheme == 0:
-                    crc_ok = None
-                else:
+                if scheme not in (0, 1, 2):
                     raise OasisError(f"validation scheme {scheme} unknown")
-                if crc_ok is False:
-                    problem(f"the file's {'CRC32' if scheme == 1 else 'checksum'} signature does not match its bytes "
-                            "(the file was changed or damaged after it was written)")
-                ended = True
+                res["scheme"] = {0: None, 1: "crc32", 2: "checksum32"}[scheme]
+                res["signature_ok"] = None if scheme == 0 else sig == (base_crc if scheme == 1 else base_sum)
+                if res["signature_ok"] is False:
+                    problem(f"the file's {res['scheme']} signature does not match its bytes (the file was changed "
+                            "or damaged after it was written)")
+                res["ended"] = True
                 break
             if rid in (3, 4):
                 nm = f.string().decode(errors="replace")
@@ -749,10 +787,10 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
                     f.uint()
                 continue
             if rid in (13, 14):
-                close_cell()
+                close_cell(at)
                 if rid == 14:
                     nm = f.string().decode(errors="replace")
-                    cell = next((k for k, v in names.items() if v == nm), None)
+                    cell = next((k for k, v in names.items() if v == nm), nm)
                     names.setdefault(cell, nm)
                 else:
                     cell = f.uint()
@@ -761,88 +799,152 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
                 if name.startswith("TILE_"):
                     try:
                         _, r, c = name.split("_")
-                        tile = _Tile(name, int(r), int(c))
+                        tile_at = (name, int(r), int(c), f.tell())
                     except ValueError:
                         raise OasisError(f"tile cell name {name!r} is not TILE_<row>_<col>") from None
                 continue
-            if rid == 34:  # CBLOCK
-                at = f.tell()
-                if f.uint() != 0:
-                    raise OasisError(f"CBLOCK at byte {at} with an unknown compression type")
-                n_raw, n_z = f.uint(), f.uint()
-                z = f.read(n_z)
-                try:
-                    d = zlib.decompressobj(-15)
-                    data = d.decompress(z, n_raw + 1)
-                except zlib.error as exc:
-                    raise OasisError(f"CBLOCK at byte {at} does not inflate ({exc})") from None
-                if len(data) != n_raw:
-                    raise OasisError(f"CBLOCK at byte {at}: {len(data)} bytes inflated, its header says {n_raw}")
-                blk = _Block(data, at)
+            if tile_at is not None:  # a tile's records: the workers read them; here only their bytes
+                if rid == 34:
+                    f.cblock(inflate=False)
+                else:
+                    f.element(rid, modal)
+                continue
+            if rid == 34:
+                blk = f.cblock()
                 while blk.pos < len(blk.data):
                     r = blk.byte()
-                    if r == 0:
-                        continue
-                    el = blk.element(r, modal)
-                    if el is not None:
-                        take(el)
+                    if r:
+                        el = blk.element(r, modal)
+                        if el is not None:
+                            take(el)
                 continue
-            if rid in (15, 16, 17, 19, 20, 21, 28, 29):
-                # a plain element record (the atom cells' rectangles), read from the file itself
-                el = f.element(rid, modal)
-                if el is not None:
-                    take(el)
-                continue
-            raise OasisError(f"record type {rid} at byte {f.tell() - 1} is not supported by the streaming verifier")
+            el = f.element(rid, modal)
+            if el is not None:
+                take(el)
     except OasisError as exc:
         problem(f"malformed file: {exc}")
     finally:
         f.close()
+    if not res["ended"]:
+        problem("the file has no END record (truncated?)")
+    res.update(names=names, tiles=tiles, atom_rects=atom_rects, top=top, prov=prov)
+    return res
+
+
+def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int = DESIGN_RULES.min_feature_nm,
+                  min_gap_nm: int = DESIGN_RULES.min_gap_nm, tile: int | None = None, workers: int = 1,
+                  scheduler: str | None = None, progress=None, max_problems: int = 20) -> dict:
+    """Read the OASIS file ``path`` and check it against the design ``design_path`` (see the module's
+    docstring): one pass over the top-level records (names, the signature, the top and atom cells, where
+    each tile lies), then the stripes of tiles, each against its rows of the design, on ``workers`` local
+    processes or a Dask ``scheduler`` (the same report whatever the count: sums, combined in stripe order).
+    ``tile``: the tiling's cells per tile side (default: the side-car's, checked against the file's own
+    record).  Returns the report: ``exact`` (every pillar as designed, the file well-formed, its signature
+    right), ``drc`` (``passed``), the counts and timings."""
+    from ..parallel import run_tasks
+
+    path, design_path = Path(path), Path(design_path)
+    tile_size = _tile_size(path, tile)
+    if tile_size is None:
+        raise InputError(f"{path}: no tile size (no side-car {path.name}.json): pass --tile")
+    t0 = time.perf_counter()
+    problem = _Problems(max_problems)
     try:
-        close_stripe()
-        # --- after the stream: the rows no tile covered, the tiling, the top cell, the atoms, the counts
-        if stripe["r"] is None:
-            problem("no tile cell in the file: not a tiled layout (layout verify without --stream)")
-            covered = 0
-        else:
-            covered = min(n, (stripe["r"] + 1) * tile_size)
-        if covered < n:
-            lost = int(np.count_nonzero(design_rows(covered, n) >= 0))
-            mismatched += lost
-            problem(f"the file's tiles end at row {covered} of {n}: {lost} designed pillars in no tile")
+        with np.load(design_path, allow_pickle=False) as z:
+            dmeta = from_json_array(z["meta"])
+            awx, awy = z["atom_wx_m"], z["atom_wy_m"]
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"{design_path}: not a design file ({exc})") from None
+    rows = NpzRows(design_path, "index_map")
+    n = rows.shape[0]
+    rows.close()
+    period = (dmeta.get("spec") or {}).get("period_m")
+    if period is None:
+        raise InputError(f"{design_path}: its metadata has no lattice period")
+    n_atoms = len(awx)
+    ew = np.stack([snap_widths(awx, 1)[0], snap_widths(awy, 1)[0]], 1).astype(np.int64)
+    p_nm, x0 = layout_geometry(n, float(period))
+    g = _Grid(str(path), str(design_path), n, n_atoms, p_nm, x0, tile_size, dmeta.get("empty_index"))
+
+    scan = _scan(path, problem)
+    t_scan = time.perf_counter() - t0
+    names = scan["names"]
+    by_row: dict[int, list] = {}
+    for name, r, c, off, ln in scan["tiles"]:
+        by_row.setdefault(r, []).append((name, c, off, ln))
+    stripes = sorted(by_row)
+    results = {}
+    done = 0
+    for res in run_tasks(_stripe_job, [(r, by_row[r]) for r in stripes if r * tile_size < n], workers, g,
+                         scheduler=scheduler, key="verify-stripe"):
+        results[res["r"]] = res
+        done += 1
+        if progress:
+            progress(done, len(stripes))
+    for r in stripes:
+        if r * tile_size >= n:
+            problem(f"tile row {r} is outside the design's {n} rows")
+    counts = np.zeros(n_atoms, np.int64)
+    want = np.zeros(n_atoms, np.int64)
+    ph = np.zeros(n_atoms * n_atoms, np.int64)
+    pv = np.zeros(n_atoms * n_atoms, np.int64)
+    tot = {"mismatched": 0, "duplicates": 0, "off_lattice": 0, "tiles": 0}
+    rows = NpzRows(design_path, "index_map")
+    try:
+        for r in range(-(-n // tile_size)):  # in stripe order: the same report whatever the worker count
+            res = results.get(r)
+            if res is None:  # a stripe without a tile cell: its designed pillars are in no tile
+                _, w_r = _design_rows(rows, g, r * tile_size, min(n, (r + 1) * tile_size))
+                want += w_r
+                if w_r.sum():
+                    tot["mismatched"] += int(w_r.sum())
+                    problem(f"stripe {r} (rows {r * tile_size}..): no tile cell, {int(w_r.sum())} designed pillars "
+                            "missing")
+                continue
+            for msg in res["problems"]:
+                problem(msg)
+            counts += res["counts"]
+            want += res["want"]
+            ph += res["pairs_h"]
+            pv += res["pairs_v"]
+            for k in tot:
+                tot[k] += res[k]
+            prev = results.get(r - 1)
+            if prev is not None:  # vertical neighbours across the stripe border
+                pv += _pairs(prev["top"], res["bottom"], n_atoms)
     finally:
         rows.close()
-    if not ended:
-        problem("the file has no END record (truncated?)")
-    # --- after the stream: the tiling, the top cell, the atoms, the counts, the rules
-    tiling = (prov or {}).get("tiling") or {}
+    # --- the tiling, the top cell, the atoms, the counts, the rules
+    prov, tiling = scan["prov"], (scan["prov"] or {}).get("tiling") or {}
     if prov is None:
         problem("the top cell has no metadesign property: not a file of this project")
     elif tiling.get("tile_cells") != tile_size or tiling.get("hierarchy") != "tiles":
         problem(f"the file records its tiling as {tiling or 'none'}; streamed with {tile_size} cells per tile")
-    for ref, x, y, cnt in top_placements:
+    if not scan["tiles"]:
+        problem("no tile cell in the file: not a tiled layout (layout verify without --stream)")
+    for ref, x, y, cnt in scan["top"]:
         if not names.get(ref, "").startswith("TILE_") or (x, y) != (0, 0) or cnt != 1:
             problem(f"the top cell places {names.get(ref, ref)!r} at ({x}, {y}) x {cnt}: expected each tile once at "
                     "the origin")
-    placed_tiles = {names.get(r) for r, *_ in top_placements}
-    declared = {v for v in names.values() if v.startswith("TILE_")}
-    if declared - placed_tiles:
-        problem(f"{len(declared - placed_tiles)} tile cells are never placed")
-    widths = np.zeros((n_atoms, 2), np.int64)
+    placed = [names.get(r) for r, *_ in scan["top"]]
+    if len(placed) != len(set(placed)):
+        problem("the top cell places a tile cell more than once")
+    unplaced = {t[0] for t in scan["tiles"]} - set(placed)
+    if unplaced:
+        problem(f"{len(unplaced)} tile cells are never placed by the top cell (first: {sorted(unplaced)[0]})")
+    widths = ew.copy()
     for a in range(n_atoms):
-        rects = atom_rects.get(a)
+        rects = scan["atom_rects"].get(a)
         if counts[a] == 0 and not rects:
-            widths[a] = (ewx[a], ewy[a])
             continue
         if not rects or len(rects) != 1 or rects[0][4] is not None:
             problem(f"atom cell ATOM_{a:03d}: {len(rects or [])} rectangles, expected one")
-            widths[a] = (ewx[a], ewy[a])
             continue
         w_, h_, rx, ry, _ = rects[0]
         widths[a] = (w_, h_)
-        if (w_, h_) != (int(ewx[a]), int(ewy[a])):
-            problem(f"atom cell ATOM_{a:03d}: {w_} x {h_} nm, the design's snapped widths are {int(ewx[a])} x "
-                    f"{int(ewy[a])} nm")
+        if (w_, h_) != (int(ew[a, 0]), int(ew[a, 1])):
+            problem(f"atom cell ATOM_{a:03d}: {w_} x {h_} nm, the design's snapped widths are {int(ew[a, 0])} x "
+                    f"{int(ew[a, 1])} nm")
         if (rx, ry) != (-(w_ // 2) - (w_ % 2), -(h_ // 2) - (h_ % 2)):
             problem(f"atom cell ATOM_{a:03d}: not centred on its origin")
     if not np.array_equal(counts, want):
@@ -850,23 +952,22 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
         problem(f"per-atom pillar counts differ from the design for {bad.size} atoms (layout {int(counts.sum()):,}, "
                 f"design {int(want.sum()):,})")
     used = np.flatnonzero(counts)
-    min_feature = int(widths[used].min()) if used.size else 0
     gap_x = p_nm - (widths[:, 0][:, None] + widths[:, 0][None, :]) / 2  # centred: the gap of a pair
     gap_y = p_nm - (widths[:, 1][:, None] + widths[:, 1][None, :]) / 2
-    ph, pv = pairs_h.reshape(n_atoms, n_atoms), pairs_v.reshape(n_atoms, n_atoms)
+    ph, pv = ph.reshape(n_atoms, n_atoms), pv.reshape(n_atoms, n_atoms)
     width_viol = int(counts[(widths < min_feature_nm).any(1)].sum())
     space_viol = int(ph[gap_x < min_gap_nm].sum() + pv[gap_y < min_gap_nm].sum())
     min_gap = min(float(gap_x[ph > 0].min()) if (ph > 0).any() else np.inf,
                   float(gap_y[pv > 0].min()) if (pv > 0).any() else np.inf)
-    exact = not problems
-    return {"file": str(path), "design": str(design_path), "reader": "stream", "exact": exact,
-            "problems": problems, "pillars": int(counts.sum()), "pillars_design": int(want.sum()),
-            "tiles": tiles_seen, "tile_cells": tile_size, "mismatched_cells": mismatched, "duplicates": duplicates,
-            "off_lattice": off_lattice, "signature": {"scheme": {0: "none", 1: "crc32", 2: "checksum32"}.get(scheme),
-                                                       "ok": crc_ok},
-            "unit_per_um": unit, "bytes": f.size,
+    return {"file": str(path), "design": str(design_path), "reader": "stream", "exact": not problem,
+            "problems": list(problem), "pillars": int(counts.sum()), "pillars_design": int(want.sum()),
+            "tiles": tot["tiles"], "tile_cells": tile_size, "mismatched_cells": tot["mismatched"],
+            "duplicates": tot["duplicates"], "off_lattice": tot["off_lattice"],
+            "signature": {"scheme": scan["scheme"], "ok": scan["signature_ok"]}, "unit_per_um": scan["unit"],
+            "bytes": scan["bytes"], "workers": workers,
             "drc": {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm},
-                    "min_feature_nm": min_feature, "min_gap_nm": None if not np.isfinite(min_gap) else min_gap,
+                    "min_feature_nm": int(widths[used].min()) if used.size else None,
+                    "min_gap_nm": None if not np.isfinite(min_gap) else round(min_gap, 1),
                     "pairs_checked": int(ph.sum() + pv.sum()), "width_violations": width_viol,
                     "space_violations": space_viol, "passed": width_viol == 0 and space_viol == 0},
-            "seconds": time.perf_counter() - t0}
+            "scan_seconds": t_scan, "seconds": time.perf_counter() - t0}
