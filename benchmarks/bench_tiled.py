@@ -108,12 +108,21 @@ def main() -> int:
                                        "oasis_bytes": (tmp / f"tiled{w}" / "layout.oas").stat().st_size}
         same = (tmp / "whole" / "design.npz").read_bytes() == (tmp / "tiled1" / "design.npz").read_bytes()
         rep["paper_design_same_bytes"] = same
+        lay5 = str(tmp / "tiled1" / "layout.oas")
+        for w in sorted({1, a.workers}):  # the streaming verifier (#35): every pillar, bounded memory
+            t, m = run_tree([*MD, "layout", "verify", lay5, "--stream", "-j", str(w)])
+            rep[f"paper_verify_stream_{w}"] = {"seconds": t, "peak_bytes": m}
+        t, m = run_tree([*MD, "layout", "verify", lay5])  # KLayout: count of every pillar, 8 sampled tiles
+        rep["paper_verify_klayout"] = {"seconds": t, "peak_bytes": m}
         if a.wide:
             wide = REPO / "layouts" / "wide-25mm.toml"
             t, m = run_tree([*MD, "layout", "tiled", str(wide), "-o", str(tmp / "wide"), "-j", str(a.workers)])
             rep["wide_tiled"] = {"seconds": t, "peak_bytes": m,
                                  "oasis_bytes": (tmp / "wide" / "layout.oas").stat().st_size,
                                  "pillars": json.loads((tmp / "wide" / "layout.oas.json").read_text())["pillars"]}
+            t, m = run_tree([*MD, "layout", "verify", str(tmp / "wide" / "layout.oas"), "--stream", "-j",
+                             str(a.workers)])
+            rep["wide_verify_stream"] = {"seconds": t, "peak_bytes": m}
     rep["kernels_paper"] = kernels(paper)
     n5 = 7142 ** 2
     w5 = rep[f"paper_tiled_{a.workers}"]
@@ -153,6 +162,13 @@ def main() -> int:
               f"({r['seconds'] / pw['seconds']:.2f}x the whole path), peak {r['peak_bytes'] / G:.2f} GB, "
               f"OASIS {r['oasis_bytes'] / 1e6:.1f} MB")
     print(f"  design file same bytes on both paths: {rep['paper_design_same_bytes']}")
+    kv = rep["paper_verify_klayout"]
+    for w in sorted({1, a.workers}):
+        r = rep[f"paper_verify_stream_{w}"]
+        print(f"  paper 5 mm, layout verify --stream -j {w} (every pillar, every record, CRC, DRC on every pair): "
+              f"{r['seconds']:.1f} s ({n5 / r['seconds'] / 1e6:.1f} M pillars/s), peak {r['peak_bytes'] / G:.2f} GB; "
+              f"KLayout count + 8 sampled tiles: {kv['seconds']:.1f} s, {kv['peak_bytes'] / G:.2f} GB "
+              f"({r['seconds'] / kv['seconds']:.2f}x its time)")
     print(f"  one core: design kernel {k['design_pillars_per_s_core'] / 1e6:.2f} M pillars/s, OASIS encoder "
           f"{k['oasis_pillars_per_s_core'] / 1e6:.2f} M pillars/s ({k['oasis_bytes_per_pillar']:.2f} B/pillar)")
     if a.wide:
@@ -161,6 +177,9 @@ def main() -> int:
               f"peak {wt['peak_bytes'] / G:.2f} GB, OASIS {wt['oasis_bytes'] / 1e6:.0f} MB; "
               f"{rep['wide_pillars_per_s'] / 1e6:.2f} M pillars/s = {rep['scaling_wide_over_paper_rate']:.2f}x "
               "the 5 mm rate (1.00 = linear)")
+        wv = rep["wide_verify_stream"]
+        print(f"  2.5 cm, layout verify --stream -j {a.workers}: {wv['seconds'] / 60:.1f} min, peak "
+              f"{wv['peak_bytes'] / G:.2f} GB ({wt['pillars'] / wv['seconds'] / 1e6:.1f} M pillars/s)")
     p = rep["projection_10cm"]
     print(f"  10 cm (2.0e10 pillars): OASIS ~{p['oasis_bytes'] / G:.1f} GB; {p['one_machine_minutes']:.0f} min on "
           f"this machine; ~{p['dask_64_minutes']:.0f} min on 64 Dask workers (the single writer's "
