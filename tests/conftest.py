@@ -16,6 +16,28 @@ threadpool_limits(1)
 
 REPO = Path(__file__).resolve().parents[1]
 
+def leb128(v: int) -> bytes:
+    """The OASIS unsigned integer, written out from the standard's definition (a test reference)."""
+    out = []
+    while True:
+        out.append((v & 0x7F) | (0x80 if v >> 7 else 0))
+        v >>= 7
+        if not v:
+            return bytes(out)
+
+
+#: a small circular design (0.2 mm, ~285 cells a side) for the tiled layout tests
+SMALL_TILED_RECIPE = """
+[design]
+library = "{lib}"
+wavelength_nm = 1550.0
+period_um = 0.7
+aperture_mm = 0.2
+clear_aperture = "circle"
+[discretizer]
+tile_rows = 16
+"""
+
 #: the checkout's product folders: no test may leave anything new in them (tests write to tmp_path)
 PRODUCT_FOLDERS = ("library", "layouts", "sensing")
 

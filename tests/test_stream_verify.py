@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import run_main
+from conftest import SMALL_TILED_RECIPE, leb128, run_main
 
 from metadesign.design.recipe import load_design_recipe
 from metadesign.layouts import oasis as O
@@ -16,26 +16,6 @@ from metadesign.layouts import tiled
 from metadesign.layouts.reader import verify_tiled
 from metadesign.layouts.stream import gdelta_decode, verify_stream
 from metadesign.layouts.writer import layout_geometry, snap_widths
-
-RECIPE = """
-[design]
-library = "{lib}"
-wavelength_nm = 1550.0
-period_um = 0.7
-aperture_mm = 0.2
-clear_aperture = "circle"
-[discretizer]
-tile_rows = 16
-"""
-
-
-def leb128(v: int) -> bytes:  # the OASIS unsigned integer, from the standard's definition
-    out = []
-    while True:
-        out.append((v & 0x7F) | (0x80 if v >> 7 else 0))
-        v >>= 7
-        if not v:
-            return bytes(out)
 
 
 def test_gdeltas_decode_what_the_definition_encodes():
@@ -71,7 +51,7 @@ def test_gdeltas_decode_what_the_definition_encodes():
 def small(tmp_path_factory, repo):
     tmp = tmp_path_factory.mktemp("stream")
     rec = tmp / "small.toml"
-    rec.write_text(RECIPE.format(lib=repo / "library" / "paper.npz"))
+    rec.write_text(SMALL_TILED_RECIPE.format(lib=repo / "library" / "paper.npz"))
     recipe = load_design_recipe(rec)
     tiled.build_tiled(recipe, tmp / "good", tile=64)
     return tmp, recipe

@@ -8,7 +8,7 @@ import zlib
 import gdstk
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import SMALL_TILED_RECIPE, leb128, run_cli
 
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import load_design, run_design
@@ -17,15 +17,6 @@ from metadesign.layouts import oasis as O
 from metadesign.layouts import read_layout, read_layout_klayout, verify_against_design
 from metadesign.layouts.reader import verify_tiled
 from metadesign.layouts.tiled import build_tiled
-
-
-def leb128(v: int) -> bytes:  # the OASIS unsigned-integer, written out from the standard's definition
-    out = []
-    while True:
-        out.append((v & 0x7F) | (0x80 if v >> 7 else 0))
-        v >>= 7
-        if not v:
-            return bytes(out)
 
 
 def test_unsigned_integers_and_gdeltas_match_the_definition():
@@ -96,23 +87,11 @@ def test_streamed_npz_has_the_bytes_of_the_whole_array(tmp_path):
     assert not (tmp_path / "c.npz").exists()
 
 
-RECIPE = """
-[design]
-library = "{lib}"
-wavelength_nm = 1550.0
-period_um = 0.7
-aperture_mm = 0.2
-clear_aperture = "circle"
-[discretizer]
-tile_rows = 16
-"""
-
-
 @pytest.fixture(scope="module")
 def tiled_case(tmp_path_factory, repo):
     tmp = tmp_path_factory.mktemp("tiled")
     rec = tmp / "small.toml"
-    rec.write_text(RECIPE.format(lib=repo / "library" / "paper.npz"))
+    rec.write_text(SMALL_TILED_RECIPE.format(lib=repo / "library" / "paper.npz"))
     recipe = load_design_recipe(rec)
     d, _ = run_design(recipe, tmp / "whole")
     return tmp, recipe, d

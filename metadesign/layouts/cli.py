@@ -68,13 +68,20 @@ def _cmd_write(a: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
+def _design_beside(a: argparse.Namespace, path: Path) -> Path:
+    """The design a tiled layout is verified against: --design, else the design.npz beside it."""
     from ..design.store import design_file
-    from .reader import verify_tiled
 
     design = design_file(a.design if a.design else path.parent)
     if not design.exists():
         raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
+    return design
+
+
+def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
+    from .reader import verify_tiled
+
+    design = _design_beside(a, path)
     rep = verify_tiled(path, design, a.sample_tiles, a.seed, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells,
                        progress=None if a.json else progress_bar("verify: design stripes", unit="row"))
     ok = rep["exact"] and rep["drc"]["passed"]
@@ -97,12 +104,9 @@ def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
 
 
 def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
-    from ..design.store import design_file
     from .stream import verify_stream
 
-    design = design_file(a.design if a.design else path.parent)
-    if not design.exists():
-        raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
+    design = _design_beside(a, path)
     rep = verify_stream(path, design, a.min_feature_nm, a.min_gap_nm, a.tile, a.workers, a.scheduler,
                         progress=None if a.json else progress_bar("verify: stripes of tiles", unit="stripe"))
     d = rep["drc"]

@@ -161,6 +161,20 @@ class _Reader:
     repetitions, point lists and the element records; a subclass gives ``byte``, ``uint``, ``string``,
     ``read`` and ``where``."""
 
+    def uint(self) -> int:
+        v = shift = 0
+        while True:
+            b = self.byte()
+            v |= (b & 0x7F) << shift
+            if b < 128:
+                return v
+            shift += 7
+            if shift > 63:
+                raise OasisError(f"an unsigned integer of more than 63 bits ({self.where()})")
+
+    def string(self) -> bytes:
+        return self.read(self.uint())
+
     def sint(self) -> int:
         v = self.uint()
         return -(v >> 1) if v & 1 else v >> 1
@@ -246,6 +260,19 @@ class _Reader:
             return np.stack([np.concatenate(([0], np.cumsum(dx))), np.concatenate(([0], np.cumsum(dy)))], 1)
         raise OasisError(f"point list of type {t} is not supported by the streaming verifier ({self.where()})")
 
+    def _xy(self, info: int, modal: _Modal, kind: str) -> None:
+        """The x (info bit 0x10) and y (0x08) of a geometry or text record into its modal variables."""
+        for bit, name in ((0x10, f"{kind}_x"), (0x08, f"{kind}_y")):
+            if info & bit:
+                v = self.sint()
+                setattr(modal, name, getattr(modal, name) + v if modal.xy_relative else v)
+
+    def _layer(self, info: int, modal: _Modal) -> None:
+        if info & 0x01:
+            modal.layer = self.uint()
+        if info & 0x02:
+            modal.datatype = self.uint()
+
     def element(self, rid: int, modal: _Modal) -> _Element | None:
         """The element record ``rid`` (its id byte read), or None for the modal-only records."""
         if rid == 15 or rid == 16:
@@ -268,10 +295,7 @@ class _Reader:
             return _Element("placement", modal.placement_cell, modal.placement_x, modal.placement_y, rep)
         if rid == 20:
             info = self.byte()
-            if info & 0x01:
-                modal.layer = self.uint()
-            if info & 0x02:
-                modal.datatype = self.uint()
+            self._layer(info, modal)
             if info & 0x40:
                 modal.geometry_w = self.uint()
             if info & 0x80:  # square: the height is the width
@@ -280,10 +304,7 @@ class _Reader:
                 modal.geometry_h = modal.geometry_w
             elif info & 0x20:
                 modal.geometry_h = self.uint()
-            for bit, name in ((0x10, "geometry_x"), (0x08, "geometry_y")):
-                if info & bit:
-                    v = self.sint()
-                    setattr(modal, name, getattr(modal, name) + v if modal.xy_relative else v)
+            self._xy(info, modal, "geometry")
             rep = self.repetition(modal) if info & 0x04 else None
             if None in (modal.layer, modal.datatype, modal.geometry_w, modal.geometry_h):
                 raise OasisError(f"a rectangle with an unset modal variable ({self.where()})")
@@ -291,16 +312,10 @@ class _Reader:
                             modal.geometry_h, modal.layer, modal.datatype)
         if rid == 21:
             info = self.byte()
-            if info & 0x01:
-                modal.layer = self.uint()
-            if info & 0x02:
-                modal.datatype = self.uint()
+            self._layer(info, modal)
             if info & 0x20:
                 modal.polygon = self.point_list()
-            for bit, name in ((0x10, "geometry_x"), (0x08, "geometry_y")):
-                if info & bit:
-                    v = self.sint()
-                    setattr(modal, name, getattr(modal, name) + v if modal.xy_relative else v)
+            self._xy(info, modal, "geometry")
             rep = self.repetition(modal) if info & 0x04 else None
             return _Element("polygon", None, modal.geometry_x, modal.geometry_y, rep, layer=modal.layer or 0,
                             datatype=modal.datatype or 0)
@@ -312,10 +327,7 @@ class _Reader:
                 modal.textlayer = self.uint()
             if info & 0x02:
                 modal.texttype = self.uint()
-            for bit, name in ((0x10, "text_x"), (0x08, "text_y")):
-                if info & bit:
-                    v = self.sint()
-                    setattr(modal, name, getattr(modal, name) + v if modal.xy_relative else v)
+            self._xy(info, modal, "text")
             rep = self.repetition(modal) if info & 0x04 else None
             return _Element("text", None, modal.text_x, modal.text_y, rep,
                             name=modal.text if isinstance(modal.text, bytes) else b"")
@@ -377,17 +389,6 @@ class _Block(_Reader):
         self.pos += 1
         return b
 
-    def uint(self) -> int:
-        v = shift = 0
-        while True:
-            b = self.byte()
-            v |= (b & 0x7F) << shift
-            if b < 128:
-                return v
-            shift += 7
-            if shift > 63:
-                raise OasisError(f"an unsigned integer of more than 63 bits ({self.where()})")
-
     def gdeltas(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         if count < 64:  # short lists: the scalar reader is cheaper than the vector set-up
             return super().gdeltas(count)
@@ -396,20 +397,13 @@ class _Block(_Reader):
         self.pos = end
         return dx, dy
 
-    def string(self) -> bytes:
-        n = self.uint()
-        if self.pos + n > len(self.data):
-            raise OasisError(f"a string runs past the end of its block ({self.where()})")
-        s = self.data[self.pos:self.pos + n]
-        self.pos += n
-        return s
-
     def read(self, n: int) -> bytes:
         if self.pos + n > len(self.data):
             raise OasisError(f"a record runs past the end of its block ({self.where()})")
         s = self.data[self.pos:self.pos + n]
         self.pos += n
         return s
+
 
 class _File(_Reader):
     """The file read forward in chunks, with the running CRC32 (and byte sum) of every byte consumed."""
@@ -450,20 +444,6 @@ class _File(_Reader):
         b = self.buf[self.i]
         self.i += 1
         return b
-
-    def uint(self) -> int:
-        v = shift = 0
-        while True:
-            b = self.byte()
-            v |= (b & 0x7F) << shift
-            if b < 128:
-                return v
-            shift += 7
-            if shift > 63:
-                raise OasisError(f"an unsigned integer of more than 63 bits (byte {self.tell()})")
-
-    def string(self) -> bytes:
-        return self.read(self.uint())
 
     def where(self) -> str:
         return f"byte {self.tell()}"
