@@ -397,6 +397,15 @@ class _Block(_Reader):
         self.pos = end
         return dx, dy
 
+    def elements(self, modal: _Modal):
+        """The block's element records, in order (PAD and the modal-only records skipped)."""
+        while self.pos < len(self.data):
+            r = self.byte()
+            if r:
+                el = self.element(r, modal)
+                if el is not None:
+                    yield el
+
     def read(self, n: int) -> bytes:
         if self.pos + n > len(self.data):
             raise OasisError(f"a record runs past the end of its block ({self.where()})")
@@ -539,14 +548,11 @@ def _tile_elements(f: "_File", offset: int, length: int, problem) -> list:
             continue
         if rid == 34:
             blk = f.cblock()
-            while blk.pos < len(blk.data):
-                r = blk.byte()
-                if r:
-                    el = blk.element(r, modal)
-                    if el is not None and el.kind == "placement":
-                        atoms.append(_placed(el))
-                    elif el is not None:
-                        problem(f"a tile cell holds a {el.kind} (byte {blk.base}): tiles hold placements only")
+            for el in blk.elements(modal):
+                if el.kind == "placement":
+                    atoms.append(_placed(el))
+                else:
+                    problem(f"a tile cell holds a {el.kind} (byte {blk.base}): tiles hold placements only")
             continue
         el = f.element(rid, modal)
         if el is not None and el.kind == "placement":
@@ -790,13 +796,8 @@ def _scan(path: Path, problem) -> dict:
                     f.element(rid, modal)
                 continue
             if rid == 34:
-                blk = f.cblock()
-                while blk.pos < len(blk.data):
-                    r = blk.byte()
-                    if r:
-                        el = blk.element(r, modal)
-                        if el is not None:
-                            take(el)
+                for el in f.cblock().elements(modal):
+                    take(el)
                 continue
             el = f.element(rid, modal)
             if el is not None:
