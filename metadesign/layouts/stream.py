@@ -516,6 +516,11 @@ class _Grid:
     tile: int
     empty: int | None
 
+    @property
+    def itype(self):
+        """Index maps in the verifier: atoms and -1 (no pillar) in 2 bytes a cell where they fit."""
+        return np.int16 if self.n_atoms < 2**15 else np.int32
+
 
 def _design_rows(rows: NpzRows, g: _Grid, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
     """The design's rows ``r0:r1`` as an index map (-1 = no pillar) and their per-atom counts."""
@@ -523,7 +528,7 @@ def _design_rows(rows: NpzRows, g: _Grid, r0: int, r1: int) -> tuple[np.ndarray,
     want = np.bincount(raw.ravel(), minlength=g.n_atoms + 1)[:g.n_atoms].astype(np.int64)
     if g.empty is not None and g.empty < g.n_atoms:
         want[g.empty] = 0
-    im = raw.astype(np.int32)
+    im = raw.astype(g.itype)
     if g.empty is not None:
         im[raw == g.empty] = -1
     return im, want
@@ -585,8 +590,8 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
     try:
         block, out["want"] = _design_rows(rows, g, r0, r0 + h)
         covered = np.zeros(g.n, bool)
-        top = np.full(g.n, -1, np.int32)
-        bottom = np.full(g.n, -1, np.int32)
+        top = np.full(g.n, -1, g.itype)
+        bottom = np.full(g.n, -1, g.itype)
         left = None
         for name, c, offset, length in sorted(tiles, key=lambda t: t[1]):
             c0 = c * g.tile
@@ -631,7 +636,7 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
 def _tile_map(name: str, placed: list, g: _Grid, r0: int, c0: int, h: int, w: int, out: dict, problem) -> np.ndarray:
     """The tile's pillars on its lattice cells (-1: none), counting what lies off the lattice, outside the
     tile, on an occupied cell or is not an atom."""
-    got = np.full((h, w), -1, np.int32)
+    got = np.full((h, w), -1, g.itype)
     if not placed:
         return got
     ids = np.array([a for a, *_ in placed], np.int64)
