@@ -223,3 +223,64 @@ deep_supervision = 0.5
     assert curve[-1]["npib"] == pytest.approx(res["npib"]["refine"], rel=1e-6)
     ex = json.loads(cli("export", model, "--onnx", tmp_path / "r.onnx", "--json").stdout)
     assert ex["max_abs_diff"] <= 1e-4
+
+
+def test_refine_init_continues_a_refiner_or_transfers_its_steps(tiny_dataset, tmp_path):
+    """``refine.init``: with the refiner's own U-Net every weight and buffer continues; with another U-Net
+    (a co-designed sensor's) only the step networks come over, the U-Net is ``refine.unet`` and the twin
+    the dataset's device; another architecture is one line."""
+    from conftest import tiny_model
+
+    from metadesign.reconstruction.dataset import load_device
+    from metadesign.reconstruction.train import _build_refiner, load_train_recipe
+    from metadesign.validation import ValidationError
+
+    (tmp_path / "u1").mkdir()
+    (tmp_path / "u2").mkdir()
+    u1 = tiny_model(tmp_path / "u1")
+    torch.manual_seed(7)
+    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=16)), tmp_path / "u2" / "m.safetensors", {})
+    u2 = tmp_path / "u2" / "m.safetensors"
+    cfg = RefineConfig(steps=2, width=4, features=4)
+    from metadesign.reconstruction.model import load_model
+
+    torch.manual_seed(3)
+    src = build_refiner(load_model(u1)[0], cfg, load_device(tiny_dataset))
+    with torch.no_grad():
+        for k, v in src.named_parameters():
+            if k.startswith("steps."):
+                v.add_(0.25)  # trained: not what a fresh refiner starts from
+        src.twin.W.mul_(2.0)  # a twin buffer that differs from the dataset device's
+    save_refiner(src, tmp_path / "r.safetensors", u1, {"noise_percent": 0})
+
+    def build(unet):
+        (tmp_path / "t.toml").write_text(f"""[data]
+dataset = "{tiny_dataset}"
+[train]
+epochs = 1
+batch = 4
+[refine]
+unet = "{unet}"
+init = "{tmp_path / 'r.safetensors'}"
+steps = 2
+width = 4
+features = 4
+""")
+        return _build_refiner(load_train_recipe(tmp_path / "t.toml"), tiny_dataset, 16, src.config.aperture_size,
+                              None, "cpu")
+
+    same, card = build(u1)
+    assert card["refiner_steps_only"] is False
+    for k, v in src.state_dict().items():
+        assert torch.equal(same.state_dict()[k], v), k
+    other, card = build(u2)
+    assert card["refiner_steps_only"] is True
+    st, u2w = other.state_dict(), load_model(u2)[0].state_dict()
+    for k, v in src.state_dict().items():
+        if k.startswith("steps."):
+            assert torch.equal(st[k], v), k
+    assert all(torch.equal(st["unet." + k], v) for k, v in u2w.items())
+    assert torch.allclose(st["twin.W"] * 2.0, src.state_dict()["twin.W"])  # the dataset's twin, not the file's
+    (tmp_path / "t.toml").write_text((tmp_path / "t.toml").read_text().replace("width = 4", "width = 8"))
+    with pytest.raises(ValidationError, match="another \\[refine\\] architecture"):
+        _build_refiner(load_train_recipe(tmp_path / "t.toml"), tiny_dataset, 16, src.config.aperture_size, None, "cpu")

@@ -509,13 +509,22 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     check_sizes(unet.config, tensor_size, aperture, f"refine.unet {path}")
     torch.manual_seed(recipe.seed)
     model = build_refiner(unet, recipe.refine, load_device(dataset)).to(device)
-    if recipe.refine_init is not None:  # continue a trained refiner (same architecture and U-Net)
+    transfer = False
+    if recipe.refine_init is not None:  # start from a trained refiner of the same architecture
         src, rcard = load_refiner(recipe.refine_init, str(device))
-        if rcard["unet"]["weights_sha256"] != card.get("weights_sha256") or src.cfg != recipe.refine:
-            raise ValidationError(f"refine.init {recipe.refine_init}: another U-Net or another [refine] architecture")
-        model.load_state_dict(src.state_dict())
+        if src.cfg != recipe.refine:
+            raise ValidationError(f"refine.init {recipe.refine_init}: another [refine] architecture")
+        # its step networks always; its U-Net and twin only when they are this recipe's (the same U-Net on
+        # the same device: a continued run); another U-Net or device keeps refine.unet and the dataset's twin
+        transfer = rcard["unet"]["weights_sha256"] != card.get("weights_sha256")
+        state = src.state_dict()
+        if transfer:
+            state = {k: v for k, v in model.state_dict().items()} | {
+                k: v for k, v in state.items() if k.startswith("steps.")}
+        model.load_state_dict(state)
     return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
-                   **({"refiner": str(recipe.refine_init)} if recipe.refine_init is not None else {})}
+                   **({"refiner": str(recipe.refine_init), "refiner_steps_only": transfer}
+                      if recipe.refine_init is not None else {})}
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
