@@ -734,8 +734,10 @@ def _scan(path: Path, problem) -> dict:
         version = f.string()
         if version != b"1.0":
             raise OasisError(f"OASIS version {version!r}, expected '1.0'")
-        if f.uint() != 0:
-            raise OasisError("a database unit that is not an integer per micrometre")
+        unit_type = f.uint()
+        if unit_type != 0:
+            raise OasisError(f"a database unit of real type {unit_type}, not an integer per micrometre as this "
+                             "project writes it: a file of another writer (use layout verify without --stream)")
         res["unit"] = f.uint()
         if f.uint() != 0:
             raise OasisError("name tables at the end of the file are not supported (offset flag 1)")
