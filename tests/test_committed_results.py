@@ -21,6 +21,8 @@ STUDIES = {
     "tolerance-demo-out/tolerance.json": "tolerance-demo.toml",
     "tolerance-coupling-out/tolerance.json": "tolerance-coupling.toml",
     "transfer-demo-out/transfer.json": "transfer-demo.toml",
+    "tolerance-codesign-out/tolerance.json": "tolerance-codesign.toml",
+    "tolerance-codesign-paper-out/tolerance.json": "tolerance-codesign-paper.toml",
 }
 COMPARES = ["compare-demo/compare.json", "compare-demo-refine/compare.json"]
 
