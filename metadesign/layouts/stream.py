@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import NpzRows, from_json_array
+from ..parallel import run_tasks
 from ..validation import InputError
 from .rules import DESIGN_RULES
 from .writer import TOP_CELL, layout_geometry, snap_widths
@@ -829,8 +830,6 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
     ``tile``: the tiling's cells per tile side (default: the side-car's, checked against the file's own
     record).  Returns the report: ``exact`` (every pillar as designed, the file well-formed, its signature
     right), ``drc`` (``passed``), the counts and timings."""
-    from ..parallel import run_tasks
-
     path, design_path = Path(path), Path(design_path)
     tile_size = _tile_size(path, tile)
     if tile_size is None:

@@ -48,6 +48,7 @@ from ..turbulence.scenario import load_scenario
 from ..turbulence.system import build_system
 from ..turbulence.validate import plot_validation, validate
 from ..validation import ValidationError
+from .beacons import LABELS, fresh_beacons
 
 __all__ = ["run_pipeline", "load_pipeline_recipe"]
 
@@ -610,8 +611,6 @@ class _Pipeline:
     def beacons(self) -> None:
         """Fresh beacons through a second device (the ``[beacons]`` section) estimated by a given model:
         no dataset (:func:`metadesign.studies.beacons.fresh_beacons`)."""
-        from .beacons import LABELS, fresh_beacons
-
         b, out = self.rec["beacons"], self.out
         fig = out / "fig-3b-beacons.png"
         opts = {k: v for k, v in b.items() if k not in ("design", "sensor", "model")}
