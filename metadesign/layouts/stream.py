@@ -210,7 +210,7 @@ class _Reader:
         return d[:, 0], d[:, 1]
 
     def repetition(self, modal: _Modal) -> tuple:
-        """A repetition as ``("offsets", dx, dy)`` (every copy's offset from the first, int64 arrays)."""
+        """A repetition as ``(dx, dy)``: every copy's offset from the first (int64 arrays)."""
         t = self.uint()
         if t == 0:
             if modal.repetition is None:
@@ -222,14 +222,14 @@ class _Reader:
             sx = self.uint() if t in (1, 2) else 0
             sy = self.uint() if t in (1, 3) else 0
             jy, jx = np.divmod(np.arange(nx * ny, dtype=np.int64), nx)
-            rep = ("offsets", jx * sx, jy * sy)
+            rep = (jx * sx, jy * sy)
         elif t in (8, 9):
             n = self.uint() + 2
             m = self.uint() + 2 if t == 8 else 1
             ndx, ndy = self.gdelta()
             mdx, mdy = self.gdelta() if t == 8 else (0, 0)
             jm, jn = np.divmod(np.arange(n * m, dtype=np.int64), n)
-            rep = ("offsets", jn * ndx + jm * mdx, jn * ndy + jm * mdy)
+            rep = (jn * ndx + jm * mdx, jn * ndy + jm * mdy)
         elif t in (10, 11):
             n = self.uint() + 2
             grid = self.uint() if t == 11 else 1
@@ -238,7 +238,7 @@ class _Reader:
             oy = np.zeros(n, np.int64)
             np.cumsum(dx * grid, out=ox[1:])
             np.cumsum(dy * grid, out=oy[1:])
-            rep = ("offsets", ox, oy)
+            rep = (ox, oy)
         else:
             raise OasisError(f"repetition type {t} is not supported by the streaming verifier ({self.where()})")
         modal.repetition = rep
@@ -415,13 +415,19 @@ class _Block(_Reader):
         return s
 
 
-class _File(_Reader):
-    """The file read forward in chunks, with the running CRC32 (and byte sum) of every byte consumed."""
+def _byte_sum(b) -> int:
+    return int(np.frombuffer(b, np.uint8).sum(dtype=np.uint64))
 
-    def __init__(self, path: Path):
+
+class _File(_Reader):
+    """The file read forward in chunks; with ``sign``, the running CRC32 and byte sum of every byte
+    consumed (the scan's; a stripe worker reads its tiles' bytes and nothing else)."""
+
+    def __init__(self, path: Path, sign: bool = True):
         self.fh = open(path, "rb")
         self.size = path.stat().st_size
         self.buf, self.i, self.off = b"", 0, 0  # off: file offset of buf[0]
+        self.sign, self.chunk = sign, CHUNK
         self.crc = 0
         self.sum = 0
 
@@ -434,11 +440,12 @@ class _File(_Reader):
     def _fill(self, n: int) -> None:
         if len(self.buf) - self.i >= n:
             return
-        done = self.buf[:self.i]
-        self.crc = zlib.crc32(done, self.crc)
-        self.sum += sum(done) if len(done) < 4096 else int(np.frombuffer(done, np.uint8).sum(dtype=np.uint64))
+        if self.sign:
+            done = memoryview(self.buf)[:self.i]
+            self.crc = zlib.crc32(done, self.crc)
+            self.sum += _byte_sum(done)
         self.off += self.i
-        self.buf = self.buf[self.i:] + self.fh.read(max(CHUNK, n))
+        self.buf = self.buf[self.i:] + self.fh.read(max(self.chunk, n))
         self.i = 0
         if len(self.buf) < n:
             raise OasisError(f"the file ends at byte {self.off + len(self.buf)} inside a record (truncated)")
@@ -458,10 +465,13 @@ class _File(_Reader):
     def where(self) -> str:
         return f"byte {self.tell()}"
 
-    def seek(self, offset: int) -> None:
-        """Read on from ``offset`` (a worker's tile; the running signature no longer applies)."""
+    def seek(self, offset: int, span: int = CHUNK) -> None:
+        """Read on from ``offset``, ``span`` bytes at a time (a worker's tile: its own bytes, not a chunk of
+        the file per tile); only for a reader without a signature."""
+        if self.sign:
+            raise RuntimeError("a signed read goes through the file once, in order")
         self.fh.seek(offset)
-        self.buf, self.i, self.off = b"", 0, offset
+        self.buf, self.i, self.off, self.chunk = b"", 0, offset, max(1, span)
 
     def cblock(self, inflate: bool = True) -> "_Block | None":
         """A CBLOCK's records (its id byte read): inflated into a block, or (``inflate`` False) only read."""
@@ -482,9 +492,8 @@ class _File(_Reader):
 
     def signature_base(self) -> tuple[int, int]:
         """CRC32 and byte sum of every byte consumed so far."""
-        done = self.buf[:self.i]
-        return zlib.crc32(done, self.crc), (self.sum + int(np.frombuffer(done, np.uint8).sum(dtype=np.uint64))) \
-            & 0xFFFFFFFF
+        done = memoryview(self.buf)[:self.i]
+        return zlib.crc32(done, self.crc), (self.sum + _byte_sum(done)) & 0xFFFFFFFF
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -544,7 +553,7 @@ def _pairs(a: np.ndarray, b: np.ndarray, k: int) -> np.ndarray:
 def _tile_elements(f: "_File", offset: int, length: int, problem) -> list:
     """The placements of one tile cell (its records at ``offset``, ``length`` bytes), as
     ``(atom, x, y, dx offsets, dy offsets)``."""
-    f.seek(offset)
+    f.seek(offset, length)
     modal = _Modal()  # modal variables are reset at each CELL record
     atoms = []
     end = offset + length
@@ -571,7 +580,7 @@ def _tile_elements(f: "_File", offset: int, length: int, problem) -> list:
 def _placed(el: _Element) -> tuple:
     if el.rep is None:
         return el.ref, el.x, el.y, np.zeros(1, np.int64), np.zeros(1, np.int64)
-    return el.ref, el.x, el.y, el.rep[1], el.rep[2]
+    return el.ref, el.x, el.y, el.rep[0], el.rep[1]
 
 
 def _stripe_job(g: _Grid, job: tuple) -> dict:
@@ -587,7 +596,7 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
     r0 = r * g.tile
     h = min(g.tile, g.n - r0)
     rows = NpzRows(g.design, "index_map")
-    f = _File(Path(g.path))
+    f = _File(Path(g.path), sign=False)
     try:
         block, out["want"] = _design_rows(rows, g, r0, r0 + h)
         covered = np.zeros(g.n, bool)
@@ -711,7 +720,7 @@ def _scan(path: Path, problem) -> dict:
         nonlocal prov
         name = names.get(cell, "")
         if el.kind == "placement":
-            rep = len(el.rep[1]) if el.rep else 1
+            rep = len(el.rep[0]) if el.rep else 1
             if name == TOP_CELL:
                 top.append((el.ref, el.x, el.y, rep))
             else:

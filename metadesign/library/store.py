@@ -11,6 +11,7 @@ import numpy as np
 from ..config import InputError
 from ..tasks import file_key
 from ..io import atomic_path, json_array, read_product, write_npz
+from .rcwa import Stack
 
 __all__ = ["UnitCellLibrary", "interpolate_t", "load_library", "save_library", "export_csv", "FORMAT"]
 
@@ -61,6 +62,13 @@ class UnitCellLibrary:
     @property
     def period(self) -> float:
         return float(self.meta["stack"]["period_m"])
+
+    @property
+    def stack(self) -> Stack:
+        """The layer stack the table was solved for (wavelength, period, height, indices)."""
+        st = self.meta["stack"]
+        return Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
+                     st["n_superstrate"])
 
     def summary(self, threshold: float = 0.7) -> dict:
         keep = (self.T0[..., 0] >= threshold) & (self.T0[..., 1] >= threshold)

@@ -518,10 +518,8 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
         # the same device: a continued run); another U-Net or device keeps refine.unet and the dataset's twin
         transfer = rcard["unet"]["weights_sha256"] != card.get("weights_sha256")
         state = src.state_dict()
-        if transfer:
-            state = {k: v for k, v in model.state_dict().items()} | {
-                k: v for k, v in state.items() if k.startswith("steps.")}
-        model.load_state_dict(state)
+        model.load_state_dict({k: v for k, v in state.items() if k.startswith("steps.")} if transfer else state,
+                              strict=not transfer)
     return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
                    **({"refiner": str(recipe.refine_init), "refiner_steps_only": transfer}
                       if recipe.refine_init is not None else {})}

@@ -17,7 +17,7 @@ from ..design.recipe import load_design_recipe
 from ..design.store import run_design
 from ..plotting import pyplot, save_figure
 from ..reconstruction.data import apply_noise
-from ..reconstruction.dataset import normalise_psf, received_crop, sample_rytov
+from ..reconstruction.dataset import measured_rytov, normalise_psf, received_crop, sample_rytov
 from ..reconstruction.losses import PiB
 from ..reconstruction.metrics import captured_fraction, gain, npib_rows
 from ..reconstruction.refine import load_network
@@ -49,6 +49,7 @@ def fresh_beacons(model_path: Path, design: Path, sensor: Path, turbulence: Path
                          tensor_size=unet.config.input_size).chain()
     c0, a = received_crop(chain.turbulence.sc)
     pib = PiB(chain.turbulence.sc, c0, a)
+    ap = chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]
     methods = ("unet", "refine") if refiner is not None else ("unet",)
     levels = tuple(float(v) for v in noise_percent)
     rows: dict = {k: [] for k in ("rytov", "none", "phase_conjugate", "complex_conjugate")}
@@ -62,7 +63,7 @@ def fresh_beacons(model_path: Path, design: Path, sensor: Path, turbulence: Path
             scr = torch.from_numpy(tb.screens(seed))[None]
             rec = torch.from_numpy(s.received[c0:c0 + a, c0:c0 + a])[None]
             psf, _ = normalise_psf(s.tensor)
-            rows["rytov"].append(float(np.var(np.log(np.maximum(np.abs(rec[0][pib.ap.bool()].numpy()), 1e-30)))))
+            rows["rytov"].append(measured_rytov(s.received[c0:c0 + a, c0:c0 + a], ap))
             ref = npib_rows(pib, torch.zeros(rec.shape), scr, rec, complex_conjugate=True)
             for k in ("none", "phase_conjugate", "complex_conjugate"):
                 rows[k].append(float(ref[k]))

@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..library.rcwa import SolverSettings, Stack, solve_cell
+from ..library.rcwa import SolverSettings, solve_cell
 from ..library.supercell import solve_supercell
 from ..library.supercells import matched_unit_harmonics
 from ..parallel import WorkerPool
@@ -75,9 +75,7 @@ def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 3
               progress: Callable[[int, int], None] | None = None) -> dict:
     """Measured LPA error on ``n`` random supercells; ``check`` of them are re-solved at 1.5x the harmonics
     (the certification of the supercell truncation)."""
-    st = lib.meta["stack"]
-    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
-                  st["n_superstrate"])
+    stack = lib.stack
     ns, nu = matched_unit_harmonics(n_super, stack)
     cells = sample_supercells(index_map, n, seed, mask)
     widths = np.array([[[atom_widths_nm[index_map[2 * I + r, 2 * J + c]] * 1e-9 for c in range(2)] for r in range(2)]

@@ -31,7 +31,7 @@ from ..layouts.preview import preview_layout
 from ..layouts.rules import DESIGN_RULES
 from ..library.build import build_library
 from ..library.plot import plot_library
-from ..library.rcwa import SolverSettings, Stack, solve_cell
+from ..library.rcwa import SolverSettings, solve_cell
 from ..library.recipe import load_recipe
 from ..library.store import load_library
 from ..reconstruction.dataset import TENSOR_SIZE, build_dataset, dataset_recipe_from_dict, received_crop
@@ -654,9 +654,7 @@ def _recheck(lib, cells) -> dict:
     table's own stack and truncation: the largest absolute difference (nothing when no cell is given)."""
     if not cells:
         return {}
-    st = lib.meta["stack"]
-    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
-                  st["n_superstrate"])
+    stack = lib.stack
     settings = SolverSettings(lib.meta["solver"]["n_harmonics_requested"])
     _check_cells(lib, cells)
     err = max(float(np.abs(solve_cell(lib.wx[i], lib.wy[j], stack, settings).jones - lib.jones[i, j]).max())

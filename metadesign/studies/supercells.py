@@ -30,7 +30,6 @@ from ..design.store import Design, design_file, load_design, run_design
 from ..library.coupling import CouplingConfig, lpa_t, relative_error
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
-from ..library.rcwa import Stack
 from ..library.store import interpolate_t, load_library
 from ..library.supercells import (
     SupercellTable,
@@ -168,9 +167,7 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
     the solved chunks stay in ``<output>.partial/`` until then)."""
     n = int(supercells or recipe.supercells)
     lib = load_library(recipe.library)
-    st = lib.meta["stack"]
-    stack = Stack(st["wavelength_m"], st["period_m"], st["height_m"], st["n_pillar"], st["n_substrate"],
-                  st["n_superstrate"])
+    stack = lib.stack
     ns, nu = matched_unit_harmonics(recipe.n_harmonics, stack)
     lib_nG = lib.meta.get("solver", {}).get("n_harmonics")
     if lib_nG is not None and nu - 1 != lib_nG:
