@@ -28,8 +28,9 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 
 from .config import InputError
+from .deflate import DeflatedArray, write_zip
 
-__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "NpzRows", "iter_npz_rows", "read_npz",
+__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "DeflatedArray", "NpzRows", "iter_npz_rows", "read_npz",
            "read_product", "json_array", "from_json_array", "output_lock",
            "lock_path", "claim", "enforce_claims", "claimed"]
 
@@ -127,8 +128,15 @@ class StreamedArray:
 
 def write_npz(target: str | Path, arrays: Mapping[str, object], compress: bool = True) -> None:
     """Atomically write ``arrays`` as a byte-reproducible ``.npz``.  A value may be a
-    :class:`StreamedArray` (written block by block) or a callable returning the array (called when its
-    turn comes, in name order: metadata made while an earlier array streams)."""
+    :class:`StreamedArray` (written block by block), a :class:`DeflatedArray` (pieces compressed by workers,
+    concatenated: :mod:`metadesign.deflate`) or a callable returning the array (called when its turn comes,
+    in name order: metadata made while an earlier array streams)."""
+    if any(isinstance(a, DeflatedArray) for a in arrays.values()):
+        if not compress:
+            raise ValueError("an array deflated in pieces needs compress=True")
+        with atomic_path(target) as tmp, open(tmp, "wb") as fh:
+            write_zip(fh, ((f"{name}.npy", _npz_entry(name, arrays[name])) for name in sorted(arrays)))
+        return
     comp = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with atomic_path(target) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=comp) as zf:
@@ -150,16 +158,48 @@ def write_npz(target: str | Path, arrays: Mapping[str, object], compress: bool =
                 zf.writestr(info, buf.getvalue())
 
 
-def _write_streamed(zf: zipfile.ZipFile, info: zipfile.ZipInfo, sa: StreamedArray) -> None:
-    dt = np.dtype(sa.dtype)
+def _npy_header(shape: tuple, dt: np.dtype) -> bytes:
     head = io.BytesIO()
     np.lib.format.write_array_header_1_0(head, {"descr": np.lib.format.dtype_to_descr(dt),
-                                                "fortran_order": False, "shape": tuple(sa.shape)})
+                                                "fortran_order": False, "shape": tuple(shape)})
+    return head.getvalue()
+
+
+def _npz_entry(name: str, arr):
+    """What :func:`metadesign.deflate.write_zip` takes for one array: its ``.npy`` bytes, or for a
+    :class:`DeflatedArray` its header and pieces (their total size checked as they pass)."""
+    if isinstance(arr, DeflatedArray):
+        dt = np.dtype(arr.dtype)
+        total = int(np.prod(arr.shape, dtype=np.int64)) * dt.itemsize
+
+        def pieces():
+            n = 0
+            for p in arr.pieces:
+                n += p.size
+                yield p
+            if n != total:
+                raise ValueError(f"{name}.npy: pieces hold {n} bytes of {total}")
+
+        return _npy_header(arr.shape, dt), pieces()
+    if isinstance(arr, StreamedArray):
+        raise ValueError(f"{name}: a streamed array beside one deflated in pieces")
+    arr = np.asarray(arr() if callable(arr) else arr)
+    if arr.dtype == object:
+        raise TypeError(f"array {name!r} has dtype object (would need pickle)")
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.ascontiguousarray(arr) if not arr.flags.c_contiguous else arr,
+                              allow_pickle=False)
+    return buf.getvalue()
+
+
+def _write_streamed(zf: zipfile.ZipFile, info: zipfile.ZipInfo, sa: StreamedArray) -> None:
+    dt = np.dtype(sa.dtype)
+    head = _npy_header(sa.shape, dt)
     total = int(np.prod(sa.shape, dtype=np.int64)) * dt.itemsize
-    info.file_size = len(head.getvalue()) + total  # what writestr sets: the same zip64 choice, same bytes
+    info.file_size = len(head) + total  # what writestr sets: the same zip64 choice, same bytes
     written = 0
     with zf.open(info, "w") as dest:
-        dest.write(head.getvalue())
+        dest.write(head)
         for blk in sa.chunks:
             b = np.ascontiguousarray(blk, dtype=dt)
             if b.shape[1:] != tuple(sa.shape[1:]):

@@ -3,6 +3,7 @@ file against the whole-array one (same bytes), tiled layouts read back exactly, 
 independence, and the sampled verification catching a wrong tile."""
 
 import json
+import zipfile
 import zlib
 
 import gdstk
@@ -12,7 +13,7 @@ from conftest import SMALL_TILED_RECIPE, leb128, run_cli
 
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import load_design, run_design
-from metadesign.io import StreamedArray, iter_npz_rows, write_npz
+from metadesign.io import StreamedArray, iter_npz_rows, read_npz, write_npz
 from metadesign.layouts import oasis as O
 from metadesign.layouts import read_layout, read_layout_klayout, verify_against_design
 from metadesign.layouts.reader import verify_tiled
@@ -112,7 +113,12 @@ def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, tiled64,
     else:
         out = tmp / f"{hierarchy}-{workers}"
         rep = build_tiled(recipe, out, tile=64, hierarchy=hierarchy, workers=workers)
-    assert (out / "design.npz").read_bytes() == (tmp / "whole" / "design.npz").read_bytes()
+    tiled, whole = read_npz(out / "design.npz"), read_npz(tmp / "whole" / "design.npz")
+    assert sorted(tiled) == sorted(whole)  # the same arrays (the index map deflated in pieces by the workers)
+    for k in whole:
+        np.testing.assert_array_equal(tiled[k], whole[k], err_msg=k)
+    with zipfile.ZipFile(out / "design.npz") as zf:
+        assert zf.testzip() is None  # every entry's CRC (the index map's combined from the pieces')
     assert rep["pillars"] == int(np.count_nonzero(d.index_map != d.empty)) == rep["metrics"]["n_cells_in_aperture"]
     n = d.spec.n_cells
     assert rep["tiles"] == (-(-n // 64)) ** 2
@@ -203,6 +209,25 @@ def test_tiled_device_pupil_equals_the_whole_layouts(tiled_case, tiled64):
     np.testing.assert_array_equal(whole.layout.index_map, tiled.layout.index_map[0:d.spec.n_cells])
 
 
+def test_coarse_pupil_row_tiles_do_not_change_the_pupil(tiled_case, tiled64, monkeypatch):
+    """The memory bound of a large aperture (one block row per tile) sums the same blocks."""
+    import metadesign.sensing.forward as F
+    from metadesign.sensing.model import AsFabricated
+
+    fab = AsFabricated.from_files(tiled64[0] / "layout.oas")
+    ref = fab.pupil(0.05, 32)
+    block = fab.pupil_block(32)
+    npad = -(-fab.n_cells // block) * block
+    monkeypatch.setattr(F, "TILE_BYTES", block * npad * 16)  # one block row per tile
+    tiles = []
+    real = fab.layout.index_map.__class__.__getitem__
+    monkeypatch.setattr(fab.layout.index_map.__class__, "__getitem__",
+                        lambda self, k: tiles.append(k.stop - k.start) or real(self, k))
+    one = fab.pupil(0.05, 32)
+    assert max(tiles) <= block and len(tiles) > 16
+    np.testing.assert_allclose(one.G, ref.G, rtol=0, atol=1e-6 * np.abs(ref.G).max())
+
+
 def test_a_failed_tiled_build_leaves_the_previous_files_and_resumes(tiled_case, monkeypatch):
     import metadesign.layouts.tiled as T
 
@@ -230,3 +255,35 @@ def test_a_failed_tiled_build_leaves_the_previous_files_and_resumes(tiled_case, 
     assert rep["stripes_reused"] == 2
     assert {f: (out / f).read_bytes() for f in before} == before  # the same bytes as the uninterrupted run
     assert not any(p.name.startswith(".tiled-partial") for p in out.iterdir())
+
+
+def test_pieces_deflated_apart_join_into_one_zip_entry(tmp_path):
+    """Workers' pieces (sync-flushed raw deflate) concatenated, their CRCs combined: a zip that zipfile,
+    numpy and Info-ZIP's reader (when installed) check and read, zip64 records included."""
+    import shutil
+    import subprocess
+
+    from metadesign.deflate import DeflatedArray, crc32_combine, deflate_piece
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):  # the combination against zlib on the concatenation
+        a, b = rng.bytes(int(rng.integers(0, 5000))), rng.bytes(int(rng.integers(0, 5000)))
+        assert crc32_combine(zlib.crc32(a), zlib.crc32(b), len(b)) == zlib.crc32(a + b)
+    arr = np.repeat(rng.integers(0, 300, (97, 1)), 41, axis=1).astype(np.uint16)
+    cuts = [0, 1, 30, 31, 64, 97]
+    pieces = [deflate_piece(arr[a:b].tobytes(), lvl) for (a, b), lvl in zip(zip(cuts[:-1], cuts[1:]), (1, 6, 9, 1, 3))]
+    path = tmp_path / "x.npz"
+    write_npz(path, {"index_map": DeflatedArray(arr.shape, arr.dtype, iter(pieces)), "small": np.arange(7.0),
+                     "meta": lambda: np.array("{}")})
+    with zipfile.ZipFile(path) as zf:
+        assert zf.testzip() is None
+        assert [i.filename for i in zf.infolist()] == ["index_map.npy", "meta.npy", "small.npy"]
+    got = read_npz(path)
+    np.testing.assert_array_equal(got["index_map"], arr)
+    np.testing.assert_array_equal(got["small"], np.arange(7.0))
+    if shutil.which("unzip"):
+        assert subprocess.run(["unzip", "-tq", str(path)], capture_output=True).returncode == 0
+    short = [deflate_piece(arr[:50].tobytes(), 1)]  # fewer bytes than the shape: refused, nothing written
+    with pytest.raises(ValueError, match="pieces hold"):
+        write_npz(tmp_path / "y.npz", {"index_map": DeflatedArray(arr.shape, arr.dtype, iter(short))})
+    assert not (tmp_path / "y.npz").exists()

@@ -64,14 +64,20 @@ def block_size_for(n_cells: int, pupil_n: int, m: int) -> int:
     return int(np.ceil(b / m) * m)
 
 
+#: transmission bytes per row tile of :func:`coarse_pupil` (the default tile: 16 block rows up to this)
+TILE_BYTES = 1 << 28
+
+
 def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: int, period: float,
                  wavelength: float, z: float, block: int, m: int = 2, tn_scale: float = 1.0,
-                 tile_blocks: int = 16, progress: Callable[[int, int], None] | None = None) -> CoarsePupil:
+                 tile_blocks: int | None = None, progress: Callable[[int, int], None] | None = None) -> CoarsePupil:
     """Block-average ``tn * exp(i k |x|^2 / 2z)`` per polarisation and channel.
 
     ``transmission_rows(r0, r1)`` returns the pillar transmission of rows
     ``r0:r1`` as ``(r1 - r0, n_cells, 2)`` complex (index ``[iy, ix, pol]``)
-    and the number of clamped pillars.
+    and the number of clamped pillars.  Rows are asked for ``tile_blocks`` block rows at a time (default:
+    at most 16, and at most :data:`TILE_BYTES` of transmission: bounded memory at any aperture, 10 cm
+    included; the sums are per block, so the tiling does not change the result).
     """
     if block % m:
         raise ValueError(f"block {block} must be a multiple of the supercell {m}")
@@ -82,6 +88,8 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
     chirp = cexp(k0 * x**2 / (2 * z)).astype(np.complex64)
     chirp[n_cells:] = 0  # outside the aperture: no light
     G = np.zeros((2, m * m, nb, nb), np.complex64)
+    if tile_blocks is None:
+        tile_blocks = int(max(1, min(16, TILE_BYTES // (block * npad * 2 * 8))))
     s = block // m
     clamped = 0
     for B0 in range(0, nb, tile_blocks):
