@@ -236,6 +236,13 @@ def test_psf_and_fab_study_cli(demo, repo):
     bad = run_cli("psf", layout, "--sensor", repo / "sensing" / "demo.toml", "--wavefront", out / "wf.npz",
                   "-o", out / "y")
     assert bad.returncode == 2 and "coarse pupil grid" in bad.stderr and not (out / "y").exists()
+    p = run_cli("psf", layout, "--sensor", repo / "sensing" / "demo.toml", "--beside", out / "psf" / "psf.npz",
+                "-o", out / "beside")  # another device's frames under these (here: the same device)
+    assert p.returncode == 0, p.stderr
+    assert (out / "beside" / "psf-fig-2c.png").stat().st_size > (out / "psf" / "psf-fig-2c.png").stat().st_size
+    bad = run_cli("psf", layout, "--sensor", repo / "sensing" / "paper.toml", "--beside", out / "psf" / "psf.npz",
+                  "-o", out / "z")  # the paper's camera is not the demo's
+    assert bad.returncode == 2 and "same pixels" in bad.stderr and not (out / "z").exists()
 
 
 def test_paper_scale_channels_focus_at_table_s1(repo, tmp_path):

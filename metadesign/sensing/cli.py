@@ -61,8 +61,9 @@ def _cmd_psf(a: argparse.Namespace) -> int:
                              f"got {a.full_resolution}")
         if a.wavefront:
             raise InputError("--full-resolution checks the flat-wavefront PSFs; omit --wavefront")
+    beside = _beside(a.beside, sr) if a.beside else None
     out = out_dir(a.output if a.output else Path(a.layout).with_name("psf"))
-    with product(out, "psf", _inputs(a, "layout", "sensor", "library", "coupling_model", "wavefront")):
+    with product(out, "psf", _inputs(a, "layout", "sensor", "library", "coupling_model", "wavefront", "beside")):
         field = _read_wavefront(a.wavefront) if a.wavefront else None
         fab = _device(a, sr)
         pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
@@ -75,8 +76,9 @@ def _cmd_psf(a: argparse.Namespace) -> int:
             full_check = full_resolution_check(fab, sr, clean, a.full_resolution, pert,
                                                progress_bar("full resolution", unit="row"))
         save_psf(out / "psf.npz", res, fab, sr, {"wavefront": str(a.wavefront) if a.wavefront else None})
+        name = f"{Path(a.layout).name} ({fab.n_cells * fab.period * 1e3:.3g} mm)"
         fig = plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
-                          f"{Path(a.layout).name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)")
+                          f"{name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)", beside)
     cp = res.pupil
     summary = {"output": str(out), "frames_shape": list(res.frames.shape), "tensor_shape": list(res.tensor.shape),
                "pupil_grid": list(cp.G.shape[-2:]), "block_cells": cp.block, "clamped_pillars": cp.n_clamped,
@@ -161,6 +163,23 @@ def _cmd_phasemap(a: argparse.Namespace) -> int:
     return 0
 
 
+def _beside(path: str, sr) -> tuple:
+    """(frames, channels, label) of another device's PSF product on the same camera (``--beside``)."""
+    from .model import channels_from_provenance
+    from .render import load_psf
+
+    z, meta = load_psf(path)
+    mine, theirs = sr.sensor.to_dict(), meta.get("sensor") or {}
+    keys = ("width_px", "height_px", "pixel_um", "magnification")
+    if any(theirs.get(k) != mine.get(k) for k in keys):
+        raise InputError(f"--beside {path}: its camera ({', '.join(f'{k} {theirs.get(k)}' for k in keys)}) is not "
+                         "this sensor's; frames side by side need the same pixels")
+    chans, _ = channels_from_provenance({"channels": meta.get("channels") or []})
+    ap = meta.get("aperture_m")
+    design = (meta.get("layout") or {}).get("design") or Path(path).parent.name
+    return z["frames"], chans, f"{design}" + (f" ({ap * 1e3:.3g} mm)" if ap else "")
+
+
 def _forward_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
     p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
@@ -193,6 +212,8 @@ def register(sub) -> None:
         "the order x-pol QI..QIV, y-pol QI..QIV, and provenance) and OUT/psf-fig-2c.png.")
     _forward_args(psf)
     psf.add_argument("--wavefront", help=".npz with a complex 'field' on the pupil grid (default: flat)")
+    psf.add_argument("--beside", metavar="PSF_NPZ", help="another device's psf.npz on the same camera (e.g. the "
+                     "5 mm paper device's): its frames drawn under these in psf-fig-2c.png")
     psf.add_argument("--bias-nm", type=BIAS, nargs="+", default=[0.0], help="width bias in [-200, 200] nm: one "
                      "value or x y")
     psf.add_argument("--jitter-nm", type=JITTER, default=0.0, help="random width jitter sigma in [0, 100] nm")

@@ -12,13 +12,26 @@ from .sensor import SensorSpec, quadrant_slices
 __all__ = ["plot_frames", "plot_fab_study"]
 
 
-def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channels=None, title: str = "") -> Path:
+def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channels=None, title: str = "",
+                beside: tuple | None = None) -> Path:
     """Two frames (x-pol, y-pol) with quadrant boundaries; row 0 at the top.  Each quadrant is scaled to
     its own peak (the 8 spots have different defocus and so peaks spanning an order of magnitude: on one
     linear scale only the sharpest show), and its peak relative to the brightest spot of the frame is
-    written in it.  Axes in micrometres on the camera."""
+    written in it.  Axes in micrometres on the camera.  ``beside = (frames, channels, label)``: another
+    device's frames on the same sensor, drawn as a second row (``title`` then labels the first)."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), constrained_layout=True)
+    rows = [(frames, channels, title)] + ([beside] if beside is not None else [])
+    fig, axes = plt.subplots(len(rows), 2, figsize=(13, 5.4 * len(rows)), constrained_layout=True, squeeze=False)
+    for (fr, ch, label), ax_row in zip(rows, axes):
+        _frame_pair(fig, ax_row, fr, sensor, ch, label if beside is not None else "")
+    pitch_um = sensor.pixel_pitch * 1e6
+    head = title + ": " if title and beside is None else ""
+    fig.suptitle(head + f"{sensor.width_px} x {sensor.height_px} pixels of {pitch_um:g} um; each quadrant on "
+                 "its own scale")
+    return save_figure(fig, out)
+
+
+def _frame_pair(fig, axes, frames, sensor: SensorSpec, channels, label: str) -> None:
     pitch_um = sensor.pixel_pitch * 1e6
     extent = (-0.5 * pitch_um, (sensor.width_px - 0.5) * pitch_um, (sensor.height_px - 0.5) * pitch_um, -0.5 * pitch_um)
     for p, ax in enumerate(axes):
@@ -37,18 +50,15 @@ def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channel
         for k in range(1, 5):
             qx = 0.25 if k in (1, 3) else 0.75
             qy = 0.04 if k in (1, 2) else 0.54
-            label = ["QI", "QII", "QIII", "QIV"][k - 1]
+            text = ["QI", "QII", "QIII", "QIV"][k - 1]
             if channels and channels[p]:
-                label += f"  f = {channels[p][k - 1].focal_length * 1e3:.4g} mm"
-            label += f"\npeak {peaks[k - 1]:.2f} of the frame's brightest"
-            ax.text(qx * sensor.width_px * pitch_um, qy * sensor.height_px * pitch_um, label, color="w", ha="center",
+                text += f"  f = {channels[p][k - 1].focal_length * 1e3:.4g} mm"
+            text += f"\npeak {peaks[k - 1]:.2f} of the frame's brightest"
+            ax.text(qx * sensor.width_px * pitch_um, qy * sensor.height_px * pitch_um, text, color="w", ha="center",
                     va="top", fontsize=9)
-        ax.set(title=("x-pol (TE)" if p == 0 else "y-pol (TM)") + " frame", xlabel="x on the camera [um]",
-               ylabel="y on the camera [um]")
+        ax.set(title=(f"{label}: " if label else "") + ("x-pol (TE)" if p == 0 else "y-pol (TM)") + " frame",
+               xlabel="x on the camera [um]", ylabel="y on the camera [um]")
         fig.colorbar(im, ax=ax, shrink=0.8, label="intensity / the quadrant's own peak")
-    fig.suptitle((title + ": " if title else "") + f"{sensor.width_px} x {sensor.height_px} pixels of "
-                 f"{pitch_um:g} um; each quadrant on its own scale")
-    return save_figure(fig, out)
 
 
 def _case_label(r: dict) -> str:

@@ -80,7 +80,7 @@ def save_psf(path: str | Path, res: PSFResult, fab: AsFabricated, sensing: Sensi
         "channels": prov.get("channels") or [
             {"pol": "xy"[p], "k": k, "focal_length_m": c.focal_length, "offset_x_m": c.offset_x,
              "offset_y_m": c.offset_y} for p in range(2) for k, c in enumerate(fab.channels[p], 1)],
-        "clear_aperture": fab.aperture,
+        "clear_aperture": fab.aperture, "aperture_m": fab.n_cells * fab.period,
         "conventions": {"frames": "(pol, row, col), pol 0 = x, rows along +y; power per pixel for unit "
                                   "incident intensity",
                         "tensor": "8 x S x S: x-pol QI..QIV, y-pol QI..QIV (QI..QIV = channels k = 1..4 in "
