@@ -164,14 +164,14 @@ def test_table_same_bytes_any_workers_and_grows(tmp_path):
     from metadesign.library.supercells import solve_table
 
     w = _tiny_widths(10)
-    t1, nG, _ = solve_table(w, Stack(), 30, tmp_path / "a", workers=1, chunk_size=3)
-    t2, _, _ = solve_table(w, Stack(), 30, tmp_path / "b", workers=2, chunk_size=3)
+    t1, nG, _, _ = solve_table(w, Stack(), 30, tmp_path / "a", workers=1, chunk_size=3)
+    t2, _, _, _ = solve_table(w, Stack(), 30, tmp_path / "b", workers=2, chunk_size=3)
     assert t1.tobytes() == t2.tobytes() and nG < 30
     # the first 6 rows' chunks are reused by the 10-row table in the same folder: nothing new to solve
     part = tmp_path / "c"
     solve_table(w[:6], Stack(), 30, part, chunk_size=3)
     seen = []
-    t3, _, _ = solve_table(w, Stack(), 30, part, chunk_size=3, progress=lambda a, b: seen.append(a))
+    t3, _, _, _ = solve_table(w, Stack(), 30, part, chunk_size=3, progress=lambda a, b: seen.append(a))
     assert seen[0] == 6 and t3.tobytes() == t1.tobytes()
 
 
@@ -203,9 +203,9 @@ def test_table_resumes_after_sigkill(tmp_path):
     done = len(list(part.glob("chunk-*.npz")))
     assert 2 <= done < 20
     logs = []
-    t, _, _ = solve_table(w, Stack(), 60, part, chunk_size=2, log=logs.append)
+    t, _, _, _ = solve_table(w, Stack(), 60, part, chunk_size=2, log=logs.append)
     assert any(f"resuming: {done}/20 tasks ({2 * done}/40 " in s for s in logs), logs
-    clean, _, _ = solve_table(w, Stack(), 60, tmp_path / "clean", workers=2, chunk_size=2)
+    clean, _, _, _ = solve_table(w, Stack(), 60, tmp_path / "clean", workers=2, chunk_size=2)
     assert clean.tobytes() == t.tobytes()
 
 
@@ -322,3 +322,31 @@ def test_pair_model_pupil_rows_by_tables_equal_the_network(paper_library):
     t_net = couple_supercells(t0, w, im >= 0, m)  # no atom table: the network per supercell
     np.testing.assert_allclose(t_tab, t_net, atol=3e-6)
     assert np.abs(t_tab - t0).max() > 1e-3
+
+
+def test_a_table_at_another_truncation_solves_matched_unit_cells(tmp_path, capsys):
+    """Built through the CLI at a truncation that is not the library's: each row carries its four unit cells
+    at the matched truncation; four identical pillars then measure no coupling (the supercell of one pillar
+    is its unit cell when the harmonic sets match), so the label is the LPA's."""
+    from conftest import REPO, run_main
+
+    from metadesign.library.supercells import load_table, matched_unit_harmonics, solve_table
+
+    st = Stack()
+    ns, nu = matched_unit_harmonics(40, st)
+    w = np.broadcast_to(np.array([0.31e-6, 0.22e-6]), (2, 2, 2, 2)).copy()
+    w[1] = _tiny_widths(1)[0]
+    t, nG, _, t_unit = solve_table(w, st, ns, tmp_path / "p", unit_harmonics=nu)
+    assert t_unit.shape == (2, 2, 2, 2) and nG == ns - 1
+    np.testing.assert_allclose(t[0], t_unit[0, 0, 0], atol=1e-9)  # identical pillars: no coupling
+    assert np.abs(t[1] - t_unit[1].mean((0, 1))).max() > 1e-3  # four different ones: some
+    rec = tmp_path / "sc.toml"
+    rec.write_text(f'[table]\nlibrary = "{REPO / "library" / "paper.npz"}"\ndesign = "{REPO / "layouts" / "demo.toml"}"\n'
+                   'supercells = 4\nseed = 1\ntest_every = 2\nn_harmonics = 40\nchunk = 2\n'
+                   '[mix]\ndesign = 0.5\nextra_design = 0.0\natom_tuples = 0.25\njittered_atoms = 0.25\n')
+    rc, out, err = run_main(["library", "supercells", rec, "-o", tmp_path / "sc.npz", "--json"], capsys)
+    assert rc == 0, err
+    tab = load_table(tmp_path / "sc.npz")
+    assert tab.t_unit.shape == (4, 2, 2, 2) and tab.meta["n_harmonics"] == ns - 1
+    lpa = np.full((4, 2), 0.5 + 0.1j)
+    np.testing.assert_allclose(tab.labels(lpa), lpa + tab.t - tab.t_unit.mean((1, 2)))

@@ -13,7 +13,7 @@ PKG = Path(__file__).resolve().parents[1] / "metadesign"
 #: the shared edges: used by everything, import only each other
 EDGES = {"conventions", "config", "io", "validation", "outputs", "tasks", "cards", "cliutil", "parallel", "paths",
          "plotting", "timing", "lazy",
-         "determinism"}
+         "determinism", "deflate"}
 #: subpackages in pipeline order (a module may import its own level and those below)
 ORDER = ["optics", "library", "design", "layouts", "sensing", "turbulence", "reconstruction", "studies"]
 TOP = {"cli", "__main__"}  # the assembler
@@ -198,3 +198,20 @@ def test_the_forward_model_and_the_coupling_cards_import_without_torch():
     from metadesign.library.coupling_net import Coupling
 
     assert inspect.getmodule(Coupling).__name__ == "metadesign.library.coupling_net"  # not a closure's class
+
+
+def test_no_undefined_or_shadowed_names():
+    """pyflakes' checks (through ruff) on the package, the tests and the benchmarks: an undefined name (a
+    variable a refactor removed), a redefinition, an unused variable; unused imports are allowed (import
+    checks of optional dependencies)."""
+    import shutil
+    import subprocess
+    import sys
+
+    ruff = shutil.which("ruff") or str(Path(sys.executable).with_name("ruff"))
+    if not Path(ruff).exists():
+        pytest.skip("ruff is not installed (pip install -e .[test])")
+    root = PKG.parent
+    p = subprocess.run([ruff, "check", "--no-cache", "--select", "F", "--ignore", "F401", "--output-format",
+                        "concise", "metadesign", "tests", "benchmarks"], cwd=root, capture_output=True, text=True)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-1000:]

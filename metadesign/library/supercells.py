@@ -3,9 +3,17 @@
 A row is one supercell, ``widths[r, c] = (wx, wy)`` (m) of the pillar at ``x = c p, y = r p`` (the layout
 of :func:`metadesign.library.supercell.supercell_rects`), and its 0th-order transmission ``t`` for x- and
 y-polarised light (the Jones diagonal; the sector solve has no cross terms).  The supercell's harmonic set
-is matched to the unit-cell library's: its even harmonics, halved, are the library's set
-(:func:`matched_unit_harmonics`), so four identical pillars give the library's own ``t`` and the difference
-is the coupling alone, not a truncation mismatch.
+is matched to a unit cell's: its even harmonics, halved, are the unit cell's set
+(:func:`matched_unit_harmonics`), so four identical pillars give that unit cell's own ``t`` and the
+difference is the coupling alone, not a truncation mismatch.  At the library's own truncation (nG 797 for
+its 197) the unit cell is the library; at any other (a cheaper table, a convergence ladder) the table also
+solves each row's four unit cells at the matched truncation (``t_unit``), and the row's label is the
+coupling measured at that truncation added to the library's LPA (:meth:`SupercellTable.labels`):
+
+    t_label = mean_i t_lib(w_i) + [ t_super(nG) - mean_i t_unit(w_i; nG matched) ]
+
+The bracket (the coupling) converges much faster with nG than either term (their truncation errors
+cancel); its convergence is what :func:`metadesign.studies.supercells.convergence_ladder` measures.
 
 :func:`solve_table` is the library build's engine for this table: rows in chunks, each finished chunk
 written atomically into ``<output>.partial/`` under a name that hashes its widths and the solver settings,
@@ -27,10 +35,10 @@ from .. import __version__
 from ..io import atomic_write_text, read_npz, write_npz
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
-from .rcwa import Stack
+from .rcwa import SolverSettings, Stack, solve_cell
 from .supercell import solve_supercell
 
-__all__ = ["SupercellTable", "matched_unit_harmonics", "solve_table", "load_table", "save_table", "TABLE_FORMAT"]
+__all__ = ["SupercellTable", "matched_unit_harmonics", "solve_table", "unit_cells", "load_table", "save_table", "TABLE_FORMAT"]
 
 TABLE_FORMAT = "metadesign.supercells/1"
 
@@ -59,48 +67,79 @@ def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
 @dataclass(frozen=True)
 class SupercellTable:
     """Solved supercells: ``widths`` (n, 2, 2, 2) m, ``t`` (n, 2) complex (x-pol, y-pol), ``source`` (n,)
-    int (index into ``meta["sources"]``), ``test`` (n,) bool (held out of every fit), ``meta`` (provenance)."""
+    int (index into ``meta["sources"]``), ``test`` (n,) bool (held out of every fit), ``meta`` (provenance);
+    ``t_unit`` (n, 2, 2, 2 pol) complex: each pillar's unit cell at the matched truncation, for a table
+    solved at another truncation than the library's (None: the library is the matched unit cell)."""
 
     widths: np.ndarray
     t: np.ndarray
     source: np.ndarray
     test: np.ndarray
     meta: dict
+    t_unit: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
 
     def head(self, n: int) -> "SupercellTable":
-        return SupercellTable(self.widths[:n], self.t[:n], self.source[:n], self.test[:n], self.meta)
+        return self.rows(np.arange(min(n, len(self))))
+
+    def rows(self, idx) -> "SupercellTable":
+        return SupercellTable(self.widths[idx], self.t[idx], self.source[idx], self.test[idx], self.meta,
+                              None if self.t_unit is None else self.t_unit[idx])
+
+    def coupling(self) -> np.ndarray | None:
+        """(n, 2) the coupling measured at the table's truncation, ``t - mean_i t_unit,i`` (None without
+        ``t_unit``)."""
+        return None if self.t_unit is None else self.t - self.t_unit.mean((1, 2))
+
+    def labels(self, t_lpa: np.ndarray) -> np.ndarray:
+        """(n, 2) the rows' supercell ``t`` in the library's frame: ``t`` itself at the library's truncation,
+        else the LPA ``t_lpa`` (n, 2) plus the coupling measured at the table's (module docstring)."""
+        return self.t if self.t_unit is None else np.asarray(t_lpa) + self.coupling()
 
 
-def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack) -> str:
+def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack, unit_harmonics: int | None = None) -> str:
     """A chunk's task name: the content key of its rows and of what shapes their solve."""
+    extra = [] if unit_harmonics is None else [unit_harmonics]
     return "chunk-" + content_key(np.ascontiguousarray(widths, "<f8"), [n_harmonics, stack.wavelength, stack.period,
-                                  stack.height, stack.n_pillar, stack.n_substrate, stack.n_superstrate], __version__)
+                                  stack.height, stack.n_pillar, stack.n_substrate, stack.n_superstrate, *extra],
+                                  __version__)
+
+
+def unit_cells(widths: np.ndarray, stack: Stack, unit_harmonics: int) -> np.ndarray:
+    """(n, 2, 2, 2 pol) each pillar's unit cell (period ``p``) at ``unit_harmonics`` (requested)."""
+    w = np.asarray(widths, float).reshape(-1, 2)
+    out = np.array([solve_cell(wx, wy, stack, SolverSettings(int(unit_harmonics))).jones[[0, 1], [0, 1]]
+                    for wx, wy in w])
+    return out.reshape(*np.shape(widths)[:-1], 2)
 
 
 def _solve_rows(args) -> tuple[str, dict]:
-    name, widths, stack, n_harmonics = args
+    name, widths, stack, n_harmonics, unit_harmonics = args
     res = [solve_supercell(w, stack, n_harmonics) for w in widths]
-    return name, {"t": np.array([r.jones[[0, 1], [0, 1]] for r in res]),
-                  "n_harmonics": np.array([r.n_harmonics for r in res])}
+    out = {"t": np.array([r.jones[[0, 1], [0, 1]] for r in res]),
+           "n_harmonics": np.array([r.n_harmonics for r in res])}
+    if unit_harmonics is not None:
+        out["t_unit"] = unit_cells(widths, stack, unit_harmonics)
+    return name, out
 
 
 def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str | Path, *, workers: int = 1,
-                scheduler: str | None = None, chunk_size: int = 8,
+                scheduler: str | None = None, chunk_size: int = 8, unit_harmonics: int | None = None,
                 progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] = lambda s: None,
-                _stop_after_chunks: int | None = None) -> tuple[np.ndarray, int, float]:
+                _stop_after_chunks: int | None = None):
     """``t`` (n, 2) of the supercells ``widths`` (n, 2, 2, 2), solved at ``n_harmonics`` (requested), chunks
     kept in the folder ``partial`` (resumable; the caller removes it once the table is saved).  Returns
-    ``(t, nG, seconds spent solving)``."""
+    ``(t, nG, seconds spent solving, t_unit)``: ``t_unit`` every pillar's unit cell at ``unit_harmonics``
+    (requested; the matched unit cell's, :func:`matched_unit_harmonics`), None without it."""
     widths = np.asarray(widths, float)
     if widths.ndim != 4 or widths.shape[1:] != (2, 2, 2):
         raise ValueError(f"widths must be (n, 2, 2, 2), got {widths.shape}")
     folder = TaskFolder(partial)  # chunks named by their rows' content: a larger table reuses a smaller one's
     chunks = [(k, min(k + chunk_size, len(widths))) for k in range(0, len(widths), chunk_size)]
-    names = [_chunk_name(widths[a:b], n_harmonics, stack) for a, b in chunks]
-    jobs = {nm: (nm, widths[a:b], stack, n_harmonics) for (a, b), nm in zip(chunks, names)}
+    names = [_chunk_name(widths[a:b], n_harmonics, stack, unit_harmonics) for a, b in chunks]
+    jobs = {nm: (nm, widths[a:b], stack, n_harmonics, unit_harmonics) for (a, b), nm in zip(chunks, names)}
     size = {nm: b - a for (a, b), nm in zip(chunks, names)}
     t0 = time.perf_counter()
     done, _ = run_resumable(_solve_rows, jobs, folder, workers=workers, scheduler=scheduler, dask_key="supercells",
@@ -111,13 +150,15 @@ def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str
     nGs = {int(v) for nm in names for v in done[nm]["n_harmonics"]}
     if len(nGs) != 1:
         raise RuntimeError(f"the chunks were solved at different truncations: {sorted(nGs)}")
-    return t, nGs.pop(), seconds
+    t_unit = None if unit_harmonics is None else np.concatenate([done[nm]["t_unit"] for nm in names])
+    return t, nGs.pop(), seconds, t_unit
 
 
 def save_table(path: str | Path, table: SupercellTable) -> None:
     meta = {"format": TABLE_FORMAT, **table.meta}
+    extra = {} if table.t_unit is None else {"t_unit": table.t_unit.astype(np.complex128)}
     write_npz(path, {"widths_m": table.widths, "t": table.t.astype(np.complex128), "source": table.source,
-                     "test": table.test, "meta": np.array(json.dumps(meta, sort_keys=True))})
+                     "test": table.test, "meta": np.array(json.dumps(meta, sort_keys=True)), **extra})
 
 
 def load_table(path: str | Path) -> SupercellTable:
@@ -128,7 +169,10 @@ def load_table(path: str | Path) -> SupercellTable:
     if missing or meta.get("format") != TABLE_FORMAT:
         raise ValidationError(f"{path}: not a supercell table ({TABLE_FORMAT}"
                               + (f"; missing {', '.join(missing)})" if missing else ")"))
-    return SupercellTable(d["widths_m"], d["t"], d["source"], d["test"].astype(bool), meta)
+    t_unit = d.get("t_unit")
+    if t_unit is not None and t_unit.shape != (*d["t"].shape[:1], 2, 2, 2):
+        raise ValidationError(f"{path}: t_unit has shape {t_unit.shape}, expected ({len(d['t'])}, 2, 2, 2)")
+    return SupercellTable(d["widths_m"], d["t"], d["source"], d["test"].astype(bool), meta, t_unit)
 
 
 def remove_partial(partial: str | Path) -> None:

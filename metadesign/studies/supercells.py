@@ -170,10 +170,9 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
     stack = lib.stack
     ns, nu = matched_unit_harmonics(recipe.n_harmonics, stack)
     lib_nG = lib.meta.get("solver", {}).get("n_harmonics")
-    if lib_nG is not None and nu - 1 != lib_nG:
-        raise ConfigError("table.n_harmonics", f"the supercell's even harmonics ({nu - 1}) do not match the "
-                                               f"library's {lib_nG}: request {ns - 1} -> pick one whose matched "
-                                               f"unit set is the library's (800 for a 197-harmonic library)")
+    # at the library's own truncation the library is the matched unit cell; at any other the table solves
+    # each row's four unit cells too (the coupling at that truncation: SupercellTable.labels)
+    unit = None if lib_nG is not None and nu - 1 == lib_nG else nu
     d_main, sha_main = _load(recipe.design, log)
     main = _design_widths(d_main)
     extra, sha_extra = (None, None)
@@ -184,10 +183,11 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
     widths, source, test = sample_rows(n, recipe.seed, recipe.mix, main, extra, w_range, recipe.jitter,
                                        recipe.test_every)
     partial = output.parent / (output.name + ".partial")
-    log(f"solving {n} supercells (nG {ns - 1}, matched to the library's {nu - 1}) -> {output}")
-    t, nG, seconds = solve_table(widths, stack, ns, partial, workers=workers, scheduler=scheduler,
-                                 chunk_size=recipe.chunk, progress=progress, log=log,
-                                 _stop_after_chunks=_stop_after_chunks)
+    log(f"solving {n} supercells (nG {ns - 1}, matched to " + ("the library's" if unit is None else
+        "unit cells solved at") + f" {nu - 1}) -> {output}")
+    t, nG, seconds, t_unit = solve_table(widths, stack, ns, partial, workers=workers, scheduler=scheduler,
+                                         chunk_size=recipe.chunk, unit_harmonics=unit, progress=progress, log=log,
+                                         _stop_after_chunks=_stop_after_chunks)
     meta = {
         "version": __version__, "recipe": str(recipe.source.name), "seed": recipe.seed, "supercells": n,
         "test_every": recipe.test_every, "n_harmonics": nG, "unit_n_harmonics": nu - 1,
@@ -196,11 +196,13 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
         "design": {"path": recipe.design.name, "sha256": sha_main},
         "extra_design": None if recipe.extra_design is None else {"path": recipe.extra_design.name,
                                                                   "sha256": sha_extra},
-        "stack": st, "solver": "grcwa, 2 x 2 supercell, two mirror-symmetry sectors, Li's staircase rule",
+        "stack": lib.meta["stack"], "solver": "grcwa, 2 x 2 supercell, two mirror-symmetry sectors, Li's staircase rule",
+        "labels": "t itself (the library is the matched unit cell)" if unit is None else
+                  "LPA + (t - mean of t_unit): the coupling at this truncation on the library's LPA",
         "layout": "widths_m[k, r, c] = (wx, wy) of the pillar at x = c p, y = r p; t[k] = (t_x, t_y)",
         "convention": lib.meta.get("convention", {}),
     }
-    save_table(output, SupercellTable(widths, t, source, test, meta))
+    save_table(output, SupercellTable(widths, t, source, test, meta, t_unit))
     remove_partial(partial)
     return {"output": str(output), "supercells": n, "held_out": int(test.sum()), "n_harmonics": nG,
             "solve_seconds": seconds, "workers": workers,
