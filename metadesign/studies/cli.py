@@ -424,13 +424,20 @@ def _cmd_coupling(a: argparse.Namespace) -> int:
     if not table.test.any() or table.test.all():
         raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
                          "certification needs both fitting and held-out rows (table.test_every >= 2)")
+    ref = None
+    if a.reference:
+        ref = load_table(a.reference)
+        if ref.meta.get("library", {}).get("sha256") != table.meta.get("library", {}).get("sha256"):
+            raise InputError(f"--reference {a.reference}: solved against another library than {tp.name}")
+        if not ref.test.any():
+            raise InputError(f"--reference {a.reference}: the table has no held-out rows")
     log = log_to(a.json)
-    with product(out, "coupling", {"table": tp, "--library": lib_path},
+    with product(out, "coupling", {"table": tp, "--library": lib_path, "--reference": a.reference},
                  also=(card_path(out), out.with_suffix(".png"))):
-        return _coupling_fit(a, table, tp, lib, lib_path, out, log)
+        return _coupling_fit(a, table, tp, lib, lib_path, out, log, ref)
 
 
-def _coupling_fit(a, table, tp, lib, lib_path, out, log) -> int:
+def _coupling_fit(a, table, tp, lib, lib_path, out, log, ref=None) -> int:
     import numpy as np
 
     from ..library.coupling import CouplingConfig, save_coupling
@@ -439,10 +446,13 @@ def _coupling_fit(a, table, tp, lib, lib_path, out, log) -> int:
 
     cfg = CouplingConfig(a.hidden, a.layers, a.ensemble, a.interaction)
     log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
-    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, weight_decay=a.weight_decay, log=log)
+    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, weight_decay=a.weight_decay,
+                                  reference=ref, log=log)
     fig = plot_coupling(rep, out.with_suffix(".png"))
     rep.pop("_e"), rep.pop("_e_lpa")
     card = {"certification": rep, "table": {"path": tp.name, "sha256": file_sha256(tp)}, "figure": fig.name,
+            "reference_table": {"path": Path(a.reference).name, "sha256": file_sha256(a.reference)}
+            if ref is not None else None,
             "structure": "t = mean_i t_lib(w_i) + 1/4 sum_i [G(f_i, f_H, f_V, f_D) - G(f_i, f_i, f_i, f_i)]; "
                          "t_y(w) = t_x(transpose(w))"}
     save_coupling(out, model, lib_path, card)
@@ -646,6 +656,8 @@ def register(sub, groups: dict) -> None:
         "figure.")
     cp.add_argument("table", help="supercell table (.npz) from `library supercells`")
     cp.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")
+    cp.add_argument("--reference", metavar="TABLE", help="certify on this table's held-out rows instead of the "
+                    "fitted table's (e.g. a cheaper table fitted, the converged one certifying)")
     cp.add_argument("--sizes", type=integer(10, 10_000_000), nargs="+", default=[250, 500, 1000],
                     help="fitting rows of the learning curve (default 250 500 1000; the last is the model)")
     cp.add_argument("--steps", type=integer(1, 10_000_000), default=2000, help="optimiser steps per fit (2000)")
