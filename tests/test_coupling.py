@@ -350,3 +350,47 @@ def test_a_table_at_another_truncation_solves_matched_unit_cells(tmp_path, capsy
     assert tab.t_unit.shape == (4, 2, 2, 2) and tab.meta["n_harmonics"] == ns - 1
     lpa = np.full((4, 2), 0.5 + 0.1j)
     np.testing.assert_allclose(tab.labels(lpa), lpa + tab.t - tab.t_unit.mean((1, 2)))
+
+
+def test_active_learning_picks_the_most_uncertain_and_resumes(paper_library, tmp_path):
+    """The loop's batch is the pool's top spread (checked against the members' predictions directly), the
+    solves land in content-keyed chunks (a rerun solves nothing and reports the same numbers), and the
+    learning curves hold the start and the grown label counts."""
+    from metadesign.library.coupling import CouplingConfig, unit_rms
+    from metadesign.library.coupling_net import coupling_t
+    from metadesign.library.store import interpolate_t
+    from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
+    from metadesign.studies.active import ActiveConfig, active_learning, ensemble_spread
+
+    st = Stack()
+    ns, nu = matched_unit_harmonics(30, st)
+    rng = np.random.default_rng(5)
+    w = rng.uniform(0.2e-6, 0.4e-6, size=(30, 2, 2, 2))
+    t, nG, _, tu = solve_table(w, st, ns, tmp_path / "t", chunk_size=10, unit_harmonics=nu)
+    test = np.arange(30) % 3 == 2
+    table = SupercellTable(w, t, np.zeros(30, np.int8), test, {"n_harmonics": nG}, tu)
+    pool = rng.uniform(0.2e-6, 0.4e-6, size=(12, 2, 2, 2))
+    cfg = ActiveConfig(start=8, batch=4, rounds=1, members=2, steps=30,
+                       model=CouplingConfig(hidden=8, layers=2, interaction="environment"))
+    logs = []
+    rep = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, log=logs.append)
+    assert [r["solves"] for r in rep["active"]] == [8, 12] and [r["solves"] for r in rep["random"]] == [8, 12]
+    assert len(list((tmp_path / "part").glob("chunk-*.npz"))) == 1  # the batch, one chunk
+    # the batch was the round-0 ensemble's top-4 spread: refit round 0 (deterministic) and rank independently
+    from metadesign.studies.active import _fit_members
+
+    fit_rows = np.flatnonzero(~test)[:8]
+    tu_fit = interpolate_t(paper_library, w[fit_rows][..., 0], w[fit_rows][..., 1])[0]
+    labels = table.rows(fit_rows).labels(tu_fit.mean((1, 2)))
+    members = _fit_members(paper_library, w[fit_rows], labels, cfg)
+    tu_pool = interpolate_t(paper_library, pool[..., 0], pool[..., 1])[0]
+    preds = np.stack([coupling_t(m, pool, tu_pool) for m in members])
+    sd = np.sqrt((np.abs(preds - preds.mean(0)) ** 2).mean(0)) / unit_rms(tu_pool)
+    top = set(np.argsort(-sd.max(1))[:4].tolist())
+    _, spread = ensemble_spread(members, pool, tu_pool)
+    assert set(np.argsort(-spread)[:4].tolist()) == top == set(rep["active"][0]["picked"])
+    logs.clear()
+    again = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, log=logs.append)
+    assert any("resuming: 1/1 tasks" in s for s in logs), logs  # the batch's solves kept, none redone
+    drop = lambda c: [{k: v for k, v in r.items() if k != "fit_seconds"} for r in c]  # noqa: E731
+    assert drop(again["active"]) == drop(rep["active"]) and drop(again["random"]) == drop(rep["random"])

@@ -408,6 +408,45 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_active(a: argparse.Namespace) -> int:
+    from ..library.coupling import CouplingConfig
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+    from .active import ActiveConfig, active_learning, plot_active
+    from .supercells import load_supercell_recipe, pool_widths
+
+    rec = load_supercell_recipe(a.recipe)
+    tp = rec.default_output()
+    if not tp.exists():
+        raise InputError(f"{a.recipe}: its table {tp} is not built (metadesign library supercells {a.recipe})")
+    table, ref = load_table(tp), load_table(a.reference)
+    if ref.meta.get("library", {}).get("sha256") != table.meta.get("library", {}).get("sha256"):
+        raise InputError(f"--reference {a.reference}: solved against another library than {tp.name}")
+    if int((~table.test).sum()) < a.start + a.rounds * a.batch:
+        raise InputError(f"--start + --rounds x --batch = {a.start + a.rounds * a.batch} solves: the random "
+                         f"baseline needs as many fitting rows; {tp.name} has {int((~table.test).sum())}")
+    out = out_file(Path(a.output) if a.output else rec.source.with_name(rec.source.stem + "-active.json"),
+                   suffixes=(".json",))
+    cfg = ActiveConfig(a.start, a.batch, a.rounds, a.members, a.pool, steps=a.steps,
+                       model=CouplingConfig(hidden=a.hidden, layers=3, interaction="environment"))
+    log = log_to(a.json)
+    lib = load_library(rec.library)
+    with product(out, "active", {"recipe": rec.source, "--reference": a.reference},
+                 scratch=(out.with_name(out.name + ".partial"),), also=(out.with_suffix(".png"),)):
+        pool = pool_widths(rec, a.pool, log)
+        rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg, workers=a.workers,
+                              scheduler=a.scheduler, log=log)
+        rep.pop("members")
+        fig = plot_active(rep, out.with_suffix(".png"))
+        rep["figure"] = fig.name
+        atomic_write_text(out, json.dumps(rep, indent=1))
+    act, rnd = rep["active"][-1], rep["random"][-1]
+    emit(rep, a.json, f"wrote {out} and {fig.name}: after {act['solves']} solves, held-out mean error "
+                      f"{act['mean']:.4f} (p90 {act['p90']:.4f}) active vs {rnd['mean']:.4f} (p90 {rnd['p90']:.4f}) "
+                      "random")
+    return 0
+
+
 def _cmd_coupling(a: argparse.Namespace) -> int:
     from ..library.locate import find_library
     from ..library.store import load_library
@@ -673,6 +712,27 @@ def register(sub, groups: dict) -> None:
     cp.add_argument("-o", "--output", help="weights file (default: TABLE's name with -coupling.safetensors)")
     cp.add_argument("--json", action="store_true", help="print the report as JSON")
     cp.set_defaults(func=_cmd_coupling)
+    al = lsub.add_parser(
+        "active", help="active learning of the coupling model: new solves where an ensemble disagrees (#34)",
+        description="From the first --start fitting rows of the recipe's table (built by `library supercells`), "
+        "fit --members coupling models, rank a pool of candidate supercells drawn like the table's rows by the "
+        "members' spread, solve the --batch most uncertain (the table's truncation, resumable chunks in "
+        "OUT.partial/), add them and repeat for --rounds; after each round the ensemble is certified on "
+        "--reference's held-out rows beside the same number of random solves. Writes OUT (.json) and a figure.")
+    al.add_argument("recipe", help="supercell recipe (TOML) whose table exists (e.g. library/paper-supercells-fast.toml)")
+    al.add_argument("--reference", required=True, metavar="TABLE", help="the converged table whose held-out rows certify")
+    al.add_argument("--start", type=integer(10, 1_000_000), default=250, help="initial random solves (250)")
+    al.add_argument("--batch", type=integer(1, 1_000_000), default=250, help="solves per round (250)")
+    al.add_argument("--rounds", type=integer(1, 100), default=4, help="rounds (4)")
+    al.add_argument("--members", type=integer(2, 16), default=4, help="ensemble members (4)")
+    al.add_argument("--pool", type=integer(10, 10_000_000), default=8000, help="candidates drawn (8000)")
+    al.add_argument("--steps", type=integer(1, 1_000_000), default=2000, help="optimiser steps per fit (2000)")
+    al.add_argument("--hidden", type=integer(4, 4096), default=64, help="hidden width (64)")
+    al.add_argument("-o", "--output", help="report (.json; default: RECIPE-active.json)")
+    al.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
+    workers_arg(al)
+    al.add_argument("--json", action="store_true", help="print the report as JSON")
+    al.set_defaults(func=_cmd_active)
     cc = lsub.add_parser(
         "coupling-check", help="a design under the LPA vs the supercell coupling model (and compensated)",
         description="Channel metrics (focusing efficiency, Strehl, crosstalk, focal shift) and the 8-PSF frames "

@@ -41,7 +41,7 @@ from ..library.supercells import (
 from ..plotting import pyplot, save_figure
 from ..outputs import Need, temporary
 
-__all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "SOURCES", "certify_coupling",
+__all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "SOURCES", "certify_coupling",
            "plot_coupling"]
 
 SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
@@ -151,6 +151,21 @@ def sample_rows(n: int, seed: int, mix, main: tuple, extra: tuple | None, w_rang
         source[k] = s
     test = (np.arange(n) % test_every) == test_every - 1
     return widths, source, test
+
+
+#: the candidate pool of active learning draws from another stream than the table's rows
+POOL_SEED_OFFSET = 2**32
+
+
+def pool_widths(recipe: SupercellRecipe, n: int, log=lambda s: None) -> np.ndarray:
+    """(n, 2, 2, 2) candidate supercells drawn like the recipe's rows (the same mix, designs and jitter)
+    from another stream: the active-learning pool."""
+    lib = load_library(recipe.library)
+    main = _design_widths(_load(recipe.design, log)[0])
+    extra = None if recipe.extra_design is None else _design_widths(_load(recipe.extra_design, log)[0])
+    w_range = (float(lib.wx.min()), float(lib.wx.max()))
+    return sample_rows(n, recipe.seed + POOL_SEED_OFFSET, recipe.mix, main, extra, w_range, recipe.jitter,
+                       recipe.test_every)[0]
 
 
 def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
