@@ -394,3 +394,22 @@ def test_active_learning_picks_the_most_uncertain_and_resumes(paper_library, tmp
     assert any("resuming: 1/1 tasks" in s for s in logs), logs  # the batch's solves kept, none redone
     drop = lambda c: [{k: v for k, v in r.items() if k != "fit_seconds"} for r in c]  # noqa: E731
     assert drop(again["active"]) == drop(rep["active"]) and drop(again["random"]) == drop(rep["random"])
+
+
+def test_convergence_ladder_measures_label_changes(paper_library, tmp_path):
+    """Labels re-solved at rising truncation: four identical pillars never move (their coupling is zero at
+    every matched truncation), four different ones do; the table's own labels are compared with the top."""
+    from metadesign.library.supercells import SupercellTable
+    from metadesign.studies.supercells import convergence_ladder
+
+    w = np.broadcast_to(np.array([0.31e-6, 0.22e-6]), (2, 2, 2, 2)).copy()
+    w[1] = _tiny_widths(1)[0]
+    tab = SupercellTable(w, np.zeros((2, 2), complex), np.zeros(2, np.int8), np.ones(2, bool),
+                         {"n_harmonics": 0}, np.zeros((2, 2, 2, 2), complex))
+    rep = convergence_ladder(tab, paper_library, np.arange(2), [30, 60], tmp_path / "p")
+    (step,) = rep["steps"]
+    assert step["label_change_per_row"][0] < 1e-9 < 1e-3 < step["label_change_per_row"][1]
+    assert [lv["n_harmonics"] for lv in rep["levels"]] == sorted(lv["n_harmonics"] for lv in rep["levels"])
+    labels = rep["_labels"]
+    tu = interpolate_t(paper_library, w[..., 0], w[..., 1])[0]
+    np.testing.assert_allclose(labels[:, 0], tu[0].mean((0, 1))[None].repeat(2, 0), atol=1e-9)

@@ -408,6 +408,44 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ladder(a: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..library.locate import find_library
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+    from .supercells import convergence_ladder
+
+    table = load_table(a.table)
+    tp = Path(a.table)
+    held = np.flatnonzero(table.test)
+    if not len(held):
+        raise InputError(f"{tp}: the table has no held-out rows")
+    lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
+                                                                table.meta["library"]["path"], tp.parent)
+    lib = load_library(lib_path)
+    out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem + "-ladder.json"), suffixes=(".json",))
+    log = log_to(a.json)
+    with product(out, "ladder", {"table": tp, "--library": lib_path}, scratch=(out.with_name(out.name + ".partial"),)):
+        rep = convergence_ladder(table, lib, held[:a.rows], a.harmonics, out.with_name(out.name + ".partial"),
+                                 workers=a.workers, scheduler=a.scheduler,
+                                 progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+        rep.pop("_labels")
+        rep["table"] = {"path": tp.name, "n_harmonics": table.meta.get("n_harmonics")}
+        atomic_write_text(out, json.dumps(rep, indent=1))
+    lines = [f"wrote {out}: {len(rep['rows'])} held-out supercells of {tp.name}"]
+    for st in rep["steps"]:
+        lines.append(f"  nG {st['from']} -> {st['to']}: label change mean {st['label_change_mean_both']:.4f}, max "
+                     f"{st['label_change_max_both']:.4f} of rms|t_i| (raw t: mean "
+                     f"{np.mean(st['raw_t_change']['mean']):.4f}); converged (<= 0.01): "
+                     + ("yes" if st["label_change_max_both"] <= 0.01 else "no"))
+    tl = rep["table_labels"]["vs_top_level"]
+    lines.append(f"  the table's labels (nG {rep['table']['n_harmonics']}) vs the top level: mean "
+                 f"{np.mean(tl['mean']):.4f}, max {np.max(tl['max']):.4f}")
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
 def _cmd_active(a: argparse.Namespace) -> int:
     from ..library.coupling import CouplingConfig
     from ..library.store import load_library
@@ -712,6 +750,23 @@ def register(sub, groups: dict) -> None:
     cp.add_argument("-o", "--output", help="weights file (default: TABLE's name with -coupling.safetensors)")
     cp.add_argument("--json", action="store_true", help="print the report as JSON")
     cp.set_defaults(func=_cmd_coupling)
+    ld = lsub.add_parser(
+        "ladder", help="convergence of a supercell table's labels: held-out rows re-solved at rising truncation",
+        description="Re-solve the first --rows held-out rows of TABLE at each truncation of --harmonics (each with "
+        "its unit cells at the matched truncation; resumable chunks in OUT.partial/), and report per step the "
+        "change of each row's label (the library's LPA plus the coupling measured at that truncation) in units "
+        "of the pillars' rms |t| (a converged label moves by <= 0.01), and how far the table's own labels lie "
+        "from the top level. Writes OUT (.json).")
+    ld.add_argument("table", help="supercell table (.npz)")
+    ld.add_argument("--rows", type=integer(1, 100000), default=8, help="held-out rows re-solved (8)")
+    ld.add_argument("--harmonics", type=integer(20, 5000), nargs="+", default=[320, 800, 1300],
+                    help="requested supercell truncations, ascending (320 800 1300)")
+    ld.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")
+    ld.add_argument("-o", "--output", help="report (.json; default: TABLE-ladder.json)")
+    ld.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
+    workers_arg(ld)
+    ld.add_argument("--json", action="store_true", help="print the report as JSON")
+    ld.set_defaults(func=_cmd_ladder)
     al = lsub.add_parser(
         "active", help="active learning of the coupling model: new solves where an ensemble disagrees (#34)",
         description="From the first --start fitting rows of the recipe's table (built by `library supercells`), "
