@@ -182,11 +182,14 @@ class NearestAtom:
 
     def cell_of(self, px, py):
         G = self.G
-        ix = np.floor((px + np.pi) * (G / (2 * np.pi))).astype(np.int64)
-        iy = np.floor((py + np.pi) * (G / (2 * np.pi))).astype(np.int64)
+        # truncation, not floor: the two differ only below 0, which the clip maps to 0 either way
+        ix = ((px + np.pi) * (G / (2 * np.pi))).astype(np.int64)
+        iy = ((py + np.pi) * (G / (2 * np.pi))).astype(np.int64)
         np.clip(ix, 0, G - 1, out=ix)  # wrapped inputs: only rounding at +pi can step out
         np.clip(iy, 0, G - 1, out=iy)
-        return ix * G + iy
+        ix *= G
+        ix += iy
+        return ix
 
     def __call__(self, px, py) -> np.ndarray:
         """Nearest atom of wrapped phase pairs (any shape); returns int32 of that shape."""

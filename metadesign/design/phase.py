@@ -164,19 +164,26 @@ def design_phase(spec: SupercellSpec, pol: int, iy: np.ndarray, ix: np.ndarray, 
     out = np.empty((iy.size, ix.size), dtype=dtype)
     y_all = cell_coordinates(spec.n_cells, spec.period, iy)
     x_all = cell_coordinates(spec.n_cells, spec.period, ix)
+    # consecutive indices (every caller's rows and columns): each sub-lattice is a strided view, written
+    # in place (no fancy-index scatter); any other index set goes through np.ix_
+    runs = all(v.size < 2 or bool(np.all(np.diff(v) == 1)) for v in (iy, ix))
     for b in range(m):
-        rows = np.nonzero(iy % m == b)[0]
-        if rows.size == 0:
-            continue
+        rows = slice((b - int(iy[0])) % m, None, m) if runs and iy.size else np.nonzero(iy % m == b)[0]
         y = y_all[rows][:, None]
+        if y.size == 0:
+            continue
         for a in range(m):
-            cols = np.nonzero(ix % m == a)[0]
-            if cols.size == 0:
+            cols = slice((a - int(ix[0])) % m, None, m) if runs and ix.size else np.nonzero(ix % m == a)[0]
+            x = x_all[cols][None, :]
+            if x.size == 0:
                 continue
-            ph = lens_phase(x_all[cols][None, :], y, spec.channels(pol)[a + m * b], spec.wavelength)
+            ph = lens_phase(x, y, spec.channels(pol)[a + m * b], spec.wavelength)
             if offset:
                 ph += offset
-            out[np.ix_(rows, cols)] = wrap(ph) if wrapped else ph
+            if runs:
+                out[rows, cols] = wrap(ph) if wrapped else ph
+            else:
+                out[np.ix_(rows, cols)] = wrap(ph) if wrapped else ph
     return out
 
 
