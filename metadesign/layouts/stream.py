@@ -884,14 +884,6 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
     for name, r, c, off, ln in scan["tiles"]:
         by_row.setdefault(r, []).append((name, c, off, ln))
     stripes = sorted(by_row)
-    results = {}
-    done = 0
-    for res in run_tasks(_stripe_job, [(r, by_row[r]) for r in stripes if r * tile_size < n], workers, g,
-                         scheduler=scheduler, key="verify-stripe"):
-        results[res["r"]] = res
-        done += 1
-        if progress:
-            progress(done, len(stripes))
     for r in stripes:
         if r * tile_size >= n:
             problem(f"tile row {r} is outside the design's {n} rows")
@@ -901,28 +893,50 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
     pv = np.zeros(n_atoms * n_atoms, np.int64)
     tot = {"mismatched": 0, "duplicates": 0, "off_lattice": 0, "tiles": 0}
     rows = NpzRows(design_path, "index_map")
+    last = [None]  # (stripe, its top row) of the stripe folded last
+
+    def fold(r: int, res: dict | None) -> None:
+        """Stripe ``r``'s result into the totals, in stripe order (the same report whatever the worker
+        count); only its top row is kept, for the vertical pairs across the next border."""
+        nonlocal counts, want, ph, pv
+        if res is None:  # a stripe without a tile cell: its designed pillars are in no tile
+            _, w_r = _design_rows(rows, g, r * tile_size, min(n, (r + 1) * tile_size))
+            want += w_r
+            if w_r.sum():
+                tot["mismatched"] += int(w_r.sum())
+                problem(f"stripe {r} (rows {r * tile_size}..): no tile cell, {int(w_r.sum())} designed pillars "
+                        "missing")
+            last[0] = None
+            return
+        for msg in res["problems"]:
+            problem(msg)
+        counts += res["counts"]
+        want += res["want"]
+        ph += res["pairs_h"]
+        pv += res["pairs_v"]
+        for k in tot:
+            tot[k] += res[k]
+        if last[0] is not None and last[0][0] == r - 1:  # vertical neighbours across the stripe border
+            pv += _pairs(last[0][1], res["bottom"], n_atoms)
+        last[0] = (r, res["top"])
+
+    expected = {r for r in stripes if r * tile_size < n}
+    n_stripes = -(-n // tile_size)
+    pending: dict[int, dict] = {}  # results ahead of their turn (few: stripes are dispatched in order)
+    nxt = done = 0
     try:
-        for r in range(-(-n // tile_size)):  # in stripe order: the same report whatever the worker count
-            res = results.get(r)
-            if res is None:  # a stripe without a tile cell: its designed pillars are in no tile
-                _, w_r = _design_rows(rows, g, r * tile_size, min(n, (r + 1) * tile_size))
-                want += w_r
-                if w_r.sum():
-                    tot["mismatched"] += int(w_r.sum())
-                    problem(f"stripe {r} (rows {r * tile_size}..): no tile cell, {int(w_r.sum())} designed pillars "
-                            "missing")
-                continue
-            for msg in res["problems"]:
-                problem(msg)
-            counts += res["counts"]
-            want += res["want"]
-            ph += res["pairs_h"]
-            pv += res["pairs_v"]
-            for k in tot:
-                tot[k] += res[k]
-            prev = results.get(r - 1)
-            if prev is not None:  # vertical neighbours across the stripe border
-                pv += _pairs(prev["top"], res["bottom"], n_atoms)
+        for res in run_tasks(_stripe_job, [(r, by_row[r]) for r in sorted(expected)], workers, g,
+                             scheduler=scheduler, key="verify-stripe"):
+            pending[res["r"]] = res
+            done += 1
+            while nxt < n_stripes and (nxt in pending or nxt not in expected):
+                fold(nxt, pending.pop(nxt, None))
+                nxt += 1
+            if progress:
+                progress(done, len(stripes))
+        while nxt < n_stripes:
+            fold(nxt, pending.pop(nxt, None))
+            nxt += 1
     finally:
         rows.close()
     # --- the tiling, the top cell, the atoms, the counts, the rules
