@@ -413,3 +413,37 @@ def test_convergence_ladder_measures_label_changes(paper_library, tmp_path):
     labels = rep["_labels"]
     tu = interpolate_t(paper_library, w[..., 0], w[..., 1])[0]
     np.testing.assert_allclose(labels[:, 0], tu[0].mean((0, 1))[None].repeat(2, 0), atol=1e-9)
+
+
+def test_ladder_and_active_cli(tmp_path, capsys):
+    """The two commands end to end at a small truncation: JSON products with their format tags, a rerun
+    over our own output allowed (and resumed), a foreign file at the output refused with one line."""
+    import json
+
+    from conftest import REPO, run_main
+
+    rec = tmp_path / "sc.toml"
+    rec.write_text(f'[table]\nlibrary = "{REPO / "library" / "paper.npz"}"\ndesign = "{REPO / "layouts" / "demo.toml"}"\n'
+                   'supercells = 16\nseed = 3\ntest_every = 4\nn_harmonics = 30\nchunk = 4\n'
+                   '[mix]\ndesign = 0.5\nextra_design = 0.0\natom_tuples = 0.25\njittered_atoms = 0.25\n')
+    rc, _, err = run_main(["library", "supercells", rec, "--json"], capsys)
+    assert rc == 0, err
+    table = tmp_path / "sc.npz"
+    out = tmp_path / "ladder.json"
+    args = ["library", "ladder", table, "--rows", "2", "--harmonics", "30", "50", "-o", out, "--json"]
+    rc, _, err = run_main(args, capsys)
+    assert rc == 0, err
+    rep = json.loads(out.read_text())
+    assert rep["format"].startswith("metadesign.ladder/") and len(rep["steps"]) == 1 and len(rep["rows"]) == 2
+    rc, _, err = run_main(args, capsys)  # ours: replaced
+    assert rc == 0, err
+    (tmp_path / "foreign.json").write_text("{}")
+    rc, _, err = run_main(args[:-3] + ["-o", tmp_path / "foreign.json"], capsys)
+    assert rc == 2 and len(err) == 1 and (tmp_path / "foreign.json").read_text() == "{}"
+    rc, _, err = run_main(["library", "active", rec, "--reference", table, "--start", "4", "--batch", "2",
+                           "--rounds", "1", "--members", "2", "--pool", "10", "--steps", "10", "--hidden", "8",
+                           "--json"], capsys)
+    assert rc == 0, err
+    act = json.loads((tmp_path / "sc-active.json").read_text())
+    assert act["format"].startswith("metadesign.active/") and [r["solves"] for r in act["active"]] == [4, 6]
+    assert (tmp_path / "sc-active.png").exists()

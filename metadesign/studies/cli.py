@@ -431,7 +431,8 @@ def _cmd_ladder(a: argparse.Namespace) -> int:
                                  workers=a.workers, scheduler=a.scheduler,
                                  progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
         rep.pop("_labels")
-        rep["table"] = {"path": tp.name, "n_harmonics": table.meta.get("n_harmonics")}
+        rep = {"format": "metadesign.ladder/1", **rep,
+               "table": {"path": tp.name, "n_harmonics": table.meta.get("n_harmonics")}}
         atomic_write_text(out, json.dumps(rep, indent=1))
     lines = [f"wrote {out}: {len(rep['rows'])} held-out supercells of {tp.name}"]
     for st in rep["steps"]:
@@ -475,6 +476,7 @@ def _cmd_active(a: argparse.Namespace) -> int:
         rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg, workers=a.workers,
                               scheduler=a.scheduler, log=log)
         rep.pop("members")
+        rep = {"format": "metadesign.active/1", **rep}
         fig = plot_active(rep, out.with_suffix(".png"))
         rep["figure"] = fig.name
         atomic_write_text(out, json.dumps(rep, indent=1))
@@ -776,7 +778,7 @@ def register(sub, groups: dict) -> None:
         "--reference's held-out rows beside the same number of random solves. Writes OUT (.json) and a figure.")
     al.add_argument("recipe", help="supercell recipe (TOML) whose table exists (e.g. library/paper-supercells-fast.toml)")
     al.add_argument("--reference", required=True, metavar="TABLE", help="the converged table whose held-out rows certify")
-    al.add_argument("--start", type=integer(10, 1_000_000), default=250, help="initial random solves (250)")
+    al.add_argument("--start", type=integer(2, 1_000_000), default=250, help="initial random solves (250)")
     al.add_argument("--batch", type=integer(1, 1_000_000), default=250, help="solves per round (250)")
     al.add_argument("--rounds", type=integer(1, 100), default=4, help="rounds (4)")
     al.add_argument("--members", type=integer(2, 16), default=4, help="ensemble members (4)")
