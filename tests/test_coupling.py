@@ -447,3 +447,29 @@ def test_ladder_and_active_cli(tmp_path, capsys):
     act = json.loads((tmp_path / "sc-active.json").read_text())
     assert act["format"].startswith("metadesign.active/") and [r["solves"] for r in act["active"]] == [4, 6]
     assert (tmp_path / "sc-active.png").exists()
+    rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "2", "--harmonics",
+                           "120", "-o", tmp_path / "patches.json", "--json"], capsys)
+    assert rc == 0, err
+    pt = json.loads((tmp_path / "patches.json").read_text())
+    assert pt["format"].startswith("metadesign.patches/") and pt["patches"] == 2 and pt["beyond_2x2_mean_both"] > 0
+
+
+def test_a_patch_repeating_one_supercell_is_that_supercell():
+    """A 4 x 4 patch made of one 2 x 2 supercell repeated is the same periodic structure: at matched
+    truncations its 0th order equals the supercell's (the even harmonics decouple), with no cross-
+    polarisation; a patch of four different supercells differs from their mean (the effect measured)."""
+    from metadesign.library.supercells import matched_harmonics, matched_unit_harmonics
+    from metadesign.studies.supercells import _patch_task
+
+    st = Stack()
+    ns_p, ns_s = matched_harmonics(150, st, 4, 2)
+    _, nu = matched_unit_harmonics(ns_s, st)
+    sc = _tiny_widths(1)[0]  # (2, 2, 2)
+    w = np.tile(sc, (2, 2, 1))  # (4, 4, 2): the supercell twice in x and y
+    _, r = _patch_task(("p", w, st, ns_p, ns_s, nu))
+    np.testing.assert_allclose(r["t_patch"], r["t_super"][0], atol=1e-8)
+    np.testing.assert_allclose(r["t_super"], np.broadcast_to(r["t_super"][0], (4, 2)), atol=1e-12)
+    assert r["cross"].max() < 1e-8
+    w2 = np.concatenate([np.concatenate([sc, sc[::-1]], 1), np.concatenate([sc[:, ::-1], sc], 1)], 0)
+    _, r2 = _patch_task(("q", w2, st, ns_p, ns_s, nu))
+    assert np.abs(r2["t_patch"] - r2["t_super"].mean(0)).max() > 1e-4

@@ -23,7 +23,7 @@ import numpy as np
 from .rcwa import CellResult, SolverSettings, Stack, Truncation, symmetry_bases, zero_order_result
 
 __all__ = ["Rect", "staircase_permittivity", "solve_layers", "solve_supercell", "solve_tapered",
-           "supercell_rects", "tapered_layers"]
+           "supercell_rects", "tapered_layers", "patch_rects", "solve_patch"]
 
 
 @dataclass(frozen=True)
@@ -170,6 +170,29 @@ def solve_supercell(widths, stack: Stack = Stack(), n_harmonics: int = 800,
             raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
     return solve_layers([(stack.height, supercell_rects(widths, stack.period))], 2 * stack.period, stack,
                         n_harmonics, truncation, symmetric=symmetric)
+
+
+def patch_rects(widths, period: float):
+    """The pillars of an ``m x m`` patch, ``widths[r][c] = (wx, wy)`` at ``x = c p``, ``y = r p`` (lattice
+    period ``m p``; the patch repeats, so the pillars near the cell edge straddle it)."""
+    w = np.asarray(widths, float)
+    m = w.shape[0]
+    return [Rect(c * period, r * period, float(w[r, c, 0]), float(w[r, c, 1])) for r in range(m) for c in range(m)]
+
+
+def solve_patch(widths, stack: Stack = Stack(), n_harmonics: int = 1300,
+                truncation: Truncation = Truncation.CIRCULAR) -> CellResult:
+    """An ``m x m`` patch of vertical pillars (``widths`` (m, m, 2) m) repeated with period ``m p``: the full
+    coupled problem (a patch cut from a design has no mirror symmetry), so cross-polarisation terms are
+    computed, not assumed away."""
+    w = np.asarray(widths, float)
+    if w.ndim != 3 or w.shape[0] != w.shape[1] or w.shape[2] != 2:
+        raise ValueError(f"widths must be (m, m, 2), got {w.shape}")
+    for wx, wy in w.reshape(-1, 2):
+        if not (0 < wx < stack.period and 0 < wy < stack.period):
+            raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
+    return solve_layers([(stack.height, patch_rects(w, stack.period))], w.shape[0] * stack.period, stack,
+                        n_harmonics, truncation, symmetric=False)
 
 
 def tapered_layers(wx: float, wy: float, height: float, sidewall_deg: float, slices: int):

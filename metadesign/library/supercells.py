@@ -38,17 +38,20 @@ from ..validation import ValidationError
 from .rcwa import SolverSettings, Stack, solve_cell
 from .supercell import solve_supercell
 
-__all__ = ["SupercellTable", "matched_unit_harmonics", "solve_table", "unit_cells", "load_table", "save_table", "TABLE_FORMAT"]
+__all__ = ["SupercellTable", "matched_unit_harmonics", "matched_harmonics", "solve_table", "unit_cells", "load_table", "save_table", "TABLE_FORMAT"]
 
 TABLE_FORMAT = "metadesign.supercells/1"
 
 
-def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
-    """Requested harmonic counts ``(supercell, unit cell)`` whose sets match: the unit cell's harmonics are
-    the supercell's even ones, halved (circular truncation of the same radius in reciprocal space).  grcwa
-    keeps the whole shells below the first incomplete one, so a count that ends exactly on a shell loses
-    it: the requests returned are one more than the set sizes."""
+def matched_harmonics(n_big: int, stack: Stack, big: int, small: int) -> tuple[int, int]:
+    """Requested harmonic counts ``(big cell, small cell)`` whose sets match, for cells of ``big`` and ``small``
+    pitches (``big`` a multiple of ``small``): the small cell's harmonics are the big cell's multiples of
+    ``big / small``, divided.  See :func:`matched_unit_harmonics` (big 2, small 1)."""
     import grcwa
+
+    if big % small:
+        raise ValueError(f"a cell of {big} pitches does not hold cells of {small}")
+    q = big // small
 
     def gset(n, L):
         o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
@@ -56,12 +59,20 @@ def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
         o.Init_Setup(Gmethod=0)
         return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
 
-    s, ns = gset(n_super, 2 * stack.period)
-    even = {(a // 2, b // 2) for a, b in s if a % 2 == 0 and b % 2 == 0}
-    u, nu = gset(len(even) + 1, stack.period)  # grcwa keeps whole shells below the first incomplete one
-    if u != even:
-        raise RuntimeError(f"no unit-cell truncation matches the supercell's even harmonics (nG {ns})")
+    s, ns = gset(n_big, big * stack.period)
+    sub = {(a // q, b // q) for a, b in s if a % q == 0 and b % q == 0}
+    u, nu = gset(len(sub) + 1, small * stack.period)  # grcwa keeps whole shells below the first incomplete one
+    if u != sub:
+        raise RuntimeError(f"no truncation of the {small}-pitch cell matches the {big}-pitch cell's (nG {ns})")
     return ns + 1, nu + 1
+
+
+def matched_unit_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
+    """Requested harmonic counts ``(supercell, unit cell)`` whose sets match: the unit cell's harmonics are
+    the supercell's even ones, halved (circular truncation of the same radius in reciprocal space).  grcwa
+    keeps the whole shells below the first incomplete one, so a count that ends exactly on a shell loses
+    it: the requests returned are one more than the set sizes."""
+    return matched_harmonics(n_super, stack, 2, 1)
 
 
 @dataclass(frozen=True)

@@ -33,15 +33,19 @@ from ..library.locate import file_sha256
 from ..library.store import interpolate_t, load_library
 from ..library.supercells import (
     SupercellTable,
+    matched_harmonics,
     matched_unit_harmonics,
+    unit_cells,
     remove_partial,
     save_table,
     solve_table,
 )
 from ..plotting import pyplot, save_figure
+from ..tasks import TaskFolder, content_key, run_resumable
 from ..outputs import Need, temporary
 
-__all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder", "SOURCES", "certify_coupling",
+__all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder",
+           "patch_study", "design_source", "SOURCES", "certify_coupling",
            "plot_coupling"]
 
 SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
@@ -100,7 +104,7 @@ def load_supercell_recipe(path: str | Path) -> SupercellRecipe:
                            t["seed"], t["test_every"], t["n_harmonics"], t["chunk"], mix, m["jitter_nm"])
 
 
-def _load(path: Path, log) -> tuple[Design, str]:
+def design_source(path: Path, log) -> tuple[Design, str]:
     """A design from a store, or from a recipe: its store if one is beside it, else built in a temporary
     folder."""
     if path.suffix == ".toml":
@@ -161,8 +165,8 @@ def pool_widths(recipe: SupercellRecipe, n: int, log=lambda s: None) -> np.ndarr
     """(n, 2, 2, 2) candidate supercells drawn like the recipe's rows (the same mix, designs and jitter)
     from another stream: the active-learning pool."""
     lib = load_library(recipe.library)
-    main = _design_widths(_load(recipe.design, log)[0])
-    extra = None if recipe.extra_design is None else _design_widths(_load(recipe.extra_design, log)[0])
+    main = _design_widths(design_source(recipe.design, log)[0])
+    extra = None if recipe.extra_design is None else _design_widths(design_source(recipe.extra_design, log)[0])
     w_range = (float(lib.wx.min()), float(lib.wx.max()))
     return sample_rows(n, recipe.seed + POOL_SEED_OFFSET, recipe.mix, main, extra, w_range, recipe.jitter,
                        recipe.test_every)[0]
@@ -188,11 +192,11 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
     # at the library's own truncation the library is the matched unit cell; at any other the table solves
     # each row's four unit cells too (the coupling at that truncation: SupercellTable.labels)
     unit = None if lib_nG is not None and nu - 1 == lib_nG else nu
-    d_main, sha_main = _load(recipe.design, log)
+    d_main, sha_main = design_source(recipe.design, log)
     main = _design_widths(d_main)
     extra, sha_extra = (None, None)
     if recipe.extra_design is not None:
-        d_x, sha_extra = _load(recipe.extra_design, log)
+        d_x, sha_extra = design_source(recipe.extra_design, log)
         extra = _design_widths(d_x)
     w_range = (float(lib.wx.min()), float(lib.wx.max()))
     widths, source, test = sample_rows(n, recipe.seed, recipe.mix, main, extra, w_range, recipe.jitter,
@@ -261,6 +265,69 @@ def convergence_ladder(table: SupercellTable, lib, rows: np.ndarray, harmonics, 
                                               for lv in levels],
             "steps": steps, "table_labels": at_table,
             "_labels": np.stack([lv["label"] for lv in levels])}
+
+
+def _patch_task(args) -> tuple[str, dict]:
+    """One 4 x 4 patch: its own solve (period 4 p, full problem) and its four 2 x 2 supercells and sixteen
+    unit cells at the truncations matched to it."""
+    name, w, stack, n_patch, n_super, n_unit = args
+    from ..library.supercell import solve_patch, solve_supercell
+
+    res = solve_patch(w, stack, n_patch)
+    sc = np.array([solve_supercell(w[2 * i:2 * i + 2, 2 * j:2 * j + 2], stack, n_super).jones[[0, 1], [0, 1]]
+                   for i in range(2) for j in range(2)])
+    units = unit_cells(w, stack, n_unit)
+    return name, {"t_patch": res.jones[[0, 1], [0, 1]], "cross": np.abs(res.jones[[0, 1], [1, 0]]),
+                  "t_super": sc, "t_unit": units, "n_harmonics": np.array([res.n_harmonics])}
+
+
+def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, partial: Path, *, workers: int = 1,
+                scheduler: str | None = None, progress=None, log=lambda s: None) -> dict:
+    """Beyond the periodic 2 x 2 cell (issue #34 section 2): ``patches`` 4 x 4 patches cut from ``design``
+    (aligned to its supercells, all sixteen pillars present, drawn with ``seed``), each solved as a
+    periodic 4 x 4 cell (2.8 um at the paper's pitch: each supercell sees other supercells around it, as
+    in the device) at ``n_harmonics`` (requested), against the mean of its four 2 x 2 supercells solved
+    periodically at the matched truncation (the 2 x 2 picture every coupling model here assumes), beside
+    the LPA at the unit cells' matched truncation.  Errors in units of the sixteen pillars' rms ``|t|``.
+    Resumable: one task per patch under ``partial`` (content-keyed)."""
+    stack = lib.stack
+    ns_patch, ns_super = matched_harmonics(n_harmonics, stack, 4, 2)
+    _, nu = matched_unit_harmonics(ns_super, stack)
+    aw = np.stack([design.atoms.wx, design.atoms.wy], 1)
+    im = design.index_map
+    rng = np.random.default_rng(seed)
+    H, W = im.shape[0] // 4, im.shape[1] // 4
+    ws = []
+    while len(ws) < patches:
+        I, J = int(rng.integers(H)), int(rng.integers(W))
+        blk = im[4 * I:4 * I + 4, 4 * J:4 * J + 4].astype(np.int64)
+        if (blk < len(aw)).all():
+            ws.append(aw[blk])
+    ws = np.array(ws)
+    folder = TaskFolder(partial)
+    names = ["patch-" + content_key(np.ascontiguousarray(w, "<f8"), [ns_patch, ns_super, nu, stack.wavelength,
+                                    stack.period, stack.height, stack.n_pillar, stack.n_substrate,
+                                    stack.n_superstrate], __version__) for w in ws]
+    jobs = {nm: (nm, w, stack, ns_patch, ns_super, nu) for nm, w in zip(names, ws)}
+    t0 = time.perf_counter()
+    done, _ = run_resumable(_patch_task, jobs, folder, workers=workers, scheduler=scheduler, dask_key="patches",
+                            progress=progress, log=log, unit="patch")
+    seconds = time.perf_counter() - t0
+    tp = np.array([done[nm]["t_patch"] for nm in names])  # (n, 2)
+    tsc = np.array([done[nm]["t_super"] for nm in names])  # (n, 4, 2)
+    tu = np.array([done[nm]["t_unit"] for nm in names])  # (n, 4, 4, 2)
+    rms = np.sqrt((np.abs(tu) ** 2).mean((1, 2)))  # (n, 2)
+    lpa = tu.mean((1, 2))
+    two = tsc.mean(1)
+    beyond = np.abs(tp - two) / rms
+    return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[names[0]]["n_harmonics"][0]),
+                                                              "supercell": ns_super - 1, "unit": nu - 1},
+            "beyond_2x2": _stats(beyond), "beyond_2x2_mean_both": float(beyond.mean()),
+            "beyond_2x2_p90_both": float(np.percentile(beyond, 90)),
+            "lpa_vs_patch": _stats(np.abs(tp - lpa) / rms), "two_by_two_vs_lpa": _stats(np.abs(two - lpa) / rms),
+            "cross_polarisation_max": float(np.array([done[nm]["cross"] for nm in names]).max()),
+            "solve_seconds": seconds, "workers": workers,
+            "metric": "|t| differences over the sixteen pillars' rms |t| (matched unit cells), per polarisation"}
 
 
 def _stats(e: np.ndarray) -> dict:
