@@ -76,9 +76,9 @@ def _cmd_psf(a: argparse.Namespace) -> int:
             full_check = full_resolution_check(fab, sr, clean, a.full_resolution, pert,
                                                progress_bar("full resolution", unit="row"))
         save_psf(out / "psf.npz", res, fab, sr, {"wavefront": str(a.wavefront) if a.wavefront else None})
-        name = f"{Path(a.layout).name} ({fab.n_cells * fab.period * 1e3:.3g} mm)"
+        name = f"{fab.layout.provenance.get('design') or Path(a.layout).name} ({fab.n_cells * fab.period * 1e3:.3g} mm)"
         fig = plot_frames(res.frames, sr.sensor, out / "psf-fig-2c.png", fab.channels,
-                          f"{name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)", beside)
+                          f"{name}: sensor frames (bias {a.bias_nm} nm, jitter {a.jitter_nm} nm)", beside, name)
     cp = res.pupil
     summary = {"output": str(out), "frames_shape": list(res.frames.shape), "tensor_shape": list(res.tensor.shape),
                "pupil_grid": list(cp.G.shape[-2:]), "block_cells": cp.block, "clamped_pillars": cp.n_clamped,

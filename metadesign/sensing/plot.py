@@ -13,19 +13,19 @@ __all__ = ["plot_frames", "plot_fab_study"]
 
 
 def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channels=None, title: str = "",
-                beside: tuple | None = None) -> Path:
+                beside: tuple | None = None, label: str = "") -> Path:
     """Two frames (x-pol, y-pol) with quadrant boundaries; row 0 at the top.  Each quadrant is scaled to
     its own peak (the 8 spots have different defocus and so peaks spanning an order of magnitude: on one
     linear scale only the sharpest show), and its peak relative to the brightest spot of the frame is
     written in it.  Axes in micrometres on the camera.  ``beside = (frames, channels, label)``: another
-    device's frames on the same sensor, drawn as a second row (``title`` then labels the first)."""
+    device's frames on the same sensor, drawn as a second row (``label`` names the first)."""
     plt = pyplot()
-    rows = [(frames, channels, title)] + ([beside] if beside is not None else [])
+    rows = [(frames, channels, label or title)] + ([beside] if beside is not None else [])
     fig, axes = plt.subplots(len(rows), 2, figsize=(13, 5.4 * len(rows)), constrained_layout=True, squeeze=False)
     for (fr, ch, label), ax_row in zip(rows, axes):
         _frame_pair(fig, ax_row, fr, sensor, ch, label if beside is not None else "")
     pitch_um = sensor.pixel_pitch * 1e6
-    head = title + ": " if title and beside is None else ""
+    head = title + ": " if title else ""
     fig.suptitle(head + f"{sensor.width_px} x {sensor.height_px} pixels of {pitch_um:g} um; each quadrant on "
                  "its own scale")
     return save_figure(fig, out)
