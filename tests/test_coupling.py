@@ -429,6 +429,9 @@ def test_ladder_and_active_cli(tmp_path, capsys):
     rc, _, err = run_main(["library", "supercells", rec, "--json"], capsys)
     assert rc == 0, err
     table = tmp_path / "sc.npz"
+    rc, _, err = run_main(["library", "coupling", table, "--reference", table, "--sizes", "10", "--steps", "5",
+                           "--hidden", "8", "-o", tmp_path / "c.safetensors", "--json"], capsys)
+    assert rc == 0, err  # fitted on labels of a table at another truncation, certified on a reference
     out = tmp_path / "ladder.json"
     args = ["library", "ladder", table, "--rows", "2", "--harmonics", "30", "50", "-o", out, "--json"]
     rc, _, err = run_main(args, capsys)

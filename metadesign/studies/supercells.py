@@ -354,7 +354,7 @@ def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: Co
         raise ValueError("the reference table has no held-out rows")
     sizes = sorted({min(int(n), len(fit_rows)) for n in sizes})
     w_fit = table.widths[fit_rows]
-    t_fit = table.labels(lpa_t(interpolate_t(lib, w_fit[..., 0], w_fit[..., 1])[0]))
+    t_fit = table.rows(fit_rows).labels(lpa_t(interpolate_t(lib, w_fit[..., 0], w_fit[..., 1])[0]))
     w_te = ref.widths[test_rows]
     tu_te = interpolate_t(lib, w_te[..., 0], w_te[..., 1])[0]
     t_te = ref.rows(test_rows).labels(lpa_t(tu_te))
