@@ -122,6 +122,11 @@ def emit(obj: dict, as_json: bool, text: str) -> None:
 PROGRESS_SECONDS = float(os.environ.get("METADESIGN_PROGRESS_SECONDS", "30"))
 
 
+def plural(unit: str) -> str:
+    """English plural of a progress unit (cell -> cells, patch -> patches)."""
+    return unit + ("es" if unit.endswith(("s", "sh", "ch", "x")) else "s")
+
+
 def progress_bar(desc: str, unit: str = "cell", stream=None, interval: float | None = None, clock=time.monotonic):
     """A progress callback ``(done, total)``: a tqdm bar on a terminal; elsewhere (a log file, CI, where
     tqdm turns itself off) one line every ``interval`` seconds with the rate and the time left, and a last
@@ -156,8 +161,9 @@ def progress_bar(desc: str, unit: str = "cell", stream=None, interval: float | N
         rate = done / el if el > 0 else 0.0
         eta = (total - done) / rate if rate > 0 else float("inf")
         left = "done" if final else (f"about {_duration(eta)} left" if eta != float("inf") else "")
-        print(f"{desc}: {done}/{total} {unit}s ({100 * done / max(total, 1):.0f} %), {_duration(el)} elapsed"
-              + (f", {rate:.3g} {unit}s/s" if rate else "") + (f"; {left}" if left else ""), file=stream, flush=True)
+        units = plural(unit)
+        print(f"{desc}: {done}/{total} {units} ({100 * done / max(total, 1):.0f} %), {_duration(el)} elapsed"
+              + (f", {rate:.3g} {units}/s" if rate else "") + (f"; {left}" if left else ""), file=stream, flush=True)
         state.update(last=now, printed=True, closed=final)
 
     return log_cb

@@ -31,6 +31,7 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
+from .cliutil import plural
 from .io import atomic_write_text, read_npz, write_npz
 from .parallel import run_tasks
 from .validation import ValidationError
@@ -190,7 +191,7 @@ def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store:
     total = sum(weight(n) for n in tasks)
     done_w = total - sum(weight(n) for n in todo)
     if results:
-        log(f"resuming: {len(results)}/{len(tasks)} tasks ({done_w}/{total} {unit}s) kept from an interrupted "
+        log(f"resuming: {len(results)}/{len(tasks)} tasks ({done_w}/{total} {plural(unit)}) kept from an interrupted "
             f"run in {folder.root}")
     if progress:
         progress(done_w, total)

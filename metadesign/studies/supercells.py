@@ -31,6 +31,7 @@ from ..library.coupling import CouplingConfig, lpa_t, relative_error
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
 from ..library.store import interpolate_t, load_library
+from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
     SupercellTable,
     matched_harmonics,
@@ -271,8 +272,6 @@ def _patch_task(args) -> tuple[str, dict]:
     """One 4 x 4 patch: its own solve (period 4 p, full problem) and its four 2 x 2 supercells and sixteen
     unit cells at the truncations matched to it."""
     name, w, stack, n_patch, n_super, n_unit = args
-    from ..library.supercell import solve_patch, solve_supercell
-
     res = solve_patch(w, stack, n_patch)
     sc = np.array([solve_supercell(w[2 * i:2 * i + 2, 2 * j:2 * j + 2], stack, n_super).jones[[0, 1], [0, 1]]
                    for i in range(2) for j in range(2)])
