@@ -48,10 +48,11 @@ __all__ = ["TiledPlan", "build_tiled", "tile_records", "HIERARCHIES", "DEFAULT_T
 
 HIERARCHIES = ("tiles", "flat")
 DEFAULT_TILE = 1024
-#: deflate level of the design file's index map (each stripe's piece, on its worker).  Measured on the paper
-#: design's rows: level 1 deflates to 0.40 of the raw bytes in half the time of level 6 (0.29); at 10 cm
-#: 0.48 vs 0.44: the time saved on every pillar is worth the ~10 % larger file
-DESIGN_DEFLATE_LEVEL = 1
+#: deflate level of the design file's index map (each stripe's piece, on its worker).  Measured
+#: (benchmarks/bench_tiled.py, quiet machine, paper design rows): level 1 7.9 ns/pillar to 0.40 of the raw
+#: bytes, level 6 10.3 ns to 0.27 (10 cm rows: 0.48 vs 0.44): +2 % of a pillar's worker cost (~130 ns)
+#: for a file up to a third smaller
+DESIGN_DEFLATE_LEVEL = 6
 #: OASIS bytes per pillar of the streamed encoder (measured: 5 mm 0.60, 2.5 cm 0.40; the larger for estimates)
 OASIS_BYTES_PER_PILLAR = 0.6
 
@@ -72,7 +73,7 @@ class TiledPlan:
     x0: int
     hierarchy: str
     compression: int
-    design_level: int = 1  # the design file's deflate level (DESIGN_DEFLATE_LEVEL)
+    design_level: int = 6  # the design file's deflate level (DESIGN_DEFLATE_LEVEL)
     _mapper: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -179,9 +180,9 @@ def encode_stripe(plan: TiledPlan, blk: np.ndarray, r0: int) -> bytes:
     return b"".join(out)
 
 
-#: the design file's index map deflates to at most this fraction of its raw bytes (measured at level 1:
-#: the paper design 0.40, the 10 cm one 0.48; the larger for estimates)
-DESIGN_DEFLATE_RATIO = 0.6
+#: the design file's index map deflates to at most this fraction of its raw bytes (measured at level 6:
+#: the paper design 0.27, the 10 cm one 0.44; the larger for estimates)
+DESIGN_DEFLATE_RATIO = 0.5
 
 
 def tiled_need(recipe: DesignRecipe, tile: int = DEFAULT_TILE, workers: int = 1) -> Need:
