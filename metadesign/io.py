@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import glob
 import io
 import json
 import os
@@ -30,7 +31,7 @@ import numpy as np
 from .config import InputError
 from .deflate import DeflatedArray, write_zip
 
-__all__ = ["atomic_path", "atomic_write_text", "write_npz", "StreamedArray", "DeflatedArray", "NpzRows", "iter_npz_rows", "read_npz",
+__all__ = ["atomic_path", "remove_stale_temps", "atomic_write_text", "write_npz", "StreamedArray", "DeflatedArray", "NpzRows", "iter_npz_rows", "read_npz",
            "read_product", "json_array", "from_json_array", "output_lock",
            "lock_path", "claim", "enforce_claims", "claimed"]
 
@@ -63,6 +64,21 @@ def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def remove_stale_temps(target: str | Path, suffix: str | None = None) -> list[Path]:
+    """Remove the temporary files :func:`atomic_path` left for ``target`` when its writer was killed
+    (SIGKILL runs no cleanup): ``.NAME.<random>SUFFIX`` beside it.  Call it only while no other process
+    writes ``target`` (a job holding the output's lock); returns what was removed."""
+    target = Path(target)
+    suffix = suffix if suffix is not None else target.suffix + ".tmp"
+    gone = []
+    if target.parent.is_dir():
+        for p in target.parent.glob(f".{glob.escape(target.name)}.*{glob.escape(suffix)}"):
+            if p.is_file() and not p.is_symlink():
+                p.unlink(missing_ok=True)
+                gone.append(p)
+    return gone
 
 
 #: outputs opened by the product layer (metadesign.outputs.product) in this process, and whether writes

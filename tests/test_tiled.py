@@ -287,3 +287,46 @@ def test_pieces_deflated_apart_join_into_one_zip_entry(tmp_path):
     with pytest.raises(ValueError, match="pieces hold"):
         write_npz(tmp_path / "y.npz", {"index_map": DeflatedArray(arr.shape, arr.dtype, iter(short))})
     assert not (tmp_path / "y.npz").exists()
+
+
+def test_sigkill_while_assembling_resumes_to_the_same_bytes(tiled_case, tiled64, tmp_path):
+    """SIGKILL in the second phase (every stripe kept, the design's pieces half concatenated): nothing of
+    the interrupted files is left, the stripes are, and the rerun assembles the bytes of an uninterrupted
+    build without computing a stripe again.  (The first phase's interruption: the test above.)"""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    tmp, recipe, _ = tiled_case
+    out = tmp_path / "killed"
+    code = f"""
+import os, signal
+import metadesign.layouts.tiled as T
+from metadesign.design.recipe import load_design_recipe
+real = T.DeflatedArray
+class Dying:  # the design's index map: SIGKILL after its second piece reached the file
+    def __init__(self, shape, dtype, pieces):
+        def gen():
+            for k, p in enumerate(pieces):
+                if k == 2:
+                    os.kill(os.getpid(), signal.SIGKILL)
+                yield p
+        self.inner = real(shape, dtype, gen())
+T.DeflatedArray = lambda shape, dtype, pieces: Dying(shape, dtype, pieces).inner
+T.build_tiled(load_design_recipe(r"{recipe.source}"), __import__("pathlib").Path(r"{out}"), tile=64)
+"""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
+    assert p.returncode == -signal.SIGKILL, p.stderr.decode()[-2000:]
+    assert not (out / "design.npz").exists() and not (out / "layout.oas").exists()
+    part = [q for q in out.iterdir() if q.name.startswith(".tiled-partial")]
+    n_stripes = -(-recipe.spec.n_cells // 64)
+    assert len(part) == 1 and len(list(part[0].glob("stripe-*.npz"))) == n_stripes  # phase 1 complete
+    rep = build_tiled(recipe, out, tile=64)
+    assert rep["stripes_reused"] == n_stripes
+    for f in ("design.npz", "layout.oas", "metrics.json"):
+        assert (out / f).read_bytes() == (tiled64[0] / f).read_bytes(), f
+    assert sorted(q.name for q in out.iterdir()) == ["design.npz", "layout.oas", "layout.oas.json", "metrics.json"]

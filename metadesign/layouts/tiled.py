@@ -36,7 +36,7 @@ from ..design.recipe import DesignRecipe
 from ..design.store import Design, check_library, design_meta, select_recipe_atoms
 from .. import __version__
 from ..deflate import DeflatedArray, Piece, deflate_piece
-from ..io import atomic_path, atomic_write_text, json_array, read_npz, write_npz
+from ..io import atomic_path, remove_stale_temps, atomic_write_text, json_array, read_npz, write_npz
 from ..library.store import load_library
 from ..outputs import Need
 from ..tasks import TaskFolder, content_key, run_resumable
@@ -251,10 +251,13 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     reused = len(names) - len(computed)
     t_stripes = time.perf_counter() - t_stripes
     oas = out_dir / "layout.oas"
+    design_tmp = out_dir / ".design.npz.tiled-partial"
+    for target in (oas, design_tmp, out_dir / "design.npz", out_dir / "layout.oas.json", out_dir / "metrics.json"):
+        # what a SIGKILLed run left half-written (the output's lock keeps any other writer out)
+        remove_stale_temps(target)
     state = {}
     # both files appear together: the design goes to a hidden name first and replaces design.npz once the
     # layout is complete (a failure leaves neither, never a new design beside an old layout)
-    design_tmp = out_dir / ".design.npz.tiled-partial"
     try:
         with atomic_path(oas) as tmp, open(tmp, "wb") as fh:
             w = O.OasisWriter(fh)
