@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cliutil import SEED, emit, integer, num, out_dir, progress_bar
+from ..cliutil import SEED, emit, integer, num, out_dir, progress_bar, workers_arg
 from ..config import InputError
 from ..outputs import product
 
@@ -66,7 +66,8 @@ def _cmd_psf(a: argparse.Namespace) -> int:
     with product(out, "psf", _inputs(a, "layout", "sensor", "library", "coupling_model", "wavefront", "beside")):
         field = _read_wavefront(a.wavefront) if a.wavefront else None
         fab = _device(a, sr)
-        pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"))
+        pupil = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress_bar("pupil", unit="block-row"),
+                          workers=a.workers)
         if field is not None:
             field = check_field(field, pupil, f"{a.wavefront}: field")
         res = render_psf(fab, sr, field, pert, pupil=pupil, noise=sr.noise if sr.noise.active else None)
@@ -223,6 +224,7 @@ def register(sub) -> None:
                      help="also evaluate every pillar without block averaging on the central PX x PX pixels of "
                      "each quadrant (chunked, bounded memory) and report the fast path's error")
     psf.add_argument("-o", "--output", help="output folder (default: psf/ beside the layout)")
+    workers_arg(psf, default=1, what="worker processes for the pupil (block-row shares; large apertures: -j 2)")
     psf.add_argument("--json", action="store_true", help="print the summary as JSON")
     psf.set_defaults(func=_cmd_psf)
 

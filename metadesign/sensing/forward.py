@@ -70,14 +70,16 @@ TILE_BYTES = 1 << 28
 
 def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: int, period: float,
                  wavelength: float, z: float, block: int, m: int = 2, tn_scale: float = 1.0,
-                 tile_blocks: int | None = None, progress: Callable[[int, int], None] | None = None) -> CoarsePupil:
+                 tile_blocks: int | None = None, progress: Callable[[int, int], None] | None = None,
+                 block_rows: tuple[int, int] | None = None) -> CoarsePupil:
     """Block-average ``tn * exp(i k |x|^2 / 2z)`` per polarisation and channel.
 
     ``transmission_rows(r0, r1)`` returns the pillar transmission of rows
     ``r0:r1`` as ``(r1 - r0, n_cells, 2)`` complex (index ``[iy, ix, pol]``)
     and the number of clamped pillars.  Rows are asked for ``tile_blocks`` block rows at a time (default:
     at most 16, and at most :data:`TILE_BYTES` of transmission: bounded memory at any aperture, 10 cm
-    included; the sums are per block, so the tiling does not change the result).
+    included; the sums are per block, so the tiling does not change the result).  ``block_rows = (B0, B1)``:
+    only those block rows (the others stay zero): a worker's share of a parallel pupil.
     """
     if block % m:
         raise ValueError(f"block {block} must be a multiple of the supercell {m}")
@@ -92,8 +94,9 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
         tile_blocks = int(max(1, min(16, TILE_BYTES // (block * npad * 2 * 8))))
     s = block // m
     clamped = 0
-    for B0 in range(0, nb, tile_blocks):
-        B1 = min(nb, B0 + tile_blocks)
+    first, last = block_rows if block_rows is not None else (0, nb)
+    for B0 in range(first, last, tile_blocks):
+        B1 = min(last, B0 + tile_blocks)
         r0, r1 = B0 * block, min(n_cells, B1 * block)
         t = np.zeros((B1 * block - r0, npad, 2), np.complex64)
         tt, c = transmission_rows(r0, r1)
@@ -108,7 +111,7 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
                 sub = sub.reshape(B1 - B0, s, nb, s, 2)
                 G[:, a + m * b, B0:B1] = np.einsum("IiJjp,Ii,Jj->pIJ", sub, sy, sx, optimize=True)
         if progress:
-            progress(B1, nb)
+            progress(B1 - first, last - first)
     G /= np.float32(block * block)
     X = centered(n_cells, period)[0] + (np.arange(nb) * block + (block - 1) / 2) * period  # block centres
     return CoarsePupil(G, X, block, period, wavelength, z, clamped)

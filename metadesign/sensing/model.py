@@ -17,6 +17,7 @@ from ..layouts.reader import IndexRows, LayoutContents, open_layout, read_tiled_
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
 from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
+from ..parallel import run_tasks
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
@@ -186,7 +187,28 @@ class AsFabricated:
         """Cells per coarse-pupil block on a grid of ``pupil_grid`` samples."""
         return block_size_for(self.n_cells, pupil_grid, self.supercell)
 
-    def pupil(self, z: float, pupil_grid: int, pert: Perturbation = Perturbation(), progress=None) -> CoarsePupil:
+    def pupil(self, z: float, pupil_grid: int, pert: Perturbation = Perturbation(), progress=None,
+              workers: int = 1) -> CoarsePupil:
+        """The coarse pupil of this device.  ``workers`` > 1 splits the block rows into contiguous shares
+        on local workers (each reads its own rows: the same pupil bit for bit, test); a perturbation with
+        jitter draws its pillars from one stream over the rows and always runs in one process."""
+        block = block_size_for(self.n_cells, pupil_grid, self.supercell)
+        nb = -(-self.n_cells // block)
+        if workers > 1 and not pert.jitter and nb >= 2 * workers:
+            cuts = np.linspace(0, nb, workers + 1).round().astype(int)
+            shares = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
+            parts = list(run_tasks(_pupil_share, [(z, pupil_grid, pert, sh) for sh in shares], workers, self))
+            cp = parts[0]
+            for part in parts[1:]:
+                cp.G[...] += part.G  # disjoint block rows: each sum lands on zeros
+            clamped = sum(part.n_clamped for part in parts)
+            if progress:
+                progress(nb, nb)
+            return CoarsePupil(cp.G, cp.X, cp.block, cp.period, cp.wavelength, cp.z, clamped)
+        return self._pupil_rows(z, pupil_grid, pert, progress)
+
+    def _pupil_rows(self, z: float, pupil_grid: int, pert: Perturbation, progress=None,
+                    block_rows: tuple[int, int] | None = None) -> CoarsePupil:
         rng = np.random.default_rng(pert.seed)  # one stream over the rows: same seed, same pillars
 
         def rows(r0, r1):
@@ -199,7 +221,13 @@ class AsFabricated:
 
         block = block_size_for(self.n_cells, pupil_grid, self.supercell)
         return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
-                            self.tn_scale, progress=progress)
+                            self.tn_scale, progress=progress, block_rows=block_rows)
+
+
+def _pupil_share(fab: "AsFabricated", task) -> CoarsePupil:
+    """Worker: one contiguous share of a device's coarse pupil (its block rows; the rest zero)."""
+    z, grid, pert, share = task
+    return fab._pupil_rows(z, grid, pert, block_rows=share)
 
 
 def channels_from_provenance(prov: dict):
