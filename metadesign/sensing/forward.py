@@ -89,12 +89,12 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
     x = centered(n_cells, period)[0] + np.arange(npad) * period  # cell-centred, padded past the aperture
     chirp = cexp(k0 * x**2 / (2 * z)).astype(np.complex64)
     chirp[n_cells:] = 0  # outside the aperture: no light
-    G = np.zeros((2, m * m, nb, nb), np.complex64)
+    first, last = block_rows if block_rows is not None else (0, nb)
+    G = np.zeros((2, m * m, last - first, nb), np.complex64)
     if tile_blocks is None:
         tile_blocks = int(max(1, min(16, TILE_BYTES // (block * npad * 2 * 8))))
     s = block // m
     clamped = 0
-    first, last = block_rows if block_rows is not None else (0, nb)
     for B0 in range(first, last, tile_blocks):
         B1 = min(last, B0 + tile_blocks)
         r0, r1 = B0 * block, min(n_cells, B1 * block)
@@ -109,7 +109,7 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
                 sy = cy[b::m].reshape(B1 - B0, s)
                 sx = chirp[a::m].reshape(nb, s)
                 sub = sub.reshape(B1 - B0, s, nb, s, 2)
-                G[:, a + m * b, B0:B1] = np.einsum("IiJjp,Ii,Jj->pIJ", sub, sy, sx, optimize=True)
+                G[:, a + m * b, B0 - first:B1 - first] = np.einsum("IiJjp,Ii,Jj->pIJ", sub, sy, sx, optimize=True)
         if progress:
             progress(B1 - first, last - first)
     G /= np.float32(block * block)

@@ -197,14 +197,16 @@ class AsFabricated:
         if workers > 1 and not pert.jitter and nb >= 2 * workers:
             cuts = np.linspace(0, nb, workers + 1).round().astype(int)
             shares = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
-            parts = list(run_tasks(_pupil_share, [(z, pupil_grid, pert, sh) for sh in shares], workers, self))
-            cp = parts[0]
-            for part in parts[1:]:
-                cp.G[...] += part.G  # disjoint block rows: each sum lands on zeros
-            clamped = sum(part.n_clamped for part in parts)
-            if progress:
-                progress(nb, nb)
-            return CoarsePupil(cp.G, cp.X, cp.block, cp.period, cp.wavelength, cp.z, clamped)
+            G, clamped, done, cp = None, 0, 0, None
+            for (a, b), cp in run_tasks(_pupil_share, [(z, pupil_grid, pert, sh) for sh in shares], workers, self):
+                if G is None:  # the whole pupil, filled share by share as they arrive
+                    G = np.empty((*cp.G.shape[:2], nb, nb), np.complex64)
+                G[:, :, a:b] = cp.G
+                clamped += cp.n_clamped
+                done += b - a
+                if progress:
+                    progress(done, nb)
+            return CoarsePupil(G, cp.X, cp.block, cp.period, cp.wavelength, cp.z, clamped)
         return self._pupil_rows(z, pupil_grid, pert, progress)
 
     def _pupil_rows(self, z: float, pupil_grid: int, pert: Perturbation, progress=None,
@@ -224,10 +226,10 @@ class AsFabricated:
                             self.tn_scale, progress=progress, block_rows=block_rows)
 
 
-def _pupil_share(fab: "AsFabricated", task) -> CoarsePupil:
-    """Worker: one contiguous share of a device's coarse pupil (its block rows; the rest zero)."""
+def _pupil_share(fab: "AsFabricated", task) -> tuple[tuple[int, int], CoarsePupil]:
+    """Worker: one contiguous share of a device's coarse pupil (its block rows only)."""
     z, grid, pert, share = task
-    return fab._pupil_rows(z, grid, pert, block_rows=share)
+    return share, fab._pupil_rows(z, grid, pert, block_rows=share)
 
 
 def channels_from_provenance(prov: dict):
