@@ -81,9 +81,9 @@ def deflate_piece(raw: bytes | memoryview, level: int) -> Piece:
 
 @dataclass(frozen=True)
 class DeflatedArray:
-    """An array :func:`metadesign.io.write_npz` writes from pieces compressed elsewhere (workers): ``head``
-    the first uncompressed bytes (the ``.npy`` header, compressed here), then ``pieces`` (an iterable of
-    :class:`Piece`, in order) holding ``nbytes`` of array data in all."""
+    """An array :func:`metadesign.io.write_npz` writes from pieces compressed elsewhere (workers): ``pieces``
+    (an iterable of :class:`Piece`, in order) holding the array's C-order bytes; the ``.npy`` header before
+    them is made and compressed by the writer."""
 
     shape: tuple
     dtype: object

@@ -939,6 +939,9 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
             nxt += 1
     finally:
         rows.close()
+        for r in _ROWS.values():  # an in-process worker's reader (workers <= 1)
+            r.close()
+        _ROWS.clear()
     # --- the tiling, the top cell, the atoms, the counts, the rules
     prov, tiling = scan["prov"], (scan["prov"] or {}).get("tiling") or {}
     if prov is None:

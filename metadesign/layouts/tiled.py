@@ -73,7 +73,7 @@ class TiledPlan:
     x0: int
     hierarchy: str
     compression: int
-    design_level: int = 6  # the design file's deflate level (DESIGN_DEFLATE_LEVEL)
+    design_level: int = DESIGN_DEFLATE_LEVEL  # the design file's deflate level
     _mapper: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -132,7 +132,7 @@ def tile_records(blk: np.ndarray, r0: int, c0: int, plan: TiledPlan) -> bytes:
 
 def _stripe(plan: TiledPlan, r0: int) -> dict:
     """Worker: rows ``r0 : r0 + tile`` of the design (in ``tile_rows`` sub-stripes, as the whole-array
-    path sums its metrics) and the OASIS bytes of the stripe's tiles."""
+    path sums its metrics), the OASIS bytes of the stripe's tiles and its deflated piece of the index map."""
     spec, n = plan.spec, plan.spec.n_cells
     r1 = min(n, r0 + plan.tile)
     blk = np.empty((r1 - r0, n), plan.dtype)
@@ -142,7 +142,7 @@ def _stripe(plan: TiledPlan, r0: int) -> dict:
         b, st = map_rows(spec, plan.atoms, plan.mapper(), plan.offsets, plan.dtype, plan.empty, s0, s1)
         blk[s0 - r0:s1 - r0] = b
         parts.append(st)
-    return {"r0": r0, "block": blk, "stats": parts, "oasis": encode_stripe(plan, blk, r0),
+    return {"r0": r0, "stats": parts, "oasis": encode_stripe(plan, blk, r0),
             "design": deflate_piece(memoryview(blk).cast("B"), plan.design_level)}
 
 
@@ -252,7 +252,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     t_stripes = time.perf_counter() - t_stripes
     oas = out_dir / "layout.oas"
     design_tmp = out_dir / ".design.npz.tiled-partial"
-    for target in (oas, design_tmp, out_dir / "design.npz", out_dir / "layout.oas.json", out_dir / "metrics.json"):
+    for target in (oas, design_tmp, out_dir / "layout.oas.json", out_dir / "metrics.json"):
         # what a SIGKILLed run left half-written (the output's lock keeps any other writer out)
         remove_stale_temps(target)
     state = {}

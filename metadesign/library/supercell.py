@@ -157,19 +157,22 @@ def supercell_rects(widths, period: float):
     Every line through a column (row) of pillar centres is a mirror line of the periodic array (the other
     column maps onto itself across the period), so centred on pillar (0, 0) the supercell is mirror-
     symmetric in x and y: no cross-polarisation, and the two symmetry sectors solve separately."""
-    w = np.asarray(widths, float).reshape(2, 2, 2)
-    return [Rect(c * period, r * period, float(w[r, c, 0]), float(w[r, c, 1])) for r in range(2) for c in range(2)]
+    return patch_rects(np.asarray(widths, float).reshape(2, 2, 2), period)
 
 
 def solve_supercell(widths, stack: Stack = Stack(), n_harmonics: int = 800,
                     truncation: Truncation = Truncation.CIRCULAR, symmetric: bool = True) -> CellResult:
     """A 2 x 2 supercell (period ``2 p``) of four vertical pillars ``widths[r][c] = (wx, wy)`` (m).
     ``symmetric=False`` solves the full coupled problem (a check of the sector solve: ~4x slower)."""
-    for wx, wy in np.asarray(widths, float).reshape(4, 2):
-        if not (0 < wx < stack.period and 0 < wy < stack.period):
-            raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
+    _check_fit(widths, stack)
     return solve_layers([(stack.height, supercell_rects(widths, stack.period))], 2 * stack.period, stack,
                         n_harmonics, truncation, symmetric=symmetric)
+
+
+def _check_fit(widths, stack: Stack) -> None:
+    for wx, wy in np.asarray(widths, float).reshape(-1, 2):
+        if not (0 < wx < stack.period and 0 < wy < stack.period):
+            raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
 
 
 def patch_rects(widths, period: float):
@@ -188,9 +191,7 @@ def solve_patch(widths, stack: Stack = Stack(), n_harmonics: int = 1300,
     w = np.asarray(widths, float)
     if w.ndim != 3 or w.shape[0] != w.shape[1] or w.shape[2] != 2:
         raise ValueError(f"widths must be (m, m, 2), got {w.shape}")
-    for wx, wy in w.reshape(-1, 2):
-        if not (0 < wx < stack.period and 0 < wy < stack.period):
-            raise ValueError(f"pillar {wx * 1e6:.4g} x {wy * 1e6:.4g} um does not fit the period")
+    _check_fit(w, stack)
     return solve_layers([(stack.height, patch_rects(w, stack.period))], w.shape[0] * stack.period, stack,
                         n_harmonics, truncation, symmetric=False)
 

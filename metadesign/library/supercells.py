@@ -35,7 +35,9 @@ from .. import __version__
 from ..io import atomic_write_text, read_npz, write_npz
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
+from .coupling import lpa_t
 from .rcwa import SolverSettings, Stack, solve_cell
+from .store import interpolate_t
 from .supercell import solve_supercell
 
 __all__ = ["SupercellTable", "matched_unit_harmonics", "matched_harmonics", "solve_table", "unit_cells", "load_table", "save_table", "TABLE_FORMAT"]
@@ -108,6 +110,12 @@ class SupercellTable:
         """(n, 2) the rows' supercell ``t`` in the library's frame: ``t`` itself at the library's truncation,
         else the LPA ``t_lpa`` (n, 2) plus the coupling measured at the table's (module docstring)."""
         return self.t if self.t_unit is None else np.asarray(t_lpa) + self.coupling()
+
+    def lpa_labels(self, lib) -> tuple[np.ndarray, np.ndarray]:
+        """``(labels (n, 2), t_units (n, 2, 2, 2))``: :meth:`labels` on the library's LPA, with the pillars'
+        library ``t`` (bilinear, as every coupling model looks them up)."""
+        tu = interpolate_t(lib, self.widths[..., 0], self.widths[..., 1])[0]
+        return self.labels(lpa_t(tu)), tu
 
 
 def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack, unit_harmonics: int | None = None) -> str:

@@ -79,7 +79,8 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
     and the number of clamped pillars.  Rows are asked for ``tile_blocks`` block rows at a time (default:
     at most 16, and at most :data:`TILE_BYTES` of transmission: bounded memory at any aperture, 10 cm
     included; the sums are per block, so the tiling does not change the result).  ``block_rows = (B0, B1)``:
-    only those block rows (the others stay zero): a worker's share of a parallel pupil.
+    only those block rows, and the returned ``G`` holds only them (``G[..., B0:B1, :]`` of the whole): a
+    worker's share of a parallel pupil, in the memory of its share.
     """
     if block % m:
         raise ValueError(f"block {block} must be a multiple of the supercell {m}")

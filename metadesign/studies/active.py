@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..library.coupling import CouplingConfig, lpa_t, relative_error, unit_rms
+from ..library.coupling import CouplingConfig, relative_error, unit_rms
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.store import interpolate_t
 from ..library.supercells import SupercellTable, matched_unit_harmonics, solve_table
@@ -40,14 +40,9 @@ class ActiveConfig:
     rounds: int = 4
     members: int = 4
     pool: int = 8000
-    pool_seed: int = 7
     steps: int = 2000
     weight_decay: float = 1e-3
     model: CouplingConfig = CouplingConfig(hidden=64, layers=3, interaction="environment")
-
-
-def _labels(lib, widths: np.ndarray, table: SupercellTable) -> np.ndarray:
-    return table.labels(lpa_t(interpolate_t(lib, widths[..., 0], widths[..., 1])[0]))
 
 
 def ensemble_spread(models, widths: np.ndarray, t_units: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,11 +55,9 @@ def ensemble_spread(models, widths: np.ndarray, t_units: np.ndarray) -> tuple[np
 
 
 def _certify(models, lib, ref: SupercellTable) -> dict:
-    rows = np.flatnonzero(ref.test)
-    w = ref.widths[rows]
-    tu = interpolate_t(lib, w[..., 0], w[..., 1])[0]
-    t_ref = ref.rows(rows).labels(lpa_t(tu))
-    mean, _ = ensemble_spread(models, w, tu)
+    held = ref.rows(np.flatnonzero(ref.test))
+    t_ref, tu = held.lpa_labels(lib)
+    mean, _ = ensemble_spread(models, held.widths, tu)
     e = relative_error(mean, t_ref, tu)
     return {"mean": float(e.mean()), "p90": float(np.percentile(e, 90)), "max": float(e.max()),
             "mean_per_pol": e.mean(0).tolist()}
@@ -92,7 +85,7 @@ def active_learning(table: SupercellTable, reference: SupercellTable, lib, pool_
     if len(fit_rows) < cfg.start:
         raise ValueError(f"the table has {len(fit_rows)} fitting rows, the loop starts from {cfg.start}")
     w_all = table.widths[fit_rows]
-    lab_all = _labels(lib, w_all, table.rows(fit_rows))
+    lab_all, _ = table.rows(fit_rows).lpa_labels(lib)
     curve_active, curve_random = [], []
     W, L = w_all[:cfg.start], lab_all[:cfg.start]
     chosen = np.zeros(len(pool_widths), bool)
@@ -121,7 +114,7 @@ def active_learning(table: SupercellTable, reference: SupercellTable, lib, pool_
         new = SupercellTable(pool_widths[pick], t, np.zeros(len(pick), np.int8), np.zeros(len(pick), bool),
                              table.meta, t_unit)
         W = np.concatenate([W, pool_widths[pick]])
-        L = np.concatenate([L, _labels(lib, pool_widths[pick], new)])
+        L = np.concatenate([L, new.lpa_labels(lib)[0]])
         curve_active[-1]["next_batch_spread"] = {"max": float(spread[pick].max()), "min": float(spread[pick].min())}
         curve_active[-1]["picked"] = pick.tolist()
     return {"active": curve_active, "random": curve_random, "config": {
@@ -139,10 +132,13 @@ def plot_active(rep: dict, out: str | Path) -> Path:
         n = [r["solves"] for r in rep[name]]
         ax.plot(n, [r["mean"] for r in rep[name]], "o-", color=c, label=f"{name}, mean")
         ax.plot(n, [r["p90"] for r in rep[name]], "s--", color=c, label=f"{name}, p90")
-    for g, ls in ((0.05, ":"), (0.10, "-.")):
-        ax.axhline(g, color="0.5", ls=ls, lw=1)
+    for g, ls, what in ((0.05, ":", "mean"), (0.10, "-.", "p90")):
+        ax.axhline(g, color="0.5", ls=ls, lw=1, label=f"goal, {what} <= {g:g}")
     ax.set(xscale="log", yscale="log", xlabel="RCWA solves (labels fitted)",
            ylabel="held-out |t - t_RCWA| / rms|t_i|",
            title=f"coupling model: active vs random ({rep['config']['members']} members)")
+    n = [r["solves"] for r in rep["active"]]
+    ax.set_xticks(n, [str(v) for v in n])
+    ax.set_xticks([], minor=True)
     ax.legend(fontsize=8)
     return save_figure(fig, out)

@@ -496,7 +496,7 @@ def _cmd_active(a: argparse.Namespace) -> int:
                        model=CouplingConfig(hidden=a.hidden, layers=3, interaction="environment"))
     log = log_to(a.json)
     lib = load_library(rec.library)
-    with product(out, "active", {"recipe": rec.source, "--reference": a.reference},
+    with product(out, "active", {"recipe": rec.source, "table": tp, "--reference": a.reference},
                  scratch=(out.with_name(out.name + ".partial"),), also=(out.with_suffix(".png"),)):
         pool = pool_widths(rec, a.pool, log)
         rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg, workers=a.workers,

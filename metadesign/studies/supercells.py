@@ -353,10 +353,9 @@ def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: Co
         raise ValueError("the reference table has no held-out rows")
     sizes = sorted({min(int(n), len(fit_rows)) for n in sizes})
     w_fit = table.widths[fit_rows]
-    t_fit = table.rows(fit_rows).labels(lpa_t(interpolate_t(lib, w_fit[..., 0], w_fit[..., 1])[0]))
+    t_fit, _ = table.rows(fit_rows).lpa_labels(lib)
     w_te = ref.widths[test_rows]
-    tu_te = interpolate_t(lib, w_te[..., 0], w_te[..., 1])[0]
-    t_te = ref.rows(test_rows).labels(lpa_t(tu_te))
+    t_te, tu_te = ref.rows(test_rows).lpa_labels(lib)
     e_lpa = relative_error(lpa_t(tu_te), t_te, tu_te)
     curve, model = [], None
     for n in sizes:
@@ -414,6 +413,7 @@ def plot_coupling(rep: dict, out: Path) -> Path:
                ylabel="held-out |t - t_RCWA| / rms|t_i|",
                title=f"learning curve ({rep['held_out_supercells']} held-out supercells)")
     axs[0].set_xticks(n, [str(v) for v in n])
+    axs[0].set_xticks([], minor=True)  # the log axis's own minor labels would overprint the sizes
     axs[0].legend(fontsize=8)
     e, el = rep["_e"].ravel(), rep["_e_lpa"].ravel()
     bins = np.linspace(0, max(el.max(), e.max()), 40)
