@@ -71,13 +71,34 @@ def kernels(recipe_path: Path, rows: int = 512) -> dict:
                      rows, p_nm, x0, "tiles", 1)
     r0 = (n // 2 // rows) * rows
     plan.mapper()  # the look-up table is built once per worker, not per stripe
-    t = time.perf_counter()
-    blk = np.concatenate([map_rows(rec.spec, atoms, plan.mapper(), st.offsets, st.dtype, st.empty, s, s + 256)[0]
-                          for s in range(r0, r0 + rows, 256)])
-    t_design = time.perf_counter() - t
-    t = time.perf_counter()
-    b = encode_stripe(plan, blk, r0)
-    t_layout = time.perf_counter() - t
+    from metadesign import jit
+
+    def run():
+        t = time.perf_counter()
+        maps = [map_rows(rec.spec, atoms, plan.mapper(), st.offsets, st.dtype, st.empty, s, s + 256)
+                for s in range(r0, r0 + rows, 256)]
+        t_design = time.perf_counter() - t
+        blk = np.concatenate([m[0] for m in maps])
+        t = time.perf_counter()
+        b = encode_stripe(plan, blk, r0)
+        return blk, [m[1] for m in maps], b, t_design, time.perf_counter() - t
+
+    compiled = jit.enabled()
+    if compiled:
+        small = map_rows(rec.spec, atoms, plan.mapper(), st.offsets, st.dtype, st.empty, r0, r0 + 2)[0]
+        encode_stripe(plan, small, r0)  # compiled (or loaded from numba's cache) before the clock starts
+    old = os.environ.get("METADESIGN_JIT")
+    os.environ["METADESIGN_JIT"] = "0"  # the numpy twins, measured in the same run
+    try:
+        blk0, st0, b0, t_design0, t_layout0 = run()
+    finally:
+        if old is None:
+            del os.environ["METADESIGN_JIT"]
+        else:
+            os.environ["METADESIGN_JIT"] = old
+    blk, sums, b, t_design, t_layout = run()
+    same = (np.array_equal(blk, blk0) and b == b0 and all(
+        all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(p, q)) for p, q in zip(sums, st0)))
     cells = blk.size
     from metadesign.deflate import DeflatedArray, deflate_piece
     from metadesign.io import write_npz
@@ -97,7 +118,9 @@ def kernels(recipe_path: Path, rows: int = 512) -> dict:
         write_npz(Path(tmp) / "a.npz", {"index_map": DeflatedArray((reps * blk.shape[0], blk.shape[1]), blk.dtype,
                                                                    (ours for _ in range(reps)))})
         t_asm = time.perf_counter() - t
-    return {"design_pillars_per_s_core": cells / t_design, "oasis_pillars_per_s_core": cells / t_layout,
+    return {"compiled": compiled, "same_as_numpy": same,
+            "numpy": {"design_pillars_per_s_core": cells / t_design0, "oasis_pillars_per_s_core": cells / t_layout0},
+            "design_pillars_per_s_core": cells / t_design, "oasis_pillars_per_s_core": cells / t_layout,
             "oasis_bytes_per_pillar": len(b) / cells, "deflate_levels": levels,
             "deflate_pillars_per_s_core": 1 / levels[DESIGN_DEFLATE_LEVEL]["seconds_per_pillar"],
             "design_deflate_level": DESIGN_DEFLATE_LEVEL,
@@ -196,7 +219,12 @@ def main() -> int:
               f"({r['seconds'] / kv['seconds']:.2f}x its time)")
     print(f"  one core: design kernel {k['design_pillars_per_s_core'] / 1e6:.2f} M pillars/s, OASIS encoder "
           f"{k['oasis_pillars_per_s_core'] / 1e6:.2f} M pillars/s ({k['oasis_bytes_per_pillar']:.2f} B/pillar)"
-          f" = {1e9 / k['design_pillars_per_s_core']:.0f} + {1e9 / k['oasis_pillars_per_s_core']:.0f} ns per pillar")
+          f" = {1e9 / k['design_pillars_per_s_core']:.0f} + {1e9 / k['oasis_pillars_per_s_core']:.0f} ns per pillar "
+          f"({'compiled' if k['compiled'] else 'numpy: numba absent or METADESIGN_JIT=0'}); the numpy twins "
+          f"{1e9 / k['numpy']['design_pillars_per_s_core']:.0f} + {1e9 / k['numpy']['oasis_pillars_per_s_core']:.0f} ns "
+          f"({k['numpy']['design_pillars_per_s_core'] and k['design_pillars_per_s_core'] / k['numpy']['design_pillars_per_s_core']:.1f}x"
+          f" and {k['oasis_pillars_per_s_core'] / k['numpy']['oasis_pillars_per_s_core']:.1f}x), the same map, sums "
+          f"and bytes: {k['same_as_numpy']}")
     print("  the design file's piece on the worker (deflate): " + ", ".join(
         f"level {lv}: {v['seconds_per_pillar'] * 1e9:.1f} ns/pillar, {v['ratio']:.2f} of the raw bytes"
         for lv, v in k["deflate_levels"].items()) + f" (used: level {k['design_deflate_level']}); the assembler "

@@ -13,7 +13,7 @@ PKG = Path(__file__).resolve().parents[1] / "metadesign"
 #: the shared edges: used by everything, import only each other
 EDGES = {"conventions", "config", "io", "validation", "outputs", "tasks", "cards", "cliutil", "parallel", "paths",
          "plotting", "timing", "lazy",
-         "determinism", "deflate"}
+         "determinism", "deflate", "jit"}
 #: subpackages in pipeline order (a module may import its own level and those below)
 ORDER = ["optics", "library", "design", "layouts", "sensing", "turbulence", "reconstruction", "studies"]
 TOP = {"cli", "__main__"}  # the assembler

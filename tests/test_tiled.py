@@ -344,3 +344,53 @@ def test_parallel_pupil_equals_the_serial_one(tiled_case, tiled64):
     assert one.n_clamped == two.n_clamped
     pert = Perturbation.from_nm(3.0, jitter_nm=2.0, seed=5)
     np.testing.assert_array_equal(fab.pupil(0.05, 32, pert).G, fab.pupil(0.05, 32, pert, workers=2).G)
+
+
+def test_sigkill_of_the_whole_job_in_the_stripe_phase_resumes_to_the_same_bytes(tiled_case, tiled64, tmp_path):
+    """The CLI on 2 spawned workers, killed from outside (SIGKILL to its whole process group: the main
+    process and both workers at once) once some stripes are kept and others are being computed: no file of
+    the build is left, the kept stripes are; the rerun computes only the missing ones and writes the bytes of
+    an uninterrupted build.  (Stripes are slowed by a ``sitecustomize`` in every process of the killed run,
+    so that the kill lands inside the phase.)"""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import REPO
+
+    tmp, recipe, _ = tiled_case
+    out = tmp_path / "killed"
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(
+        "import time\nimport metadesign.layouts.tiled as T\n_real = T._stripe\n"
+        "def _slow(plan, r0):\n    time.sleep(0.5)\n    return _real(plan, r0)\nT._stripe = _slow\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(REPO)]))
+    cmd = [sys.executable, "-m", "metadesign", "layout", "tiled", str(recipe.source), "-o", str(out),
+           "--tile", "64", "-j", "2"]
+    p = subprocess.Popen(cmd, env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    n_stripes = -(-recipe.spec.n_cells // 64)
+    t0, kept = time.time(), []
+    while time.time() - t0 < 120 and p.poll() is None:
+        kept = list(out.glob(".tiled-partial*/stripe-*.npz"))
+        if len(kept) >= 2:
+            break
+        time.sleep(0.02)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait(timeout=60)
+    assert p.returncode == -signal.SIGKILL, p.stderr.read().decode()[-2000:]
+    assert 2 <= len(kept) < n_stripes
+    assert not (out / "design.npz").exists() and not (out / "layout.oas").exists()
+    kept = sorted(q.name for q in out.glob(".tiled-partial*/stripe-*.npz"))
+    assert len(kept) < n_stripes
+    r = subprocess.run(cmd + ["--json"], env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    import json
+
+    assert json.loads(r.stdout)["stripes_reused"] == len(kept)
+    for f in ("design.npz", "layout.oas", "metrics.json"):
+        assert (out / f).read_bytes() == (tiled64[0] / f).read_bytes(), f
+    assert sorted(q.name for q in out.iterdir()) == [".metadesign.json", "design.npz", "layout.oas", "layout.oas.json",
+                                                     "metrics.json"]  # the product layer's record, no partial folder

@@ -8,10 +8,12 @@ from typing import Callable
 
 import numpy as np
 
+from .. import jit
 from .discretize import AtomTable, Metric, NearestAtom, optimal_offsets
+from .kernel import lens_table, map_rows_kernel
 from .phase import SupercellSpec, aperture_mask, design_phase, wrap
 
-__all__ = ["DesignResult", "DesignStream", "map_rows", "accumulate", "discretize_design", "empty_index", "OFFSET_GRID"]
+__all__ = ["DesignResult", "DesignStream", "map_rows", "map_rows_numpy", "accumulate", "discretize_design", "empty_index", "OFFSET_GRID"]
 
 OFFSET_GRID = 256  # resolution of the constant-offset search (2 pi / 256 = 0.025 rad)
 
@@ -54,7 +56,23 @@ def _phase_sample(spec: SupercellSpec, idx: np.ndarray):
 def map_rows(spec: SupercellSpec, atoms: AtomTable, mapper, offsets, dtype, empty, r0: int, r1: int,
              c0: int = 0, c1: int | None = None):
     """Rows ``r0:r1`` (columns ``c0:c1``) of the index map and their error sums ``(sse, peak, eff,
-    count, used)``: the kernel of the discretizer, whole-array or tiled."""
+    count, used)``: the kernel of the discretizer, whole-array or tiled.  Compiled
+    (:mod:`metadesign.design.kernel`) for the phase metric, else (or without numba) its numpy twin
+    :func:`map_rows_numpy`: the same index map and sums, bit for bit."""
+    c1 = spec.n_cells if c1 is None else c1
+    if not (jit.enabled() and mapper.metric is Metric.PHASE):
+        return map_rows_numpy(spec, atoms, mapper, offsets, dtype, empty, r0, r1, c0, c1)
+    iy, ix = np.arange(r0, r1), np.arange(c0, c1)
+    lenses = lens_table(spec)
+    phases = None if lenses is not None else (design_phase(spec, 0, iy, ix, wrapped=False),
+                                              design_phase(spec, 1, iy, ix, wrapped=False))
+    mask = aperture_mask(spec, iy, ix) if spec.aperture_wkt else None
+    return map_rows_kernel(spec, atoms, mapper, offsets, dtype, empty, r0, r1, c0, c1, lenses, phases, mask)
+
+
+def map_rows_numpy(spec: SupercellSpec, atoms: AtomTable, mapper, offsets, dtype, empty, r0: int, r1: int,
+                   c0: int = 0, c1: int | None = None):
+    """:func:`map_rows` in numpy (the reference of the compiled kernel, and its path for other metrics)."""
     c1 = spec.n_cells if c1 is None else c1
     iy, ix = np.arange(r0, r1), np.arange(c0, c1)
     ax = design_phase(spec, 0, iy, ix, offsets[0])

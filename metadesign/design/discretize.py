@@ -179,6 +179,8 @@ class NearestAtom:
         self.cand_row = np.full(G * G, -1, np.int64)
         self.cand_row[cells] = np.arange(len(cells))
         self.unsafe_fraction = float(self.unsafe.mean())
+        # one look-up for compiled kernels: the cell's atom, or -(row + 1) of its candidates when unsafe
+        self.code = np.where(self.unsafe, -(self.cand_row + 1), self.lut).astype(np.int32)
 
     def cell_of(self, px, py):
         G = self.G

@@ -34,7 +34,7 @@ from ..design.discretize import AtomTable, Metric, NearestAtom
 from ..design.phase import SupercellSpec
 from ..design.recipe import DesignRecipe
 from ..design.store import Design, check_library, design_meta, select_recipe_atoms
-from .. import __version__
+from .. import __version__, jit
 from ..deflate import DeflatedArray, Piece, deflate_piece
 from ..io import atomic_path, remove_stale_temps, atomic_write_text, json_array, read_npz, write_npz
 from ..library.store import load_library
@@ -42,9 +42,10 @@ from ..outputs import Need
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
 from . import oasis as O
+from .kernel import tile_records_kernel
 from .writer import TOP_CELL, LayoutOptions, layout_geometry, outline_polygons, provenance_of, snap_widths
 
-__all__ = ["TiledPlan", "build_tiled", "tile_records", "HIERARCHIES", "DEFAULT_TILE"]
+__all__ = ["TiledPlan", "build_tiled", "tile_records", "tile_records_numpy", "HIERARCHIES", "DEFAULT_TILE"]
 
 HIERARCHIES = ("tiles", "flat")
 DEFAULT_TILE = 1024
@@ -98,7 +99,15 @@ class TiledPlan:
 def tile_records(blk: np.ndarray, r0: int, c0: int, plan: TiledPlan) -> bytes:
     """The placements of one tile (``blk``: its index map, global origin ``r0, c0``), uncompressed:
     per atom present, one PLACEMENT at its first pillar in raster order with a type-11 repetition on
-    the lattice pitch through the others."""
+    the lattice pitch through the others.  Compiled (:mod:`metadesign.layouts.kernel`), or without numba
+    its numpy twin :func:`tile_records_numpy`: the same bytes."""
+    if jit.enabled():
+        return tile_records_kernel(blk, r0, c0, len(plan.atoms), plan.p_nm, plan.x0)
+    return tile_records_numpy(blk, r0, c0, plan)
+
+
+def tile_records_numpy(blk: np.ndarray, r0: int, c0: int, plan: TiledPlan) -> bytes:
+    """:func:`tile_records` in numpy (the reference of the compiled kernel)."""
     w = blk.shape[1]
     flat = blk.ravel()
     order = np.argsort(flat, kind="stable")  # raster order within each atom

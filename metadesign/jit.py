@@ -1,0 +1,56 @@
+"""Compiled kernels (issue #35): numba's ``njit`` (compiled once, cached on disk, the GIL released) for the
+two per-pillar kernels of a layout, the nearest-atom discretizer and the OASIS placement encoder.
+
+Each compiled kernel has a numpy twin, the reference it is tested against bit for bit (the same index map,
+the same error sums, the same bytes).  Without numba, or with ``METADESIGN_JIT=0`` in the environment, the
+numpy path runs: slower, never different.  numba itself is imported on a kernel's first call (it takes
+0.2 s and scipy with it: ``metadesign --help`` and the stages that need no kernel never pay it)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+
+__all__ = ["enabled", "njit"]
+
+_HAVE = importlib.util.find_spec("numba") is not None
+
+
+def enabled() -> bool:
+    """True when the compiled kernels run (numba installed and ``METADESIGN_JIT`` is not ``0``)."""
+    return _HAVE and os.environ.get("METADESIGN_JIT", "1") != "0"
+
+
+class _Kernel:
+    """A function to compile on its first call.  Compiling resolves the other kernels it calls through its
+    module's globals, so every ``_Kernel`` there is replaced by its numba dispatcher first."""
+
+    def __init__(self, fn, inline: bool):
+        self.py_func, self.inline, self._dispatcher = fn, inline, None
+        self.__name__, self.__doc__, self.__wrapped__ = fn.__name__, fn.__doc__, fn
+
+    def dispatcher(self):
+        if self._dispatcher is None:
+            numba = importlib.import_module("numba")
+            # no fast-math: IEEE operations in the written order (the numpy twin's floats); numpy's error
+            # model: no zero-division check per operation, which would keep loops from vectorising
+            self._dispatcher = numba.njit(cache=True, nogil=True, error_model="numpy",
+                                          inline="always" if self.inline else "never")(self.py_func)
+        return self._dispatcher
+
+    def __call__(self, *args):
+        g = self.py_func.__globals__
+        for name, v in list(g.items()):
+            if isinstance(v, _Kernel):
+                g[name] = v.dispatcher()
+        return self.dispatcher()(*args)
+
+
+def njit(fn=None, *, inline: bool = False):
+    """``fn`` compiled by numba on its first call (cached on disk beside its module, no GIL, no fast-math),
+    or ``fn`` itself without numba.  ``inline``: a helper inlined into the kernels that call it (a call
+    passing arrays costs tens of ns per cell)."""
+    if fn is None:
+        return lambda f: njit(f, inline=inline)
+    return _Kernel(fn, inline) if _HAVE else fn
