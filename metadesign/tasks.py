@@ -175,7 +175,8 @@ def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store:
     (name -> task) not yet done in ``folder``; returns ``(results by name, names computed now)``.
 
     ``store``: ``"npz"`` keeps each result (a mapping of arrays) as ``NAME.npz``; ``"marker"`` keeps a
-    JSON marker of it (the task wrote its own output).  ``weight``: a task's size for progress (cells,
+    JSON marker of it (the task wrote its own output); a task may also save its own ``NAME.npz`` in the
+    folder (atomically) and return None as its result (a local worker: nothing crosses the pipe).  ``weight``: a task's size for progress (cells,
     samples).  ``keep``: False leaves the results on disk (the returned mapping holds empty entries; the caller reads
     each back when it needs it: memory stays one task's).  ``stop_after``: raise KeyboardInterrupt after that many new tasks (tests of resumption).  ``pool``: an
     open :class:`~metadesign.parallel.WorkerPool` to reuse (local runs)."""
@@ -202,10 +203,13 @@ def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store:
                               scheduler=scheduler, key=dask_key))
     for count, (name, res) in enumerate(it, 1):
         if store == "npz":
-            folder.save(name, res, compress=compress)
+            if res is not None:  # None: the task saved NAME.npz in the folder itself (a local worker)
+                folder.save(name, res, compress=compress)
+            elif not folder.has(name):
+                raise RuntimeError(f"task {name} returned no result and saved none in {folder.root}")
         else:
             folder.mark(name, res)
-        results[name] = res if keep else {}
+        results[name] = (res if res is not None or store != "npz" else folder.load(name)) if keep else {}
         computed.append(name)
         done_w += weight(name)
         if progress:

@@ -75,6 +75,9 @@ class TiledPlan:
     hierarchy: str
     compression: int
     design_level: int = DESIGN_DEFLATE_LEVEL  # the design file's deflate level
+    # local workers write their stripe's file here themselves (nothing crosses the pipe); None: returned
+    # (Dask workers, which may not share this file system)
+    save_dir: str | None = None
     _mapper: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -92,7 +95,7 @@ class TiledPlan:
 
     def __getstate__(self):
         d = dict(self.__dict__)
-        d["_mapper"] = None  # rebuilt in each worker
+        d["_mapper"] = self.mapper()  # its tables travel once per worker (a rebuild costs each worker ~1 s)
         return d
 
 
@@ -160,12 +163,17 @@ def _stripe_task(plan: TiledPlan, r0: int) -> tuple[str, dict]:
     res = _stripe(plan, r0)
     st = res["stats"]
     piece = res["design"]
-    return f"stripe-{r0:07d}", {"design": np.frombuffer(piece.data, np.uint8),
-                                "design_crc_size": np.array([piece.crc, piece.size], np.int64),
-                                "oasis": np.frombuffer(res["oasis"], np.uint8),
-                                "sse": np.array([p[0] for p in st]), "peak": np.array([p[1] for p in st]),
-                                "eff": np.array([p[2] for p in st]), "count": np.array([p[3] for p in st], np.int64),
-                                "used": np.array([p[4] for p in st], np.int64)}
+    name = f"stripe-{r0:07d}"
+    arrays = {"design": np.frombuffer(piece.data, np.uint8),
+              "design_crc_size": np.array([piece.crc, piece.size], np.int64),
+              "oasis": np.frombuffer(res["oasis"], np.uint8),
+              "sse": np.array([p[0] for p in st]), "peak": np.array([p[1] for p in st]),
+              "eff": np.array([p[2] for p in st]), "count": np.array([p[3] for p in st], np.int64),
+              "used": np.array([p[4] for p in st], np.int64)}
+    if plan.save_dir is None:
+        return name, arrays
+    write_npz(Path(plan.save_dir) / f"{name}.npz", arrays, compress=False)  # atomically, as the folder would
+    return name, None
 
 
 def _load_stripe(path: Path) -> dict:
@@ -250,6 +258,8 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
                        "compression": opts.compression_level, "design_level": DESIGN_DEFLATE_LEVEL,
                        "stripe": 2, "version": __version__})
     folder = TaskFolder(out_dir / ".tiled-partial", key, log)
+    if scheduler is None:
+        plan.save_dir = str(folder.root)
     names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
     rows = {names[r0]: min(tile, n - r0) for r0 in names}  # a stripe's weight in the progress
     t_stripes = time.perf_counter()
