@@ -197,3 +197,21 @@ def test_pupil_block_sums_are_the_einsum_twin(n, block, tile_blocks, monkeypatch
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-6 * np.abs(ref).max())
     share = coarse_pupil(*args, block_rows=(1, 3)).G  # a worker's share: its block rows of the whole
     np.testing.assert_allclose(share, ref[:, :, 1:3], rtol=0, atol=2e-6 * np.abs(ref).max())
+
+
+def test_pillar_lookup_is_numpys_fancy_index(monkeypatch):
+    """The nominal device's per-pillar look-up (compiled) equals numpy's ``table[where(im < 0, A, im)]``."""
+    from metadesign.library.store import load_library
+    from metadesign.sensing.transmission import pillar_transmission
+
+    from conftest import REPO
+
+    lib = load_library(REPO / "library" / "paper.npz")
+    rng = np.random.default_rng(2)
+    widths = np.stack([rng.uniform(lib.wx[1], lib.wx[-2], 30), rng.uniform(lib.wy[1], lib.wy[-2], 30)], 1) * 1e9
+    im = rng.integers(-1, 30, (37, 53)).astype(np.int16)
+    got, c1 = pillar_transmission(im, widths, lib, rows=slice(3, 31))
+    monkeypatch.setenv("METADESIGN_JIT", "0")
+    ref, c2 = pillar_transmission(im, widths, lib, rows=slice(3, 31))
+    assert got.dtype == ref.dtype and c1 == c2 == 0
+    np.testing.assert_array_equal(got, ref)

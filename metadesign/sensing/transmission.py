@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import jit
 from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
@@ -242,6 +243,23 @@ def _pair_table_cache(model, w_at, t_at):
     return _TABLES[key]
 
 
+@jit.njit
+def _lookup(im, table):
+    """``table[im]`` per pillar, the last row of ``table`` for an empty cell (``im < 0``): numpy's fancy
+    index without its int64 copy of the map (the same values)."""
+    R, C = im.shape
+    empty = table.shape[0] - 1
+    t = np.empty((R, C, 2), table.dtype)
+    for r in range(R):
+        for c in range(C):
+            k = im[r, c]
+            if k < 0:
+                k = empty
+            t[r, c, 0] = table[k, 0]
+            t[r, c, 1] = table[k, 1]
+    return t
+
+
 def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bool):
     n_sub = lib.meta["stack"]["n_substrate"]
     n_sup = lib.meta["stack"]["n_superstrate"]
@@ -251,6 +269,8 @@ def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bo
         wx, wy = perturb_widths(w[:, 0], w[:, 1], pert)
         t_atoms, _, n_out_atoms = interpolate_t(lib, wx, wy)
         table = np.concatenate([t_atoms, np.full((1, 2), bare, np.complex64)])
+        if jit.enabled() and not want_widths and not n_out_atoms:  # the nominal look-up, compiled
+            return _lookup(np.ascontiguousarray(im), table), 0, None, None
         k = np.where(im < 0, len(w), im)
         t = table[k]
         clamped = 0
