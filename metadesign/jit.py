@@ -12,7 +12,7 @@ import importlib
 import importlib.util
 import os
 
-__all__ = ["enabled", "njit"]
+__all__ = ["enabled", "njit", "compiled"]
 
 _HAVE = importlib.util.find_spec("numba") is not None
 
@@ -54,3 +54,9 @@ def njit(fn=None, *, inline: bool = False):
     if fn is None:
         return lambda f: njit(f, inline=inline)
     return _Kernel(fn, inline) if _HAVE else fn
+
+
+def compiled(kernel):
+    """The numba dispatcher of a kernel (for a compiled loop of one's own that calls it, e.g. in a test):
+    ``kernel`` itself when its module already swapped it in, or when it is a plain function."""
+    return kernel.dispatcher() if isinstance(kernel, _Kernel) else kernel

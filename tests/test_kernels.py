@@ -20,10 +20,7 @@ pytestmark = pytest.mark.skipif(not jit.enabled(), reason="numba not installed (
 CX, CY = paper_channels()
 
 
-def _compiled(kernel):
-    """A package kernel as a numba dispatcher, for the test's own compiled loops that call it."""
-    return kernel.dispatcher()
-
+_compiled = jit.compiled  # a package kernel as a numba dispatcher, for the test's own compiled loops
 
 def _atoms(n=24, seed=0) -> AtomTable:
     """A random birefringent library: phases anywhere on the torus, some of them tied at +-pi."""
