@@ -1,25 +1,38 @@
 """Compiled kernels (issue #35): numba's ``njit`` (compiled once, cached on disk, the GIL released) for the
 two per-pillar kernels of a layout, the nearest-atom discretizer and the OASIS placement encoder.
 
-Each compiled kernel has a numpy twin, the reference it is tested against bit for bit (the same index map,
-the same error sums, the same bytes).  Without numba, or with ``METADESIGN_JIT=0`` in the environment, the
-numpy path runs: slower, never different.  numba itself is imported on a kernel's first call (it takes
-0.2 s and scipy with it: ``metadesign --help`` and the stages that need no kernel never pay it)."""
+Each compiled kernel has a numpy twin, the reference it is tested against: bit for bit for the layout's
+kernels (the same index map, error sums and bytes) and the pillar look-up, to float32 rounding for the
+coarse pupil's block sums (complex128 per block against the einsum's complex64: frames within ~3e-7).
+Without numba (or a numba that does not import), or with ``METADESIGN_JIT=0`` in the environment, the numpy
+path runs.  numba itself is imported when a kernel is first wanted (it takes 0.2 s and scipy with it:
+``metadesign --help`` and the stages that need no kernel never pay it)."""
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
 import os
+import threading
 
 __all__ = ["enabled", "njit", "compiled"]
 
 _HAVE = importlib.util.find_spec("numba") is not None
+_IMPORTS: list[bool] = []  # whether numba imports, tried once (when a kernel is first wanted)
+_LOCK = threading.Lock()
 
 
 def enabled() -> bool:
-    """True when the compiled kernels run (numba installed and ``METADESIGN_JIT`` is not ``0``)."""
-    return _HAVE and os.environ.get("METADESIGN_JIT", "1") != "0"
+    """True when the compiled kernels run: numba imports and ``METADESIGN_JIT`` is not ``0``."""
+    if not _HAVE or os.environ.get("METADESIGN_JIT", "1") == "0":
+        return False
+    if not _IMPORTS:
+        try:
+            importlib.import_module("numba")
+            _IMPORTS.append(True)
+        except Exception:  # e.g. a numba built for another numpy: the twins run
+            _IMPORTS.append(False)
+    return _IMPORTS[0]
 
 
 class _Kernel:
@@ -31,19 +44,21 @@ class _Kernel:
         self.__name__, self.__doc__, self.__wrapped__ = fn.__name__, fn.__doc__, fn
 
     def dispatcher(self):
-        if self._dispatcher is None:
-            numba = importlib.import_module("numba")
-            # no fast-math: IEEE operations in the written order (the numpy twin's floats); numpy's error
-            # model: no zero-division check per operation, which would keep loops from vectorising
-            self._dispatcher = numba.njit(cache=True, nogil=True, error_model="numpy",
-                                          inline="always" if self.inline else "never")(self.py_func)
-        return self._dispatcher
+        with _LOCK:
+            if self._dispatcher is None:
+                numba = importlib.import_module("numba")
+                # no fast-math: IEEE operations in the written order (the numpy twin's floats); numpy's error
+                # model: no zero-division check per operation, which would keep loops from vectorising
+                self._dispatcher = numba.njit(cache=True, nogil=True, error_model="numpy",
+                                              inline="always" if self.inline else "never")(self.py_func)
+            return self._dispatcher
 
     def __call__(self, *args):
-        g = self.py_func.__globals__
-        for name, v in list(g.items()):
-            if isinstance(v, _Kernel):
-                g[name] = v.dispatcher()
+        if self._dispatcher is None:  # first call: the module's kernels become dispatchers, once
+            g = self.py_func.__globals__
+            for name, v in list(g.items()):
+                if isinstance(v, _Kernel):
+                    g[name] = v.dispatcher()
         return self.dispatcher()(*args)
 
 

@@ -209,7 +209,11 @@ def run_resumable(fn, tasks: Mapping[str, object], folder: TaskFolder, *, store:
                 raise RuntimeError(f"task {name} returned no result and saved none in {folder.root}")
         else:
             folder.mark(name, res)
-        results[name] = (res if res is not None or store != "npz" else folder.load(name)) if keep else {}
+        if keep and res is None and store == "npz":
+            res = folder.load(name)
+            if res is None:
+                raise RuntimeError(f"task {name}: its saved result in {folder.root} does not read back")
+        results[name] = res if keep else {}
         computed.append(name)
         done_w += weight(name)
         if progress:

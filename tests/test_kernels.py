@@ -15,7 +15,7 @@ from metadesign.design.discretize import AtomTable
 from metadesign.design.phase import LensChannel
 
 numba = pytest.importorskip("numba") if jit.enabled() else None
-pytestmark = pytest.mark.skipif(not jit.enabled(), reason="numba not installed (or METADESIGN_JIT=0)")
+compiled_only = pytest.mark.skipif(not jit.enabled(), reason="numba not installed (or METADESIGN_JIT=0)")
 
 CX, CY = paper_channels()
 
@@ -33,6 +33,7 @@ def _atoms(n=24, seed=0) -> AtomTable:
                      lib_index=np.zeros((n, 2), int), n_empty_bins=0, n_kept_cells=n, tn_scale=1.0)
 
 
+@compiled_only
 def test_wrap_is_numpys_float_for_float():
     """The Cody-Waite wrap of the kernel against numpy's fmod-based ``(v + pi) % 2pi - pi`` (bit patterns
     compared, signed zeros and exact multiples of 2 pi included, up to 1e9 rad and beyond its range)."""
@@ -60,6 +61,7 @@ def test_wrap_is_numpys_float_for_float():
     assert same.all(), a[~same][:5]
 
 
+@compiled_only
 @pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 1000, 8193, 100_003, 1_234_567])
 def test_pairwise_sum_is_numpys(n):
     """The kernel sums its terms as numpy's ``np.sum`` does (blocks of 128 with 8 accumulators, split at
@@ -96,6 +98,7 @@ def _check(spec, atoms, offsets, rows, cols=None):
     return got
 
 
+@compiled_only
 @pytest.mark.parametrize("case", ["square", "circle", "polygon", "zernike", "block"])
 def test_design_kernel_is_the_numpy_twin(case):
     """The compiled discretizer maps every cell onto the atom numpy maps it to and sums the same
@@ -120,6 +123,7 @@ def test_design_kernel_is_the_numpy_twin(case):
     _check(spec2, atoms, (0.0, 0.0), (0, 150))
 
 
+@compiled_only
 def test_oasis_kernel_is_the_numpy_twin():
     """The compiled encoder writes the numpy twin's bytes for random tiles (empty cells, one pillar,
     every cell one atom, long gaps between an atom's pillars) and for a tile with no pillar."""
@@ -169,10 +173,13 @@ def test_numpy_path_when_disabled(monkeypatch):
 
     assert tiled.tile_records(blk, 0, 0, Plan)
     monkeypatch.setenv("METADESIGN_JIT", "1")
+    if numba is None:  # no numba here: the twins are the only path
+        return
     with pytest.raises(AssertionError, match="compiled"):
         map_rows(spec, atoms, NearestAtom(atoms, Metric.PHASE, grid=64), (0.0, 0.0), np.uint8, None, 0, 40)
 
 
+@compiled_only
 @pytest.mark.parametrize("n,block,tile_blocks", [(64, 8, 3), (70, 6, 4), (33, 4, 1)])
 def test_pupil_block_sums_are_the_einsum_twin(n, block, tile_blocks, monkeypatch):
     """The coarse pupil's compiled block sums (one pass per row tile, complex128 per block) against the
@@ -196,6 +203,7 @@ def test_pupil_block_sums_are_the_einsum_twin(n, block, tile_blocks, monkeypatch
     np.testing.assert_allclose(share, ref[:, :, 1:3], rtol=0, atol=2e-6 * np.abs(ref).max())
 
 
+@compiled_only
 def test_pillar_lookup_is_numpys_fancy_index(monkeypatch):
     """The nominal device's per-pillar look-up (compiled) equals numpy's ``table[where(im < 0, A, im)]``."""
     from metadesign.library.store import load_library

@@ -394,3 +394,20 @@ def test_sigkill_of_the_whole_job_in_the_stripe_phase_resumes_to_the_same_bytes(
         assert (out / f).read_bytes() == (tiled64[0] / f).read_bytes(), f
     assert sorted(q.name for q in out.iterdir()) == [".metadesign.json", "design.npz", "layout.oas", "layout.oas.json",
                                                      "metrics.json"]  # the product layer's record, no partial folder
+
+
+def test_another_jobs_stripes_are_never_reused(tiled_case, tiled64, tmp_path):
+    """A stripe that a worker of another (killed) job wrote late, under its own job's folder, is discarded
+    with that folder, never taken for this job's; half-written stripe files of this job's are removed."""
+    from metadesign.io import write_npz
+
+    tmp, recipe, _ = tiled_case
+    out = tmp_path / "other"
+    out.mkdir()
+    stale = out / ".tiled-partial-0123456789abcdef"
+    stale.mkdir()
+    write_npz(stale / "stripe-0000000.npz", {"design": np.zeros(3, np.uint8)})
+    build_tiled(recipe, out, tile=64)
+    for f in ("design.npz", "layout.oas", "metrics.json"):
+        assert (out / f).read_bytes() == (tiled64[0] / f).read_bytes(), f
+    assert not any(p.name.startswith(".tiled-partial") for p in out.iterdir())

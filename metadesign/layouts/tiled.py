@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -172,7 +173,10 @@ def _stripe_task(plan: TiledPlan, r0: int) -> tuple[str, dict]:
               "used": np.array([p[4] for p in st], np.int64)}
     if plan.save_dir is None:
         return name, arrays
-    write_npz(Path(plan.save_dir) / f"{name}.npz", arrays, compress=False)  # atomically, as the folder would
+    target = Path(plan.save_dir) / f"{name}.npz"
+    if not target.parent.is_dir():  # the job's folder is gone (this worker outlived its job): write nothing
+        raise RuntimeError(f"{target.parent}: the stripe folder of this job no longer exists")
+    write_npz(target, arrays, compress=False)  # atomically, as the folder would
     return name, None
 
 
@@ -245,7 +249,7 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     A = len(atoms)
     plan = TiledPlan(spec, atoms, recipe.metric, st.offsets, np.dtype(st.dtype).str, st.empty, recipe.tile_rows,
                      tile, p_nm, x0, hierarchy, opts.compression_level, DESIGN_DEFLATE_LEVEL,
-                     _mapper=st.mapper)  # in process: the stream's look-up table (workers rebuild their own)
+                     _mapper=st.mapper)  # the stream's look-up tables (pickled once to each worker)
     meta = design_meta(recipe, lib, atoms, st.offsets, st.empty, None, out_dir)
     shell = Design(spec, atoms, None, st.offsets, {}, meta, st.empty)
     prov = provenance_of(shell, opts)
@@ -257,10 +261,20 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     key = content_key({"recipe": recipe.raw, "library": lib.identity, "tile": tile, "hierarchy": hierarchy,
                        "compression": opts.compression_level, "design_level": DESIGN_DEFLATE_LEVEL,
                        "stripe": 2, "version": __version__})
-    folder = TaskFolder(out_dir / ".tiled-partial", key, log)
+    # the stripes of this job only: the folder is named by its key, so a worker of an earlier (killed) job
+    # that finishes its stripe late can never write into this one's; other jobs' folders go (the output's
+    # lock keeps any other writer out), and what killed writers left half-written with them
+    root = out_dir / f".tiled-partial-{key[:16]}"
+    for old in out_dir.glob(".tiled-partial*"):
+        if old != root and old.is_dir() and not old.is_symlink():
+            log(f"discarding {old} (made by another job: other inputs or version)")
+            shutil.rmtree(old, ignore_errors=True)
+    folder = TaskFolder(root, key, log)
+    names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
+    for nm in names.values():
+        remove_stale_temps(folder.root / f"{nm}.npz")
     if scheduler is None:
         plan.save_dir = str(folder.root)
-    names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
     rows = {names[r0]: min(tile, n - r0) for r0 in names}  # a stripe's weight in the progress
     t_stripes = time.perf_counter()
     _, computed = run_resumable(_stripe_task, {names[r0]: r0 for r0 in names}, folder, store="npz", compress=False,

@@ -269,7 +269,8 @@ def _pillar_transmission_lpa(im, atom_widths_nm, lib, pert, rng, want_widths: bo
         wx, wy = perturb_widths(w[:, 0], w[:, 1], pert)
         t_atoms, _, n_out_atoms = interpolate_t(lib, wx, wy)
         table = np.concatenate([t_atoms, np.full((1, 2), bare, np.complex64)])
-        if jit.enabled() and not want_widths and not n_out_atoms:  # the nominal look-up, compiled
+        if (jit.enabled() and not want_widths and not n_out_atoms  # the nominal look-up, compiled
+                and (im.size == 0 or int(im.max()) < len(w))):  # (an index beyond the atoms: numpy raises)
             return _lookup(np.ascontiguousarray(im), table), 0, None, None
         k = np.where(im < 0, len(w), im)
         t = table[k]
