@@ -16,7 +16,7 @@
   step reruns exactly when its content key changed or its outputs are gone.
 
 Used by the library build (``OUT.partial/``), the supercell table (``OUT.partial/``), the tiled layout
-(``OUT/.tiled-partial/``), the dataset's shards (``DATASET/.shards/``) and its bucket operators
+(``OUT/.tiled-partial-KEY/``), the dataset's shards (``DATASET/.shards/``) and its bucket operators
 (``DATASET/.operators/``); steps by the pipeline (``OUT/.steps/``), the tolerance study's cases and the
 transfer study's stages (``OUT/.steps/``).
 """
