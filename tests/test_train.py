@@ -287,3 +287,26 @@ def test_least_squares_unwrapping_recovers_a_smooth_phase_whatever_lies_outside_
     u = unwrap_ls(np.stack([wrapped, wrapped[::-1]]), m)  # batch axis
     np.testing.assert_allclose(u[0], ref, atol=1e-9)
     np.testing.assert_allclose(u[1], ((true[::-1] - true[m].mean()) * m), atol=1e-9)
+
+
+def test_a_widened_unet_computes_the_same_function():
+    """Net2Net widening (twice the filters at every level, group norm included): the same output to float32
+    rounding on random weights, and a perturbed copy differs (the noise that lets the new width learn)."""
+    import torch
+
+    from metadesign.reconstruction.model import UNetConfig, build_unet, widen_unet
+
+    torch.manual_seed(0)
+    m = build_unet(UNetConfig(base=8, depth=4, input_size=32, aperture_size=21))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0, 0.2)  # the head starts at zero: random weights everywhere, an output to compare
+    w = widen_unet(m)
+    assert w.config.base == 16 and sum(p.numel() for p in w.parameters()) > 3 * sum(p.numel() for p in m.parameters())
+    x = torch.randn(3, 8, 32, 32)
+    with torch.no_grad():
+        a, b = m.eval()(x), w.eval()(x)
+        c = widen_unet(m, noise=1e-2).eval()(x)
+    assert a.abs().max() > 0.1
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-5 * float(a.abs().max()))
+    assert (c - a).abs().max() > 1e-4

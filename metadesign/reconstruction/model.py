@@ -10,7 +10,7 @@ layer: training starts at the flat (uncorrected) phase.  Weights ship as safeten
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,7 @@ from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
 
 __all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
-           "check_sizes"]
+           "check_sizes", "widen_unet"]
 
 MODEL_FORMAT = "metadesign.unet/1"
 
@@ -108,6 +108,38 @@ def build_unet(cfg: "UNetConfig") -> UNet:
     return UNet(cfg)
 
 
+
+
+def widen_unet(model: UNet, factor: int = 2, noise: float = 0.0, seed: int = 0) -> UNet:
+    """The same U-Net with ``factor`` x the filters at every level, computing the same function (Net2Net,
+    Chen et al. 2016): every channel is repeated ``factor`` times side by side (so a group of the group norm
+    holds its old group's channels, repeated: the same statistics) and the weights reading the repeated
+    channels are divided by ``factor``.  ``noise``: Gaussian perturbation of the widened weights, relative
+    to each tensor's RMS (repeated channels get the same gradients, so training from an exact copy never
+    uses the new width)."""
+    cfg = model.config
+    wide = build_unet(replace(cfg, base=cfg.base * factor))
+    kinds = {name: type(m) for name, m in model.named_modules()}
+    old = model.state_dict()
+    gen = torch.Generator().manual_seed(seed)
+    new = {}
+    for name, w_new in wide.state_dict().items():
+        w = old[name].clone()
+        kind = kinds.get(name.rsplit(".", 1)[0])
+        if w.shape != w_new.shape:
+            reads = 0 if kind is nn.ConvTranspose2d else 1  # the dim of a weight that reads channels
+            for d in range(w.ndim):
+                if w_new.shape[d] == factor * w.shape[d]:
+                    w = w.repeat_interleave(factor, dim=d)
+                    if d == reads and name.endswith("weight") and kind in (nn.Conv2d, nn.ConvTranspose2d):
+                        w = w / factor
+            if noise and w.is_floating_point():
+                w = w + noise * w.pow(2).mean().sqrt() * torch.randn(w.shape, generator=gen)
+        if w.shape != w_new.shape:
+            raise ValueError(f"widen_unet: {name} {tuple(old[name].shape)} cannot become {tuple(w_new.shape)}")
+        new[name] = w.to(w_new.dtype)
+    wide.load_state_dict(new)
+    return wide
 
 
 def save_model(model, path: str | Path, card: dict) -> tuple[Path, Path]:

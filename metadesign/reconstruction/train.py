@@ -34,7 +34,7 @@ from .data import PSFDataset
 from .dataset import load_device
 from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
-from .model import UNetConfig, build_unet, check_sizes, load_model, save_model
+from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
 from .operators import has_operators
 from .refine import RefineConfig, build_refiner, load_refiner, save_refiner
 
@@ -536,11 +536,20 @@ def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Pat
     if init is None:
         return model, None
     src, card = load_model(init)
-    if asdict(src.config) != asdict(cfg):
-        raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
-                              f"{asdict(cfg)}")
+    record = {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+    a, b = asdict(src.config), asdict(cfg)
+    factor = cfg.base // src.config.base if src.config.base else 0
+    if (a != b and factor >= 2 and factor * src.config.base == cfg.base
+            and {k: v for k, v in a.items() if k != "base"} == {k: v for k, v in b.items() if k != "base"}):
+        # a narrower U-Net of the same shape: widened to the recipe's filters computing the same function,
+        # perturbed by 1 % so that the new filters learn (seeded by the recipe)
+        src = widen_unet(src, factor, noise=0.01, seed=recipe.seed)
+        record["widened_from_base"] = a["base"]
+    elif a != b:
+        raise ValidationError(f"--init {init}: architecture {a} differs from the recipe's {b} (a U-Net of the "
+                              f"same shape with a whole fraction of its filters is widened)")
     model.load_state_dict(src.state_dict())
-    return model, {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+    return model, record
 
 
 class _BatchLoss:
