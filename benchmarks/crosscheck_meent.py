@@ -35,11 +35,18 @@ def meent_cell(wx_um, wy_um, pol, fto, st):
     return complex(amp[fto, fto]), float(r.de_ti[fto, fto])
 
 
-def main() -> int:
+def have_meent() -> bool:
+    """Whether meent imports (else one line on stderr: these cross-checks are not in CI)."""
     try:
         import meent  # noqa: F401
     except ImportError:
         print("meent is not installed: pip install meent", file=sys.stderr)
+        return False
+    return True
+
+
+def main() -> int:
+    if not have_meent():
         return 2
     from metadesign.library.store import load_library
     from metadesign.paths import default_library_path

@@ -45,10 +45,9 @@ def meent_supercell(widths_um, pol: int, fto: int, st: dict) -> complex:
 
 
 def main() -> int:
-    try:
-        import meent  # noqa: F401
-    except ImportError:
-        print("meent is not installed: pip install meent", file=sys.stderr)
+    from crosscheck_meent import have_meent
+
+    if not have_meent():
         return 2
     from metadesign.io import read_npz
 
