@@ -222,7 +222,7 @@ def main() -> int:
           f" = {1e9 / k['design_pillars_per_s_core']:.0f} + {1e9 / k['oasis_pillars_per_s_core']:.0f} ns per pillar "
           f"({'compiled' if k['compiled'] else 'numpy: numba absent or METADESIGN_JIT=0'}); the numpy twins "
           f"{1e9 / k['numpy']['design_pillars_per_s_core']:.0f} + {1e9 / k['numpy']['oasis_pillars_per_s_core']:.0f} ns "
-          f"({k['numpy']['design_pillars_per_s_core'] and k['design_pillars_per_s_core'] / k['numpy']['design_pillars_per_s_core']:.1f}x"
+          f"({k['design_pillars_per_s_core'] / k['numpy']['design_pillars_per_s_core']:.1f}x"
           f" and {k['oasis_pillars_per_s_core'] / k['numpy']['oasis_pillars_per_s_core']:.1f}x), the same map, sums "
           f"and bytes: {k['same_as_numpy']}")
     print("  the design file's piece on the worker (deflate): " + ", ".join(

@@ -5,8 +5,8 @@ tested).
 Per cell: the Eq. 1 phase of its lens for both polarisations (or a given unwrapped phase, for lenses with
 Zernike terms), the constant offset, the wrap, the nearest atom (the look-up table of
 :class:`~metadesign.design.discretize.NearestAtom`, unsafe table cells resolved among their candidates), the
-clear aperture, and the terms of the error sums written in raster order so that numpy sums them as the
-reference does (pairwise, the same bits)."""
+clear aperture, and the terms of the error sums, summed in raster order the way ``np.sum`` does (numpy's
+pairwise blocks and splits, replicated: the same bits, without keeping the terms)."""
 
 from __future__ import annotations
 
@@ -55,15 +55,6 @@ def _wrap(v):
             r = (x - n * _C1) - n * _C2
         r = r + _TWO_PI if r < 0.0 else 0.0  # a remainder of the divisor's sign; zero is +0
     return r - _PI
-
-
-@njit(inline=True)
-def _lens(x, y, f, ox, oy, scale):
-    # metadesign.design.phase.lens_phase, the operations in its order (x ** 2 is x * x in numpy)
-    dx = x - ox
-    dy = y - oy
-    r2 = dx * dx + dy * dy
-    return scale * r2 / (f + math.sqrt(f * f + r2))
 
 
 #: numpy's pairwise summation (``np.sum`` of a contiguous float64 array): blocks of at most this many terms
@@ -162,7 +153,9 @@ def _kernel(r0, r1, c0, c1, n, period, m, lenses, scale, offx, offy, use_offx, u
             radius2, mask, G, lut_scale, code, cand, ph, T0, empty, out, used):
     """The block's index map into ``out``, the atoms' counts into ``used``; returns the four sums (the
     squared errors and the efficiencies per polarisation, summed as ``np.sum`` would the terms in raster
-    order, bit for bit) and the two peak errors."""
+    order, bit for bit), the two peak errors and the count of cells in the aperture.  Each row's Eq. 1
+    phases are computed first, one loop per lens over the cells of its column (loops that vectorise:
+    cheaper than a scalar lens per cell), in ``lens_phase``'s operations."""
     half = (n - 1) / 2
     h, w = r1 - r0, c1 - c0
     lo, hi = _spans(r0, r1, c0, c1, half, period, mask_mode, radius2)
@@ -175,7 +168,8 @@ def _kernel(r0, r1, c0, c1, n, period, m, lenses, scale, offx, offy, use_offx, u
             for j in range(w):
                 n_in += mask[i, j]
     leaves = _leaves(n_in)
-    rowbuf = np.empty((2, m, w))
+    rowbuf = np.empty((2, m, w // m + 1))
+    seen = np.zeros(m, np.int64)
     sums = np.zeros((4, leaves.size))
     buf = np.empty((4, _PW_BLOCK))
     leaf, pos = 0, 0
@@ -189,20 +183,23 @@ def _kernel(r0, r1, c0, c1, n, period, m, lenses, scale, offx, offy, use_offx, u
             out[i, j] = empty
         for j in range(hi[i], w):
             out[i, j] = empty
-        if not phx.shape[0]:  # the row's Eq. 1 phases, every lens of the row on every column: one SIMD loop each
+        if not phx.shape[0]:  # the row's Eq. 1 phases (see the docstring)
             for p in range(2):
                 for cc in range(m):
                     ch = cc + m * b
                     f, ox, dy = lenses[p, ch, 0], lenses[p, ch, 1], y - lenses[p, ch, 2]
                     dy2, ff = dy * dy, f * f  # lens_phase's r2 and f * f, the same floats
-                    dst = rowbuf[p, cc]
-                    for j in range(lo[i], hi[i]):
-                        dx = (c0 + j - half) * period - ox
+                    j0 = lo[i] + (cc - (c0 + lo[i])) % m  # the row's first cell in column cc of its supercell
+                    for q in range((hi[i] - j0 + m - 1) // m):
+                        dx = (c0 + j0 + m * q - half) * period - ox
                         r2 = dx * dx + dy2
-                        dst[j] = scale * r2 / (f + math.sqrt(ff + r2))
+                        rowbuf[p, cc, q] = scale * r2 / (f + math.sqrt(ff + r2))
         col = (c0 + lo[i]) % m  # the cell's column in its supercell, counted (an integer division per cell costs)
+        seen[:] = 0  # per column of the supercell: the cells of the row met so far (a cell's slot in rowbuf)
         for j in range(lo[i], hi[i]):
             cc_j = col
+            q_j = seen[col]
+            seen[col] += 1
             col += 1
             if col == m:
                 col = 0
@@ -214,8 +211,8 @@ def _kernel(r0, r1, c0, c1, n, period, m, lenses, scale, offx, offy, use_offx, u
                 ax = phx[i, j]
                 ay = phy[i, j]
             else:
-                ax = rowbuf[0, cc_j, j]
-                ay = rowbuf[1, cc_j, j]
+                ax = rowbuf[0, cc_j, q_j]
+                ay = rowbuf[1, cc_j, q_j]
             if use_offx:
                 ax = ax + offx
             if use_offy:

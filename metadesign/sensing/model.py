@@ -192,8 +192,7 @@ class AsFabricated:
         """The coarse pupil of this device.  ``workers`` > 1 splits the block rows into contiguous shares
         on local workers (each reads its own rows: the same pupil bit for bit, test); a perturbation with
         jitter draws its pillars from one stream over the rows and always runs in one process."""
-        block = block_size_for(self.n_cells, pupil_grid, self.supercell)
-        nb = -(-self.n_cells // block)
+        nb = -(-self.n_cells // self.pupil_block(pupil_grid))
         if workers > 1 and not pert.jitter and nb >= 2 * workers:
             cuts = np.linspace(0, nb, workers + 1).round().astype(int)
             shares = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
@@ -221,9 +220,8 @@ class AsFabricated:
                 t[~mask] = 0
             return t, clamped
 
-        block = block_size_for(self.n_cells, pupil_grid, self.supercell)
-        return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, block, self.supercell,
-                            self.tn_scale, progress=progress, block_rows=block_rows)
+        return coarse_pupil(rows, self.n_cells, self.period, self.wavelength, z, self.pupil_block(pupil_grid),
+                            self.supercell, self.tn_scale, progress=progress, block_rows=block_rows)
 
 
 def _pupil_share(fab: "AsFabricated", task) -> tuple[tuple[int, int], CoarsePupil]:
