@@ -11,7 +11,8 @@ torch = pytest.importorskip("torch")
 
 from metadesign.reconstruction.data import NoiseRange, apply_noise  # noqa: E402
 from metadesign.reconstruction.model import UNetConfig, build_unet, save_model  # noqa: E402
-from metadesign.reconstruction.refine import RefineConfig, build_refiner, is_refiner, load_refiner, save_refiner  # noqa: E402
+from metadesign.reconstruction.refine import (RefineConfig, build_refiner, deepen_refiner, is_refiner,  # noqa: E402
+                                             load_refiner, save_refiner)
 from metadesign.sensing.twin import TorchTwin, TwinOperators, normalise  # noqa: E402
 
 torch.set_num_threads(1)
@@ -111,6 +112,27 @@ def test_k0_is_the_unet_and_an_untrained_step_lowers_the_misfit():
         m0 = ref.twin.misfit_grad(traj[0], data, ref.cfg.eps)[0]
         m1 = ref.twin.misfit_grad(traj[1], data, ref.cfg.eps)[0]
     assert (m1 < m0).all()
+
+
+def test_a_deepened_refiner_starts_as_the_trained_one_and_its_new_steps_learn():
+    """K = 2 trained, deepened to K = 4: the same estimate to the last bit (the appended steps are the
+    identity), and the loss's gradient reaches every appended step's alpha and last layer (they can learn)."""
+    src = tiny_refiner(steps=2, step_init=0.03, seed=1)
+    with torch.no_grad():
+        for p in src.steps.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # trained: not a fresh refiner
+    deep = tiny_refiner(steps=4, step_init=0.03, seed=2)
+    deepen_refiner(deep, src.state_dict(), 2)
+    g = torch.Generator().manual_seed(5)
+    x = src.twin(0.5 * torch.randn(2, A, A, generator=g) * src.twin.support).detach() + 0.01
+    with torch.no_grad():
+        assert torch.equal(deep(x), src(x))
+    target = torch.zeros(2, A, A)
+    ((deep(x) - target) ** 2).sum().backward()
+    for step in list(deep.steps)[2:]:
+        assert float(step.alpha.grad.abs()) > 0 and float(step.body[-1].weight.grad.abs().sum()) > 0
+    with pytest.raises(Exception, match="do not fit"):
+        deepen_refiner(tiny_refiner(steps=1), src.state_dict(), 2)
 
 
 def test_refiner_saves_loads_and_refuses_another_unet(tmp_path):
@@ -253,7 +275,7 @@ def test_refine_init_continues_a_refiner_or_transfers_its_steps(tiny_dataset, tm
         src.twin.W.mul_(2.0)  # a twin buffer that differs from the dataset device's
     save_refiner(src, tmp_path / "r.safetensors", u1, {"noise_percent": 0})
 
-    def build(unet):
+    def build(unet, steps=2):
         (tmp_path / "t.toml").write_text(f"""[data]
 dataset = "{tiny_dataset}"
 [train]
@@ -262,7 +284,7 @@ batch = 4
 [refine]
 unet = "{unet}"
 init = "{tmp_path / 'r.safetensors'}"
-steps = 2
+steps = {steps}
 width = 4
 features = 4
 """)
@@ -281,6 +303,13 @@ features = 4
             assert torch.equal(st[k], v), k
     assert all(torch.equal(st["unet." + k], v) for k, v in u2w.items())
     assert torch.allclose(st["twin.W"] * 2.0, src.state_dict()["twin.W"])  # the dataset's twin, not the file's
+    deeper, card = build(u1, steps=3)  # a deeper recipe: the trained steps first, then the identity
+    assert card["refiner_deepened_from_steps"] == 2 and len(deeper.steps) == 3
+    x = torch.rand(2, 8, 16, 16)
+    with torch.no_grad():
+        assert torch.equal(deeper(x), src(x))
+    with pytest.raises(ValidationError, match="at most refine.steps = 1"):
+        build(u1, steps=1)
     (tmp_path / "t.toml").write_text((tmp_path / "t.toml").read_text().replace("width = 4", "width = 8"))
     with pytest.raises(ValidationError, match="another \\[refine\\] architecture"):
         _build_refiner(load_train_recipe(tmp_path / "t.toml"), tiny_dataset, 16, src.config.aperture_size, None, "cpu")

@@ -39,7 +39,7 @@ from ..validation import ValidationError, check_int, check_number
 from .model import aperture_mask, check_sizes, load_model
 
 __all__ = ["RefineConfig", "RealTwin", "real_twin", "build_refiner", "save_refiner", "load_refiner", "REFINER_FORMAT",
-           "twin_support", "is_refiner", "load_network"]
+           "twin_support", "is_refiner", "load_network", "deepen_refiner"]
 
 REFINER_FORMAT = "metadesign.refiner/1"
 
@@ -177,6 +177,26 @@ def build_refiner(unet, cfg: RefineConfig, dev: Device | None = None, buffers: d
         check_sizes(unet.config, dev.sensor.tensor_size, dev.crop.size, "refiner's U-Net")
         buffers = _twin_buffers(dev, cfg.rebin, cfg.samples)
     return Refiner(unet, cfg, buffers)
+
+
+def deepen_refiner(model: Refiner, state: dict, steps: int) -> None:
+    """Load a trained refiner's ``state`` with ``steps`` steps into ``model`` (the same step architecture,
+    ``steps`` <= its K): the trained steps come first and each appended step starts as the identity
+    (``alpha`` 0, its last layer 0), so the deeper refiner computes exactly what the trained one did and
+    training its new steps can only start from there (the Net2Net idea, in depth)."""
+    if not 0 < steps <= len(model.steps):
+        raise ValidationError(f"deepen_refiner: {steps} trained steps do not fit a refiner of K = {len(model.steps)}")
+    own = model.state_dict()
+    missing = [k for k in own if k.startswith("steps.") and int(k.split(".")[1]) < steps and k not in state]
+    if missing:
+        raise ValidationError(f"deepen_refiner: the trained state lacks {missing[0]}")
+    model.load_state_dict({**own, **{k: v for k, v in state.items() if k in own and
+                                     (not k.startswith("steps.") or int(k.split(".")[1]) < steps)}})
+    with torch.no_grad():
+        for step in list(model.steps)[steps:]:
+            step.alpha.zero_()
+            step.body[-1].weight.zero_()
+            step.body[-1].bias.zero_()
 
 
 def save_refiner(refiner, path: str | Path, unet_path: str | Path, card: dict) -> tuple[Path, Path]:

@@ -17,7 +17,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +36,7 @@ from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
 from .operators import has_operators
-from .refine import RefineConfig, build_refiner, load_refiner, save_refiner
+from .refine import RefineConfig, build_refiner, deepen_refiner, load_refiner, save_refiner
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
 
@@ -509,20 +509,24 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     check_sizes(unet.config, tensor_size, aperture, f"refine.unet {path}")
     torch.manual_seed(recipe.seed)
     model = build_refiner(unet, recipe.refine, load_device(dataset)).to(device)
-    transfer = False
+    transfer, deepened = False, None
     if recipe.refine_init is not None:  # start from a trained refiner of the same architecture
         src, rcard = load_refiner(recipe.refine_init, str(device))
-        if src.cfg != recipe.refine:
-            raise ValidationError(f"refine.init {recipe.refine_init}: another [refine] architecture")
+        k = src.cfg.steps
+        if replace(src.cfg, steps=recipe.refine.steps) != recipe.refine or k > recipe.refine.steps:
+            raise ValidationError(f"refine.init {recipe.refine_init}: another [refine] architecture (the same "
+                                  f"step networks and twin, and at most refine.steps = {recipe.refine.steps} steps)")
         # its step networks always; its U-Net and twin only when they are this recipe's (the same U-Net on
-        # the same device: a continued run); another U-Net or device keeps refine.unet and the dataset's twin
+        # the same device: a continued run); another U-Net or device keeps refine.unet and the dataset's twin;
+        # a deeper recipe appends identity steps after the trained ones
         transfer = rcard["unet"]["weights_sha256"] != card.get("weights_sha256")
         state = src.state_dict()
-        model.load_state_dict({k: v for k, v in state.items() if k.startswith("steps.")} if transfer else state,
-                              strict=not transfer)
+        deepen_refiner(model, {k_: v for k_, v in state.items() if k_.startswith("steps.")} if transfer else state, k)
+        deepened = k if k < recipe.refine.steps else None
     return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
                    **({"refiner": str(recipe.refine_init), "refiner_steps_only": transfer}
-                      if recipe.refine_init is not None else {})}
+                      if recipe.refine_init is not None else {}),
+                   **({"refiner_deepened_from_steps": deepened} if deepened else {})}
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
