@@ -70,10 +70,32 @@ def test_codesign_trains_the_diversity_and_resumes_to_the_same_bytes(tiny_datase
     assert got == pytest.approx(want, rel=1e-4)
 
 
+def test_defocus_scale_stretches_the_paper_ladder_about_its_mean_power(tiny_dataset):
+    """``defocus_scale`` s: the lenses' optical powers become mean + s (1/f0 - mean) (checked on the focal
+    lengths the twin reports, from the lens table's, not from the helper's arithmetic); 1 leaves the
+    device as built; 0 puts every lens at one power."""
+    import numpy as np
+
+    from metadesign.reconstruction.codesign import CodesignConfig, build_codesign
+    from metadesign.reconstruction.dataset import open_dataset
+    from metadesign.reconstruction.model import UNetConfig, build_unet
+
+    f0 = np.array([row["focal_length_m"] for row in open_dataset(tiny_dataset).attrs["provenance"]["channels"]]) * 1e3
+    assert len(f0) == 8 and np.ptp(f0) > 0
+    unet = build_unet(UNetConfig(base=4, depth=3, input_size=16))
+    for s in (1.0, 2.0, 0.0):
+        net = build_codesign(unet, CodesignConfig(modes=(5,), init="paper", defocus_scale=s), tiny_dataset, (0, 0))
+        f = np.sort(net.twin.focal_lengths().detach().numpy().ravel() * 1e3)
+        p0 = 1 / np.sort(f0)
+        assert 1 / f == pytest.approx(p0.mean() + s * (p0 - p0.mean()), rel=1e-9), s
+
+
 @pytest.mark.parametrize("codesign, field", [({"modes": [4, 5]}, "codesign.modes"),
                                              ({"modes": [5.5]}, "codesign.modes"),
                                              ({"lr": float("nan")}, "codesign.lr"),
-                                             ({"init": "zero"}, "codesign.init")])
+                                             ({"init": "zero"}, "codesign.init"),
+                                             ({"defocus_scale": -1.0}, "codesign.defocus_scale"),
+                                             ({"defocus_scale": 2.0}, "codesign.defocus_scale")])
 def test_bad_codesign_keys_are_one_line(codesign, field):
     from metadesign.config import ConfigError
 

@@ -30,7 +30,7 @@ from ..sensing.twin_diversity import DiversityTwin
 from ..validation import ValidationError
 from .dataset import load_device, open_dataset
 
-__all__ = ["CodesignConfig", "CodesignNet", "build_codesign", "apply_diversity", "codesign_for_evaluation",
+__all__ = ["CodesignConfig", "CodesignNet", "build_codesign", "apply_diversity", "codesign_for_evaluation", "scaled_ladder",
            "diversity_record", "diversity_design_recipe"]
 
 
@@ -47,6 +47,7 @@ class CodesignConfig:
     rebin: int = 1  # the twin's approximations (1 / None: exact, as the dataset was rendered)
     samples: int | None = None
     seed: int = 0
+    defocus_scale: float = 1.0  # "paper": the channels' optical powers spread about their mean times this
 
 
 class CodesignNet(nn.Module):
@@ -120,8 +121,19 @@ def build_codesign(unet: nn.Module, cfg: CodesignConfig, dataset: str | Path, no
                 twin.defocus_waves.copy_(cfg.init_waves * torch.randn(2, 4, generator=g, dtype=torch.float64))
             twin.zernike_rad.copy_(cfg.init_rad * torch.randn(twin.zernike_rad.shape, generator=g,
                                                               dtype=torch.float64))
+    elif cfg.defocus_scale != 1.0:  # the paper's defocus ladder stretched (or shrunk) about its mean power
+        with torch.no_grad():
+            twin.defocus_waves.copy_(scaled_ladder(twin.f0, cfg.defocus_scale, twin.wavelength, twin.radius))
     twin.defocus_waves.requires_grad_(cfg.learn_defocus)
     return CodesignNet(twin, unet, cfg, noise_percent)
+
+
+def scaled_ladder(f0, scale: float, wavelength: float, radius: float):
+    """The defocus (waves) that scales the spread of the lenses' optical powers ``1 / f0`` about their mean
+    by ``scale`` (1: none; 0: every lens at the mean power, no diversity; 2: twice the paper's ladder)."""
+    p0 = 1.0 / f0
+    pm = p0.mean()
+    return focal_to_defocus(1.0 / (pm + scale * (p0 - pm)), f0, wavelength, radius)
 
 
 def apply_diversity(twin: DiversityTwin, rec: dict | None) -> DiversityTwin:

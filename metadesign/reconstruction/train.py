@@ -88,6 +88,7 @@ SECTIONS = (
         Param("init", str, "paper", choices=["paper", "random"]),
         Param("init_waves", float, 0.5, lo=0, hi=100),
         Param("init_rad", float, 0.5, lo=0, hi=100),
+        Param("defocus_scale", float, 1.0, lo=0, hi=20),
         Param("max_step_rad", float, 0.5, lo=0, open_lo=True, hi=10),
         Param("penalty", float, 1.0, lo=0, hi=1e6),
         Param("rebin", int, 1, lo=1, hi=64),
@@ -179,9 +180,11 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
         if 4 in [int(j) for j in c["modes"]] and c["learn_defocus"]:
             raise ConfigError("codesign.modes", "Noll 4 (defocus) is each lens's focal length already "
                                                 "(learn_defocus); leave it out of modes")
+        if c["defocus_scale"] != 1.0 and c["init"] != "paper":
+            raise ConfigError("codesign.defocus_scale", "scales the paper's defocus ladder (init = \"paper\")")
         codesign = CodesignConfig(tuple(int(j) for j in c["modes"]), c["learn_defocus"], c["lr"], c["init"],
                                   c["init_waves"], c["init_rad"], c["max_step_rad"], c["penalty"], c["rebin"],
-                                  c["samples"] or None, c["seed"])
+                                  c["samples"] or None, c["seed"], c["defocus_scale"])
     return TrainRecipe(codesign=codesign, refine=refine, refine_unet=refine_unet, refine_deep=r["deep_supervision"], refine_init=refine_init,
                        name=name, source=source,
                        dataset=Path(ds) if ds else None,
