@@ -310,3 +310,86 @@ def test_a_widened_unet_computes_the_same_function():
     assert a.abs().max() > 0.1
     torch.testing.assert_close(b, a, rtol=0, atol=1e-5 * float(a.abs().max()))
     assert (c - a).abs().max() > 1e-4
+
+
+def test_a_field_unet_holds_branch_points_and_starts_as_its_phase_model(tmp_path, capsys):
+    """``output = "field"``: the phase of exp(i phi) + c.  Around a zero of the sum the phase winds by
+    2 pi (counted independently from the wrapped differences on a loop), which no continuous phase does;
+    a phase U-Net's weights in a field U-Net give the same correction (exp(i phi) to float rounding); the
+    field head learns (its gradient is not zero); the field U-Net exports to ONNX with the same output."""
+    import torch
+
+    from metadesign.cli import main
+    from metadesign.reconstruction.model import UNetConfig, build_unet, field_phase, save_model
+
+    n = 33
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, n), torch.linspace(-1, 1, n), indexing="ij")
+    phi = 0.3 * xx  # a smooth phase
+    # c = (x + i y) - exp(i phi): the sum is x + i y, a first-order zero at the centre
+    out = field_phase(phi, xx - torch.cos(phi), yy - torch.sin(phi))
+    loop = [(i, 4) for i in range(4, n - 4)] + [(n - 5, j) for j in range(4, n - 4)] + \
+        [(i, n - 5) for i in range(n - 5, 3, -1)] + [(4, j) for j in range(n - 5, 3, -1)]
+    vals = torch.stack([out[j, i] for i, j in loop] + [out[loop[0][1], loop[0][0]]])
+    d = torch.remainder(vals[1:] - vals[:-1] + np.pi, 2 * np.pi) - np.pi
+    assert abs(float(d.sum()) / (2 * np.pi) - 1) < 1e-5  # winding number 1
+    assert torch.allclose(field_phase(phi, torch.zeros_like(phi), torch.zeros_like(phi)), phi, atol=1e-6)
+
+    torch.manual_seed(0)
+    m = build_unet(UNetConfig(base=4, depth=3, input_size=16, aperture_size=11))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0, 0.5)
+        m.head.weight.mul_(30.0)  # phases beyond pi: the field model's are wrapped
+    f = build_unet(UNetConfig(base=4, depth=3, input_size=16, aperture_size=11, output="field"))
+    f.load_state_dict({**f.state_dict(), **m.state_dict()})
+    x = torch.randn(2, 8, 16, 16)
+    with torch.no_grad():
+        a, b = m.eval()(x), f.eval()(x)
+    assert a.abs().max() > 4.0
+    torch.testing.assert_close(torch.polar(torch.ones_like(b), b), torch.polar(torch.ones_like(a), a), rtol=0,
+                               atol=1e-5)
+    f.train()
+    (f(x) * torch.randn(2, 11, 11)).sum().backward()
+    assert float(f.field_head.weight.grad.abs().sum()) > 0
+    with torch.no_grad():
+        f.field_head.weight.normal_(0, 0.5)
+    save_model(f.eval(), tmp_path / "f.safetensors", {})
+    assert main(["export", str(tmp_path / "f.safetensors"), "--onnx", str(tmp_path / "f.onnx"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["max_abs_diff"] <= 1e-4
+
+
+def test_init_widens_a_narrower_unet_and_starts_a_field_unet_from_a_phase_one(tmp_path):
+    """``--init``: a U-Net of the same shape with half the filters is widened (the same function but for
+    the 1 % perturbation), a phase U-Net starts a field U-Net (the same corrections), anything else is
+    one line."""
+    import torch
+
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+    from metadesign.reconstruction.train import _build_model, train_recipe_from_dict
+    from metadesign.validation import ValidationError
+
+    torch.manual_seed(1)
+    m = build_unet(UNetConfig(base=4, depth=3, input_size=16, aperture_size=11))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0, 0.5)
+    save_model(m, tmp_path / "m.safetensors", {})
+    x = torch.randn(2, 8, 16, 16)
+    with torch.no_grad():
+        ref = m.eval()(x)
+
+    def recipe(**model):
+        return train_recipe_from_dict({"model": {"depth": 3, **model}, "train": {"seed": 3}}, "t")
+
+    wide, rec = _build_model(recipe(base=8), 16, 11, tmp_path / "m.safetensors", "cpu")
+    assert rec["widened_from_base"] == 4 and wide.config.base == 8
+    with torch.no_grad():
+        assert 0 < float((wide.eval()(x) - ref).abs().max()) < 0.2 * float(ref.abs().max())
+    field, rec = _build_model(recipe(base=4, output="field"), 16, 11, tmp_path / "m.safetensors", "cpu")
+    assert rec["output_from"] == "phase" and field.config.output == "field"
+    with torch.no_grad():
+        b = field.eval()(x)
+    torch.testing.assert_close(torch.polar(torch.ones_like(b), b), torch.polar(torch.ones_like(ref), ref),
+                               rtol=0, atol=1e-5)
+    with pytest.raises(ValidationError, match="differs from the recipe"):
+        _build_model(recipe(base=4, norm="batch"), 16, 11, tmp_path / "m.safetensors", "cpu")

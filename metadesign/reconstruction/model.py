@@ -22,7 +22,7 @@ from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
 
 __all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
-           "check_sizes", "widen_unet"]
+           "check_sizes", "widen_unet", "field_phase"]
 
 MODEL_FORMAT = "metadesign.unet/1"
 
@@ -35,6 +35,7 @@ class UNetConfig:
     input_size: int = 256  # S of the 8 x S x S tensor
     aperture_size: int = 41  # A: output grid (the receiver-aperture crop of the turbulence grid)
     norm: str = "group"  # "group" (GroupNorm, 8 groups), "batch" or "none"
+    output: str = "phase"  # "phase": the head's phase; "field": the angle of exp(i phase) + a learned field
 
     def __post_init__(self) -> None:
         check_int("model.in_channels", self.in_channels, 1, 64)
@@ -44,6 +45,8 @@ class UNetConfig:
         check_int("model.aperture_size", self.aperture_size, 3, 4096)
         if self.norm not in ("group", "batch", "none"):
             raise ValidationError(f"model.norm: expected group, batch or none, got {self.norm!r}")
+        if self.output not in ("phase", "field"):
+            raise ValidationError(f"model.output: expected phase or field, got {self.output!r}")
         if self.input_size % 2 ** (self.depth - 1):
             raise ValidationError(f"model.input_size: {self.input_size} must be divisible by 2^(depth-1) = "
                                   f"{2 ** (self.depth - 1)}")
@@ -68,7 +71,13 @@ def _block(cfg: "UNetConfig", cin: int, cout: int):
 
 
 class UNet(nn.Module):
-    """The U-Net of :class:`UNetConfig`: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture."""
+    """The U-Net of :class:`UNetConfig`: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture.
+
+    ``output = "field"``: the phase is the angle of ``exp(i phi) + c``, ``phi`` the phase head's and ``c``
+    a complex field from a second head (both resampled onto the aperture before they are combined).  A
+    continuous ``c`` can vanish where ``exp(i phi) + c`` does, so the output can hold the received
+    phase's branch points (optical vortices), which a continuous phase cannot; the second head starts at
+    zero, so a phase model loaded into it computes the same corrections (its phase, wrapped)."""
 
     def __init__(self, cfg: "UNetConfig"):
         super().__init__()
@@ -83,6 +92,9 @@ class UNet(nn.Module):
         # Adam would amplify into a random walk
         self.head = nn.Conv2d(ch[0], 1, 1, bias=False)
         nn.init.zeros_(self.head.weight)  # start at the flat phase: the uncorrected beam
+        if cfg.output == "field":
+            self.field_head = nn.Conv2d(ch[0], 2, 3, padding=1, bias=False)
+            nn.init.zeros_(self.field_head.weight)
         self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
 
     def forward(self, x):
@@ -96,11 +108,21 @@ class UNet(nn.Module):
         for up, blk in zip(self.ups, self.upblocks):
             x = up(x)
             x = blk(torch.cat([skips.pop(), x], dim=1))
-        phi = self.head(x)
-        if phi.shape[-1] != cfg.aperture_size:
-            phi = F.interpolate(phi, size=(cfg.aperture_size, cfg.aperture_size), mode="bilinear",
-                                align_corners=True)
-        return phi[:, 0].float() * self.mask
+        phi = self._on_aperture(self.head(x))[:, 0].float()
+        if cfg.output == "field":
+            c = self._on_aperture(self.field_head(x)).float()
+            phi = field_phase(phi, c[:, 0], c[:, 1])
+        return phi * self.mask
+
+    def _on_aperture(self, y):
+        a = self.config.aperture_size
+        return y if y.shape[-1] == a else F.interpolate(y, size=(a, a), mode="bilinear", align_corners=True)
+
+
+def field_phase(phi, c_re, c_im):
+    """The phase of ``exp(i phi) + c`` (in (-pi, pi]): ``phi`` alone when ``c = 0``; where the sum passes
+    through zero, a branch point."""
+    return torch.atan2(torch.sin(phi) + c_im, torch.cos(phi) + c_re)
 
 
 def build_unet(cfg: "UNetConfig") -> UNet:

@@ -55,7 +55,9 @@ SECTIONS = (
         Param("base", int, 64, lo=1, hi=256),
         Param("depth", int, 5, lo=2, hi=8),
         Param("norm", str, "group", choices=["group", "batch", "none"]),
-    ), optional=True),
+        Param("output", str, "phase", choices=["phase", "field"]),
+    ), optional=True, help="the U-Net (metadesign.reconstruction.model); output = \"field\": the phase of "
+                           "exp(i phi) + a learned field, which can hold branch points"),
     Section("train", (
         Param("epochs", int, 500, lo=1, hi=100000),
         Param("batch", int, 64, lo=1, hi=65536),
@@ -131,6 +133,7 @@ class TrainRecipe:
     refine_deep: float = 0.0  # weight of the intermediate steps' losses (deep supervision)
     refine_init: Path | None = None  # a trained refiner to start from
     codesign: object = None  # CodesignConfig when the recipe co-designs the sensor's diversity
+    output: str = "phase"  # the U-Net's output (model.UNetConfig.output)
 
     def noise(self) -> dict:
         """The PSFDataset noise keywords of this recipe."""
@@ -144,7 +147,8 @@ class TrainRecipe:
         """A training recipe for another run of this architecture (a fine-tune, a retraining): the same
         [model], batch and weight decay, seed 0, the given [data] keys and [train] keys (checked as a
         recipe is)."""
-        raw = {"data": dict(data or {}), "model": {"base": self.base, "depth": self.depth, "norm": self.norm},
+        raw = {"data": dict(data or {}), "model": {"base": self.base, "depth": self.depth, "norm": self.norm,
+                                                 "output": self.output},
                "train": {"batch": self.batch, "weight_decay": self.weight_decay, "seed": 0, **train}}
         return train_recipe_from_dict(raw, name, self.source)
 
@@ -192,6 +196,7 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
                        photons_at_peak=None if d["photons_at_peak"][1] == 0 else d["photons_at_peak"],
                        read_noise_e=d["read_noise_e"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
+                       output=m["output"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],
                        pretrain_loss=t["pretrain_loss"],
@@ -537,7 +542,7 @@ def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Pat
     init's record for the model card."""
     import torch
 
-    cfg = UNetConfig(8, recipe.base, recipe.depth, tensor_size, aperture, recipe.norm)
+    cfg = UNetConfig(8, recipe.base, recipe.depth, tensor_size, aperture, recipe.norm, recipe.output)
     torch.manual_seed(recipe.seed)
     model = build_unet(cfg).to(device)
     if init is None:
@@ -552,9 +557,15 @@ def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Pat
         # perturbed by 1 % so that the new filters learn (seeded by the recipe)
         src = widen_unet(src, factor, noise=0.01, seed=recipe.seed)
         record["widened_from_base"] = a["base"]
+    elif a != b and {**a, "output": b["output"]} == b and a["output"] == "phase":
+        # a phase U-Net into a field one: its weights, the field head at zero (the same corrections)
+        record["output_from"] = "phase"
+        model.load_state_dict({**model.state_dict(), **src.state_dict()})
+        return model, record
     elif a != b:
         raise ValidationError(f"--init {init}: architecture {a} differs from the recipe's {b} (a U-Net of the "
-                              f"same shape with a whole fraction of its filters is widened)")
+                              f"same shape with a whole fraction of its filters is widened; a phase U-Net "
+                              f"starts a field one)")
     model.load_state_dict(src.state_dict())
     return model, record
 
