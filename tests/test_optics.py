@@ -86,3 +86,36 @@ def test_sampling_checks_refuse_aliasing():
         check_asm_sampling(1024, 20e-6, LAM, 5e-3, 5e-3, 0.05)
     with pytest.raises(SamplingError, match="pad to"):
         check_asm_sampling(256, 1e-6, LAM, 5e-3, 0.2e-3, 0.05)
+
+
+def test_branch_points_count_the_vortices_of_a_field_and_the_irrotational_part_drops_them():
+    """A field with a +1 zero and a -1 zero (the product of (z - z1) and conj(z - z2)) over a smooth phase:
+    exactly those two charges, on the plaquettes that hold the zeros; a smooth phase has none.  A vortex
+    at the centre of the disc has a solenoidal phase gradient tangent to the rim, so the least-squares
+    part of its field is the smooth phase alone (to a few hundredths of a radian, the grid's), while the
+    vortex's own phase is ~1.8 rad rms; without the vortex it is the smooth phase to 1e-9 (piston
+    removed)."""
+    from metadesign.optics.phase import branch_points, irrotational_phase, wrap
+
+    n = 64
+    y, x = np.mgrid[0:n, 0:n] + 0.0
+    m = (x - 31.5) ** 2 + (y - 31.5) ** 2 <= 30.0**2
+    smooth = 0.8 * np.cos(2 * np.pi * x / 50) + 3.0 * (y / n) ** 2
+    z1, z2 = (20.5 + 25.5j), (42.5 + 36.5j)  # plaquette centres
+    z = x + 1j * y
+    q = branch_points(np.angle((z - z1) * np.conj(z - z2) * np.exp(1j * smooth)), m)
+    assert q.sum() == 0 and np.abs(q).sum() == 2
+    assert q[25, 20] == 1 and q[36, 42] == -1  # (row, column) of the plaquettes holding z1 and z2
+    assert np.abs(branch_points(wrap(smooth), m)).sum() == 0
+
+    def piston_free(p):
+        return (p - p[m].mean()) * m
+
+    c = 31.5 + 31.5j
+    vortex = np.angle(z - c)
+    assert branch_points(vortex, m)[31, 31] == 1
+    got = piston_free(irrotational_phase(wrap(vortex + smooth), m))
+    err = np.sqrt(np.mean((got - piston_free(smooth))[m] ** 2))
+    assert err < 0.05
+    assert np.sqrt(np.mean(piston_free(vortex)[m] ** 2)) > 1.5  # what was dropped
+    np.testing.assert_allclose(piston_free(irrotational_phase(wrap(smooth), m)), piston_free(smooth), atol=1e-9)

@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from ..io import atomic_path
+from ..optics.phase import branch_points, irrotational_phase
 from ..plotting import pyplot, save_figure
 from ..validation import ValidationError
 from .codesign import codesign_for_evaluation
@@ -95,7 +96,8 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                         screens=True)
         loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
         acc = {k: [] for k in ("index", "rytov", "rytov_measured", "none", "unet", "phase_conjugate",
-                               "complex_conjugate", "residual_rms", "residual_tiptilt_rms")
+                               "complex_conjugate", "residual_rms", "residual_tiptilt_rms", "vortex_free",
+                               "branch_points")
                + (("start",) if refines else ())}
         with torch.no_grad():
             for b in loader:
@@ -117,6 +119,11 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                     acc["unet"].append(ref["estimate"].cpu().numpy())
                     for k in ("none", "phase_conjugate", "complex_conjugate"):
                         acc[k].append(ref[k].cpu().numpy())
+                    # the received phase without its branch points: what a vortex-free estimate can reach
+                    wrapped = torch.angle(rec).cpu().numpy()
+                    vf = torch.as_tensor(irrotational_phase(wrapped, ap), dtype=torch.float32, device=dev)
+                    acc["vortex_free"].append(pib.npib_phase(vf, scr).cpu().numpy())
+                    acc["branch_points"].append(np.abs(branch_points(wrapped, ap)).sum(axis=(-2, -1)))
                 else:
                     acc["unet"].append(pib.npib_phase(phi, scr).cpu().numpy())
                 r, t = residual_rms(phi.cpu().numpy(), rec.cpu().numpy(), ap)
@@ -150,7 +157,11 @@ def summarise(r: dict) -> dict:
                          "ratio_of_means": float(np.mean(unet[m]) / max(np.mean(none[m]), 1e-12))},
                 "captured_fraction": captured_fraction(none[m], unet[m], pc[m]),
                 "residual_rms_rad": float(np.mean(r["residual_rms"][m])),
-                "residual_tiptilt_rms_rad": float(np.mean(r["residual_tiptilt_rms"][m]))}
+                "residual_tiptilt_rms_rad": float(np.mean(r["residual_tiptilt_rms"][m])),
+                **({"vortex_free": {"npib": float(np.mean(r["vortex_free"][m])),
+                                    "captured_fraction": captured_fraction(none[m], r["vortex_free"][m], pc[m]),
+                                    "branch_points_mean": float(np.mean(r["branch_points"][m]))}}
+                   if "vortex_free" in r else {})}
 
     out = block(np.ones(len(none), bool))
     if "start" in r:  # a refiner's evaluation: its U-Net alone on the same inputs
@@ -192,6 +203,7 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     net = "U-Net + refinement" if "start" in r else "U-Net"
     series = [("complex_conjugate", "complex conjugate (oracle)", "^"), ("phase_conjugate", "phase conjugate (oracle)", "s")]
+    series += [("vortex_free", "vortex-free phase conjugate (its branch points dropped)", "d")] if "vortex_free" in r else []
     series += [("start", "U-Net alone", "."), ("unet", net, "o")] if "start" in r else [("unet", net, "o")]
     for k, lab, mk in series + [("none", "uncorrected", "x")]:
         ax.scatter(r["rytov_measured"], r[k], s=10, marker=mk, alpha=0.6, label=f"{lab} (mean {np.mean(r[k]):.3f})")

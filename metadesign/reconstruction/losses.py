@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..optics.phase import irrotational_phase, wrap
 from ..turbulence.propagate import Turbulence, split_step_torch
 
 __all__ = ["PiB", "phase_loss", "mse_loss", "unwrap_ls", "LOSSES", "Loss", "register_loss"]
@@ -171,29 +172,13 @@ def phase_loss(phi, received, ap):
 
 def unwrap_ls(wrapped, mask):
     """Unwrapped phase on ``mask`` (leading batch axes allowed): least-squares integration of the wrapped
-    phase differences between mask pixels (Ghiglia & Romero 1994: a Neumann Poisson solve by DCT), then
-    made congruent with the data (``phi + wrap(wrapped - phi)``), so a phase whose least-squares estimate
-    is within pi of the truth is recovered exactly; piston removed on the mask, zero outside."""
-    import scipy.fft as sfft
-
-    def wrap(x):
-        return (x + np.pi) % (2 * np.pi) - np.pi
-
+    phase differences between mask pixels (Ghiglia & Romero 1994: a Neumann Poisson solve by DCT,
+    :func:`~metadesign.optics.phase.irrotational_phase`), then made congruent with the data (``phi +
+    wrap(wrapped - phi)``), so a phase whose least-squares estimate is within pi of the truth is recovered
+    exactly; piston removed on the mask, zero outside."""
     wrapped = np.asarray(wrapped, np.float64)
     m = np.asarray(mask, bool)
-    gx = wrap(np.diff(wrapped, axis=-1)) * (m[..., 1:] & m[..., :-1])
-    gy = wrap(np.diff(wrapped, axis=-2)) * (m[..., 1:, :] & m[..., :-1, :])
-    rho = np.zeros_like(wrapped)
-    rho[..., :, :-1] += gx
-    rho[..., :, 1:] -= gx
-    rho[..., :-1, :] += gy
-    rho[..., 1:, :] -= gy
-    ny, nx = wrapped.shape[-2:]
-    den = (2 * np.cos(np.pi * np.arange(ny) / ny)[:, None] + 2 * np.cos(np.pi * np.arange(nx) / nx)[None, :] - 4)
-    den[0, 0] = 1.0
-    r = sfft.dctn(rho, type=2, axes=(-2, -1), norm="ortho") / den
-    r[..., 0, 0] = 0.0
-    phi = sfft.idctn(r, type=2, axes=(-2, -1), norm="ortho")
+    phi = irrotational_phase(wrapped, m)
     phi = phi + wrap(wrapped - phi)
     piston = (phi * m).sum(axis=(-2, -1), keepdims=True) / m.sum()
     return (phi - piston) * m
