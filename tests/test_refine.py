@@ -135,6 +135,28 @@ def test_a_deepened_refiner_starts_as_the_trained_one_and_its_new_steps_learn():
         deepen_refiner(tiny_refiner(steps=1), src.state_dict(), 2)
 
 
+def test_a_field_refiner_starts_as_its_phase_refiner_and_its_field_learns():
+    """``output = "field"``: a trained phase refiner's steps in a field refiner (deepened from 2 to 3 steps on
+    the way) give the same phase to the bit; the loss's gradient reaches each step's field outputs."""
+    src = tiny_refiner(steps=2, step_init=0.03, seed=1)
+    with torch.no_grad():
+        for p in src.steps.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    torch.manual_seed(2)
+    unet = src.unet
+    fld = build_refiner(unet, RefineConfig(steps=3, step_init=0.03, width=4, features=4, dilate=1, output="field"),
+                        buffers=buffers_of(random_ops()))
+    deepen_refiner(fld, src.state_dict(), 2)
+    g = torch.Generator().manual_seed(5)
+    x = src.twin(0.5 * torch.randn(2, A, A, generator=g) * src.twin.support).detach() + 0.01
+    with torch.no_grad():
+        a, b = src(x), fld(x)
+    assert torch.equal(a, b)
+    (fld(x) * torch.randn(2, A, A)).sum().backward()
+    for step in list(fld.steps)[:2]:
+        assert float(step.body[-1].weight.grad[1:].abs().sum()) > 0
+
+
 def test_refiner_saves_loads_and_refuses_another_unet(tmp_path):
     ref = tiny_refiner()
     with torch.no_grad():

@@ -77,7 +77,7 @@ class UNet(nn.Module):
     a complex field from a second head (both resampled onto the aperture before they are combined).  A
     continuous ``c`` can vanish where ``exp(i phi) + c`` does, so the output can hold the received
     phase's branch points (optical vortices), which a continuous phase cannot; the second head starts at
-    zero, so a phase model loaded into it computes the same corrections (its phase, wrapped)."""
+    zero, so a phase model loaded into it computes the same phase."""
 
     def __init__(self, cfg: "UNetConfig"):
         super().__init__()
@@ -120,9 +120,10 @@ class UNet(nn.Module):
 
 
 def field_phase(phi, c_re, c_im):
-    """The phase of ``exp(i phi) + c`` (in (-pi, pi]): ``phi`` alone when ``c = 0``; where the sum passes
-    through zero, a branch point."""
-    return torch.atan2(torch.sin(phi) + c_im, torch.cos(phi) + c_re)
+    """The phase of ``exp(i phi) + c``, written ``phi + angle(1 + c exp(-i phi))``: ``phi`` itself (not
+    wrapped) where ``c = 0``; where the sum passes through zero, a branch point."""
+    cs, sn = torch.cos(phi), torch.sin(phi)
+    return phi + torch.atan2(c_im * cs - c_re * sn, 1 + c_re * cs + c_im * sn)
 
 
 def build_unet(cfg: "UNetConfig") -> UNet:

@@ -36,7 +36,7 @@ from ..sensing.device import Device
 from ..sensing.twin import twin_operators
 from ..sensing.twin_real import RealTwin, real_buffers
 from ..validation import ValidationError, check_int, check_number
-from .model import aperture_mask, check_sizes, load_model
+from .model import aperture_mask, check_sizes, field_phase, load_model
 
 __all__ = ["RefineConfig", "RealTwin", "real_twin", "build_refiner", "save_refiner", "load_refiner", "REFINER_FORMAT",
            "twin_support", "is_refiner", "load_network", "deepen_refiner"]
@@ -54,6 +54,7 @@ class RefineConfig:
     step_init: float = 0.05  # rad: alpha_k at the start (the first step of the retrieval's Adam)
     eps: float = 1e-3  # the amplitude misfit's regulariser (normalised tensor units)
     dilate: int = 2  # the estimate's support: the aperture dilated by this many crop pixels
+    output: str = "phase"  # "field": each step's update is the phase of exp(i phi') + a learned field
 
     def __post_init__(self):
         check_int("refine.steps", self.steps, 0, 32)
@@ -65,6 +66,8 @@ class RefineConfig:
         check_number("refine.step_init", self.step_init, 0, 10)
         check_number("refine.eps", self.eps, 0, 1, open_lo=True)
         check_int("refine.dilate", self.dilate, 0, 10)
+        if self.output not in ("phase", "field"):
+            raise ValidationError(f"refine.output: expected phase or field, got {self.output!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -86,17 +89,20 @@ def _twin_buffers(dev: Device, rebin: int, samples: int | None) -> dict[str, np.
 
 class Step(nn.Module):
     """One refinement step's network: a strided encoder of [D, P] onto the crop grid, then three 3x3
-    convolutions over [phi, g, support, encoded]; the last one starts at zero."""
+    convolutions over [phi, g, support, encoded]; the last one starts at zero.  ``output = "field"``: the
+    last convolution also gives a complex field ``c`` and the step returns the phase of ``exp(i phi') + c``
+    (``phi'`` the phase step's result), so a step can open or close branch points; ``c = 0`` at the start."""
 
     def __init__(self, cfg: RefineConfig, a: int):
         super().__init__()
         f, w = cfg.features, cfg.width
         self.a = a
+        self.field = cfg.output == "field"
         self.enc = nn.Sequential(nn.Conv2d(16, f, 3, stride=2, padding=1), nn.ReLU(),
                                  nn.Conv2d(f, f, 3, stride=2, padding=1), nn.ReLU())
         self.body = nn.Sequential(nn.Conv2d(3 + f, w, 3, padding=1), nn.ReLU(),
                                   nn.Conv2d(w, w, 3, padding=1), nn.ReLU(),
-                                  nn.Conv2d(w, 1, 3, padding=1))
+                                  nn.Conv2d(w, 3 if self.field else 1, 3, padding=1))
         nn.init.zeros_(self.body[-1].weight)
         nn.init.zeros_(self.body[-1].bias)
         self.alpha = nn.Parameter(torch.tensor(float(cfg.step_init)))
@@ -106,7 +112,9 @@ class Step(nn.Module):
         e = F.interpolate(e, size=(self.a, self.a), mode="bilinear", align_corners=True)
         s = support.expand(phi.shape[0], 1, -1, -1)
         x = torch.cat([phi[:, None], g[:, None], s, e], dim=1)
-        return phi - self.alpha * g + self.body(x)[:, 0]
+        y = self.body(x)
+        out = phi - self.alpha * g + y[:, 0]
+        return field_phase(out, y[:, 1], y[:, 2]) if self.field else out
 
 class Refiner(nn.Module):
     """U-Net estimate + ``K`` unrolled steps: (B, 8, S, S) PSFs -> (B, A, A) phase.  ``forward(x, k)``
@@ -183,15 +191,22 @@ def deepen_refiner(model: Refiner, state: dict, steps: int) -> None:
     """Load a trained refiner's ``state`` with ``steps`` steps into ``model`` (the same step architecture,
     ``steps`` <= its K): the trained steps come first and each appended step starts as the identity
     (``alpha`` 0, its last layer 0), so the deeper refiner computes exactly what the trained one did and
-    training its new steps can only start from there (the Net2Net idea, in depth)."""
+    training its new steps can only start from there (the Net2Net idea, in depth).  A phase refiner's
+    steps go into a field refiner's with the field outputs at zero (the same corrections, wrapped)."""
     if not 0 < steps <= len(model.steps):
         raise ValidationError(f"deepen_refiner: {steps} trained steps do not fit a refiner of K = {len(model.steps)}")
     own = model.state_dict()
     missing = [k for k in own if k.startswith("steps.") and int(k.split(".")[1]) < steps and k not in state]
     if missing:
         raise ValidationError(f"deepen_refiner: the trained state lacks {missing[0]}")
-    model.load_state_dict({**own, **{k: v for k, v in state.items() if k in own and
-                                     (not k.startswith("steps.") or int(k.split(".")[1]) < steps)}})
+    new = {}
+    for k, v in state.items():
+        if k not in own or (k.startswith("steps.") and int(k.split(".")[1]) >= steps):
+            continue
+        if v.shape != own[k].shape and ".body." in k and v.shape[1:] == own[k].shape[1:] and v.shape[0] == 1:
+            v = torch.cat([v, torch.zeros((own[k].shape[0] - 1, *v.shape[1:]), dtype=v.dtype)])  # phase -> field
+        new[k] = v
+    model.load_state_dict({**own, **new})
     with torch.no_grad():
         for step in list(model.steps)[steps:]:
             step.alpha.zero_()

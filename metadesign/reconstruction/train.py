@@ -81,6 +81,7 @@ SECTIONS = (
         Param("step_init", float, 0.05, lo=0, hi=10),
         Param("deep_supervision", float, 0.0, lo=0, hi=10),
         Param("init", str, None),
+        Param("output", str, "phase", choices=["phase", "field"]),
     ), optional=True, help="a learned refinement (metadesign.reconstruction.refine) trained on top of a frozen "
                            "U-Net (refine.unet, or --init); samples = 0: every camera pixel"),
     Section("codesign", (
@@ -166,7 +167,7 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
     r = v["refine"]
     if "refine" in data:
         refine = RefineConfig(steps=r["steps"], rebin=r["rebin"], samples=r["samples"] or None, width=r["width"],
-                              features=r["features"], step_init=r["step_init"])
+                              features=r["features"], step_init=r["step_init"], output=r["output"])
 
         def rel(q):
             return None if not q else Path(q) if Path(q).is_absolute() else (source.parent if source else Path.cwd()) / q
@@ -521,9 +522,11 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     if recipe.refine_init is not None:  # start from a trained refiner of the same architecture
         src, rcard = load_refiner(recipe.refine_init, str(device))
         k = src.cfg.steps
-        if replace(src.cfg, steps=recipe.refine.steps) != recipe.refine or k > recipe.refine.steps:
+        if (replace(src.cfg, steps=recipe.refine.steps, output=recipe.refine.output) != recipe.refine
+                or k > recipe.refine.steps or (src.cfg.output, recipe.refine.output) == ("field", "phase")):
             raise ValidationError(f"refine.init {recipe.refine_init}: another [refine] architecture (the same "
-                                  f"step networks and twin, and at most refine.steps = {recipe.refine.steps} steps)")
+                                  f"step networks and twin, at most refine.steps = {recipe.refine.steps} steps; "
+                                  f"a phase refiner starts a field one, not the reverse)")
         # its step networks always; its U-Net and twin only when they are this recipe's (the same U-Net on
         # the same device: a continued run); another U-Net or device keeps refine.unet and the dataset's twin;
         # a deeper recipe appends identity steps after the trained ones
@@ -534,7 +537,9 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
                    **({"refiner": str(recipe.refine_init), "refiner_steps_only": transfer}
                       if recipe.refine_init is not None else {}),
-                   **({"refiner_deepened_from_steps": deepened} if deepened else {})}
+                   **({"refiner_deepened_from_steps": deepened} if deepened else {}),
+                   **({"refiner_output_from": "phase"} if recipe.refine_init is not None
+                      and recipe.refine.output != src.cfg.output else {})}
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
