@@ -424,3 +424,6 @@ def test_evaluation_reports_the_vortex_free_reference(tiny_dataset, tmp_path):
     s = summarise(r)
     assert s["vortex_free"]["branch_points_mean"] == pytest.approx(float(np.mean(r["branch_points"])))
     assert s["vortex_free"]["captured_fraction"] < 1
+    from metadesign.reconstruction.evaluate import plot_fig3
+
+    assert (tmp_path / "fig-branch-points.png") in plot_fig3(res, tmp_path)

@@ -193,6 +193,27 @@ def write_results(res: dict, out: Path) -> list[Path]:
     return files
 
 
+def _plot_branch_points(plt, r: dict, net: str, path: Path, noise: str) -> Path:
+    """Captured fraction by Rytov bin of the estimate(s) and of the vortex-free phase conjugate, with the
+    branch points per sample: where a smooth phase stops."""
+    x = r["rytov_measured"]
+    bins = [(lo, hi) for lo, hi in zip(RYTOV_BINS[:-1], RYTOV_BINS[1:]) if np.any((x >= lo) & (x < hi))]
+    masks = [(x >= lo) & (x < hi) for lo, hi in bins]
+    fig, ax = plt.subplots(figsize=(7.5, 4.2), constrained_layout=True)
+    pos = np.arange(len(bins))
+    series = [("vortex_free", "vortex-free phase conjugate", "d--")]
+    series += [("start", "U-Net alone", "s-"), ("unet", net, "o-")] if "start" in r else [("unet", net, "o-")]
+    for k, lab, st in series:
+        ax.plot(pos, [captured_fraction(r["none"][m], r[k][m], r["phase_conjugate"][m]) for m in masks], st, label=lab)
+    ax.axhline(1.0, color="k", lw=0.5, ls=":")
+    ax.set_xticks(pos, [f"{lo:g}-{hi:g}\nn={int(m.sum())}\n{np.mean(r['branch_points'][m]):.1f} bp"
+                        for (lo, hi), m in zip(bins, masks)], fontsize=7)
+    ax.set(xlabel="Rytov bin (samples, mean branch points per sample)", ylabel="captured fraction of the phase conjugate",
+           title=f"Branch points: what a vortex-free phase can capture ({noise})")
+    ax.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
 def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
     """Fig. 3b (NPiB vs per-sample Rytov number) at the first noise level, Fig. 3c/d (box plots vs
     noise level), and predicted vs true phase for a few samples."""
@@ -216,6 +237,8 @@ def plot_fig3(res: dict, out: Path, model=None, dataset=None) -> list[Path]:
             transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3")
     ax.legend(fontsize=8)
     figs.append(save_figure(fig, out / "fig-3b.png"))
+    if "vortex_free" in r:
+        figs.append(_plot_branch_points(plt, r, net, out / "fig-branch-points.png", _noise_words(keys[0])))
     pkeys = [k for k in keys if k.startswith("photons:")]
     if pkeys:
         ph = [float(k.split(":")[1]) for k in pkeys]
