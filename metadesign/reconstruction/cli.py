@@ -175,9 +175,13 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
              f"  captured fraction {s['captured_fraction']:.3f}; gain {net} / uncorrected: mean {s['gain']['mean']:.1f}x, "
              f"median {s['gain']['median']:.1f}x, ratio of means {s['gain']['ratio_of_means']:.1f}x; residual RMS "
              f"{s['residual_rms_rad']:.2f} rad (+ tip/tilt {s['residual_tiptilt_rms_rad']:.2f} rad)"]
+    if "vortex_free" in s:
+        lines.append(f"  branch points {s['vortex_free']['branch_points_mean']:.1f} per sample; the phase conjugate "
+                     f"without them captures {s['vortex_free']['captured_fraction']:.3f} (a vortex-free estimate's ceiling)")
     for k, b in s["by_rytov"].items():
         lines.append(f"  Rytov {k:>9}: n {b['n']:4d}, NPiB none {b['npib']['none']:.3f}, {net} {b['npib']['unet']:.3f}, "
-                     f"conjugate {b['npib']['phase_conjugate']:.3f}, captured {b['captured_fraction']:.2f}")
+                     f"conjugate {b['npib']['phase_conjugate']:.3f}, captured {b['captured_fraction']:.2f}"
+                     + (f", vortex-free {b['vortex_free']['captured_fraction']:.2f}" if "vortex_free" in b else ""))
     for k, b in s.get("by_noise", {}).items():
         lines.append(f"  noise {k:>14}: {net} NPiB {b['npib']['unet']:.3f} (median {b['npib_median']['unet']:.3f}), "
                      f"captured {b['captured_fraction']:.2f}, residual {b['residual_rms_rad']:.2f} rad"
