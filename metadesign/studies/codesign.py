@@ -108,7 +108,8 @@ def write_design_recipe(rec: dict, base: str | Path, path: Path, run: str | Path
     lib = base_raw.get("design", {}).get("library", "../library/paper.npz")
     lib_abs = (base.parent / lib).resolve() if not Path(lib).is_absolute() else Path(lib)
     new["design"]["library"] = os.path.relpath(lib_abs, path.parent.resolve())
-    header = (f"{RECIPE_HEADER}\n# The co-designed sensor (issue #33): {base.name} with the diversity learned in "
+    how = "held fixed" if rec.get("config", {}).get("lr", 1.0) == 0 else "learned"
+    header = (f"{RECIPE_HEADER}\n# The co-designed sensor (issue #33): {base.name} with the diversity {how} in "
               f"{Path(run).name}\n# (each lens's focal length and its Zernike terms, rad, Noll-normalised over the "
               "aperture's disk; written by metadesign codesign).\n")
     atomic_write_text(path, header + toml_text(new))
