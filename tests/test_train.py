@@ -427,3 +427,18 @@ def test_evaluation_reports_the_vortex_free_reference(tiny_dataset, tmp_path):
     from metadesign.reconstruction.evaluate import plot_fig3
 
     assert (tmp_path / "fig-branch-points.png") in plot_fig3(res, tmp_path)
+
+
+@pytest.mark.parametrize("raw, field", [
+    ({"model": {"output": "vortex"}}, "model.output"),
+    ({"refine": {"unet": "u.safetensors", "output": "amplitude"}}, "refine.output"),
+    ({"codesign": {"defocus_scale": float("nan")}}, "codesign.defocus_scale"),
+    ({"codesign": {"defocus_scale": float("inf")}}, "codesign.defocus_scale"),
+    ({"codesign": {"defocus_scale": 1e300}}, "codesign.defocus_scale")])
+def test_bad_output_and_ladder_keys_are_one_line(raw, field):
+    from metadesign.config import ConfigError
+    from metadesign.reconstruction.train import train_recipe_from_dict
+
+    with pytest.raises(ConfigError) as e:
+        train_recipe_from_dict({"train": {"loss": "pib"}, **raw}, "t")
+    assert field in str(e.value) and "\n" not in str(e.value)

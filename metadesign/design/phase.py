@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..conventions import centered
+from ..optics.phase import wrap
 from ..optics.zernike import zernike
 
 __all__ = [
@@ -118,11 +119,6 @@ def paper_channels(f0: float = 50e-3, df: float = 0.4e-3, dx: float = 240e-6, dy
     xs = tuple(LensChannel(f0 - (4 - k) * df, *offs[k - 1]) for k in range(1, 5))
     ys = tuple(LensChannel(f0 + k * df, *offs[k - 1]) for k in range(1, 5))
     return xs, ys
-
-
-def wrap(phi):
-    """Wrap to [-pi, pi)."""
-    return (phi + np.pi) % (2 * np.pi) - np.pi
 
 
 def cell_coordinates(n_cells: int, period: float, index=None) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import InputError
+from ..optics.phase import wrap
 from ..parallel import WorkerPool
 from ..tasks import TaskFolder, content_key, run_resumable
 from .rcwa import SolverSettings, Stack, solve_cell
@@ -26,10 +27,6 @@ from .store import UnitCellLibrary, save_library
 from .supercell import solve_tapered
 
 __all__ = ["build_library", "certify_convergence", "ConvergenceReport", "solve_cells"]
-
-
-def _wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)
@@ -98,7 +95,7 @@ def certify_slices(recipe: LibraryRecipe, pool=None) -> dict:
                                                                    fa.reference_slices)]
     out = dict((pool.map if pool is not None else map)(_solve_chunk_axes, jobs))
     ja, jb = out[0]["jones"], out[1]["jones"]
-    d = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
+    d = np.abs(wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
     return {"slices": fa.slices, "reference_slices": fa.reference_slices, "max_phase_change_rad": float(d.max()),
             "max_T0_change": float(np.abs(out[0]["T0"] - out[1]["T0"]).max()), "angle_deg": a, "height_m": h,
             "tolerance_rad": recipe.tolerance, "passed": bool(d.max() <= recipe.tolerance)}
@@ -132,7 +129,7 @@ def certify_convergence(recipe: LibraryRecipe, workers: int = 1, pool: "WorkerPo
     a = {key: v[:k] for key, v in both.items()}
     b = {key: v[k:] for key, v in both.items()}
     ja, jb = a["jones"], b["jones"]
-    dphi = np.abs(_wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
+    dphi = np.abs(wrap(np.angle(ja[:, [0, 1], [0, 1]]) - np.angle(jb[:, [0, 1], [0, 1]])))
     dT = np.abs(a["T0"] - b["T0"])
     per = tuple((round(wx * 1e6, 6), round(wy * 1e6, 6), float(d[0]), float(d[1]))
                 for (wx, wy), d in zip(cells, dphi))

@@ -518,7 +518,7 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     check_sizes(unet.config, tensor_size, aperture, f"refine.unet {path}")
     torch.manual_seed(recipe.seed)
     model = build_refiner(unet, recipe.refine, load_device(dataset)).to(device)
-    transfer, deepened = False, None
+    record = {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
     if recipe.refine_init is not None:  # start from a trained refiner of the same architecture
         src, rcard = load_refiner(recipe.refine_init, str(device))
         k = src.cfg.steps
@@ -533,13 +533,12 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
         transfer = rcard["unet"]["weights_sha256"] != card.get("weights_sha256")
         state = src.state_dict()
         deepen_refiner(model, {k_: v for k_, v in state.items() if k_.startswith("steps.")} if transfer else state, k)
-        deepened = k if k < recipe.refine.steps else None
-    return model, {"path": str(path), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch"),
-                   **({"refiner": str(recipe.refine_init), "refiner_steps_only": transfer}
-                      if recipe.refine_init is not None else {}),
-                   **({"refiner_deepened_from_steps": deepened} if deepened else {}),
-                   **({"refiner_output_from": "phase"} if recipe.refine_init is not None
-                      and recipe.refine.output != src.cfg.output else {})}
+        record.update(refiner=str(recipe.refine_init), refiner_steps_only=transfer)
+        if k < recipe.refine.steps:
+            record["refiner_deepened_from_steps"] = k
+        if src.cfg.output != recipe.refine.output:
+            record["refiner_output_from"] = src.cfg.output
+    return model, record
 
 
 def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
