@@ -66,6 +66,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("library", "ladder"): [str(out / "no-table.npz"), "-o", str(out / "l.json")],
         ("library", "active"): [str(out / "no-recipe.toml"), "--reference", str(out / "no-table.npz")],
         ("library", "patches"): [str(out / "no-design"), "-o", str(out / "p.json")],
+        ("library", "peds"): [str(out / "no-table.npz"), "-o", str(out / "peds.json")],
         ("design", "compensate"): [d, "-o", str(out / "dc")],
         ("design", "build"): [str(REPO / "layouts" / "demo.toml"), "-o", str(out / "d")],
         ("design", "show"): [d],

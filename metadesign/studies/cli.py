@@ -576,6 +576,79 @@ def _coupling_fit(a, table, tp, lib, lib_path, out, log, ref=None) -> int:
     return 0
 
 
+def _cmd_peds(a: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..cards import read_card
+    from ..library.coupling import CARD_FORMAT
+    from ..library.locate import file_sha256, find_library
+    from ..library.peds import save_peds
+    from ..library.supercells import remove_partial
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+    from .supercells import certify_peds, plot_peds
+
+    table = load_table(a.table)
+    tp = Path(a.table)
+    if not table.test.any() or table.test.all():
+        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
+                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
+    if table.t_unit is not None:
+        raise InputError(f"{tp}: a table solved at nG {table.meta.get('n_harmonics')} with matched unit cells is a "
+                         "low fidelity itself; calibrate on a converged table (solved at the library's truncation)")
+    top = table.meta.get("n_harmonics") or 0
+    if max(a.harmonics) >= top:
+        raise InputError(f"--harmonics {max(a.harmonics)}: the levels must lie below the table's truncation (nG {top})")
+    lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
+                                                                table.meta["library"]["path"], tp.parent)
+    lib = load_library(lib_path)
+    networks = {}
+    for path in a.network or ():
+        _, _, card = read_card(path, CARD_FORMAT, "coupling model")
+        networks[f"{Path(path).name.split('.')[0]}, on {(card.get('table') or {}).get('path', '?')}"] = \
+            card["certification"]
+    out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-peds.json"),
+                   suffixes=(".json",))
+    partial = out.with_name(out.name + ".partial")
+    log = log_to(a.json)
+    with product(out, "peds", {"table": tp, "--library": lib_path,
+                               **{f"--network {i + 1}": p for i, p in enumerate(a.network or ())}},
+                 also=(out.with_suffix(".png"),), scratch=(partial,)):
+        model, rep = certify_peds(table, lib, a.harmonics, a.sizes, partial, workers=a.workers, scheduler=a.scheduler,
+                                  progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+        fig = plot_peds(rep, out.with_suffix(".png"), networks)
+        rep.pop("_e"), rep.pop("_e_lpa")
+        rep["networks"] = {k: {"learning_curve": v["learning_curve"], "mean_both": v.get("mean_both"),
+                               "p90_both": v.get("p90_both")} for k, v in networks.items()}
+        card = {"certification": rep, "figure": fig.name,
+                "table": {"path": tp.name, "sha256": file_sha256(tp)},
+                "library_path": lib_path.name}
+        save_peds(out, replace(model, card=card))
+        remove_partial(partial)
+    rep["output"], rep["figure"] = str(out), str(fig)
+    m, l = rep["model"], rep["lpa"]
+    lines = [f"wrote {out} (+ {fig.name}): PEDS surrogate, levels nG "
+             + ", ".join(str(v["n_harmonics"]) for v in rep["levels"]) + ", coefficients "
+             + ", ".join(f"{complex(*c):.3f}" for c in rep["learning_curve"][-1]["coef"]),
+             f"  held-out |t - t_RCWA| / rms|t_i| on {rep['held_out_supercells']} supercells never fitted",
+             "                    x-pol mean / p90     y-pol mean / p90",
+             f"  PEDS              {m['mean'][0]:.4f} / {m['p90'][0]:.4f}      {m['mean'][1]:.4f} / {m['p90'][1]:.4f}",
+             f"  LPA               {l['mean'][0]:.4f} / {l['p90'][0]:.4f}      {l['mean'][1]:.4f} / {l['p90'][1]:.4f}"]
+    for v in rep["levels"]:
+        lines.append(f"  nG {v['n_harmonics']:<4d} alone      {np.mean(v['alone']['mean']):.4f} / "
+                     f"{np.mean(v['alone']['p90']):.4f} (both)   {v['seconds_per_supercell_core']:.3f} s per supercell")
+    lines += [f"  goal              <= {rep['goal']['mean']:g} / <= {rep['goal']['p90']:g}: "
+              + ("met" if rep["passed"] else "NOT met") + f" (both: {rep['mean_both']:.4f} / {rep['p90_both']:.4f})",
+              "  learning curve: " + ", ".join(f"{c['supercells']}: {np.mean(c['held_out']['mean']):.4f}"
+                                               for c in rep["learning_curve"]),
+              f"  cost: {rep['cost']['seconds_per_supercell_core']:.3f} s per supercell per core "
+              f"({rep['cost']['core_hours_per_million']:.0f} core-hours per million)"
+              + (f"; a converged label {rep['cost']['label_seconds_per_supercell_core']:.2f} s"
+                 if rep["cost"]["label_seconds_per_supercell_core"] else "")]
+    emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
 def _cmd_coupling_check(a: argparse.Namespace) -> int:
     import json
 
@@ -778,6 +851,25 @@ def register(sub, groups: dict) -> None:
     cp.add_argument("-o", "--output", help="weights file (default: TABLE's name with -coupling.safetensors)")
     cp.add_argument("--json", action="store_true", help="print the report as JSON")
     cp.set_defaults(func=_cmd_coupling)
+    pe = lsub.add_parser(
+        "peds", help="calibrate and certify the PEDS supercell surrogate (cheap solves + fitted coefficients)",
+        description="Solve every row of a converged supercell TABLE at the low truncations of --harmonics (each "
+        "with its unit cells at the matched truncation; resumable chunks in OUT.partial/), fit one complex "
+        "coefficient per level on the first N fitting rows for each N of --sizes (a learning curve), certify each "
+        "fit on every held-out row, and write the model with its card (.json) and a figure (.png).")
+    pe.add_argument("table", help="converged supercell table (.npz) from `library supercells`")
+    pe.add_argument("--harmonics", type=integer(20, 5000), nargs="+", default=[97, 220],
+                    help="requested low-fidelity truncations (97 220: nG 89 and 213)")
+    pe.add_argument("--sizes", type=integer(1, 10_000_000), nargs="+", default=[10, 25, 50, 100, 250, 500, 1000],
+                    help="fitting rows of the learning curve (the last is the model)")
+    pe.add_argument("--network", nargs="+", metavar="CARD",
+                    help="coupling models' cards whose learning curves to draw beside (the network alone)")
+    pe.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")
+    pe.add_argument("-o", "--output", help="model (.json; default: TABLE's name with -peds.json)")
+    pe.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
+    workers_arg(pe)
+    pe.add_argument("--json", action="store_true", help="print the report as JSON")
+    pe.set_defaults(func=_cmd_peds)
     ld = lsub.add_parser(
         "ladder", help="convergence of a supercell table's labels: held-out rows re-solved at rising truncation",
         description="Re-solve the first --rows held-out rows of TABLE at each truncation of --harmonics (each with "

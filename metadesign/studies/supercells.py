@@ -47,7 +47,7 @@ from ..outputs import Need, temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder",
            "patch_study", "design_source", "SOURCES", "certify_coupling",
-           "plot_coupling"]
+           "plot_coupling", "certify_peds", "plot_peds"]
 
 SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
 
@@ -419,6 +419,117 @@ def plot_coupling(rep: dict, out: Path) -> Path:
     bins = np.linspace(0, max(el.max(), e.max()), 40)
     axs[1].hist(el, bins, alpha=0.6, color="C3", label=f"LPA (mean {el.mean():.3f})")
     axs[1].hist(e, bins, alpha=0.6, color="C0", label=f"coupling model (mean {e.mean():.3f})")
+    axs[1].set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
+               title="held-out error")
+    axs[1].legend(fontsize=8)
+    return save_figure(fig, out)
+
+
+def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *, workers: int = 1,
+                 scheduler: str | None = None, goal=(0.05, 0.1), probe_rows: int = 4, probe_label: bool = True,
+                 progress=None, log=lambda s: None) -> tuple[object, dict]:
+    """Calibrate the PEDS surrogate (:mod:`metadesign.library.peds`) on the table's converged labels: every row
+    solved at the low truncations ``harmonics`` (resumable under ``partial``), the coefficients fitted on the
+    first ``n`` fitting rows for each ``n`` of ``sizes`` (a learning curve; each fit certified on every
+    held-out row, never fitted), each level alone (uncalibrated) beside it; returns the model of the largest
+    size and the report (by source, cost per supercell and per million)."""
+    from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
+
+    harmonics = sorted({int(h) for h in harmonics})
+    fit_rows, test_rows = np.flatnonzero(~table.test), np.flatnonzero(table.test)
+    if not len(test_rows) or not len(fit_rows):
+        raise ValueError("certification needs fitting and held-out rows")
+    labels, tu = table.lpa_labels(lib)
+    lpa = lpa_t(tu)
+    log(f"PEDS levels nG {harmonics} on {len(table)} supercells ({len(test_rows)} held out)")
+    c, nGs, secs = low_fidelity_couplings(table.widths, lib.stack, harmonics, partial, workers=workers,
+                                          scheduler=scheduler, progress=progress, log=log)
+    te = np.s_[test_rows]
+    e_lpa = relative_error(lpa[te], labels[te], tu[te])
+    probe = table.widths[test_rows[:probe_rows]]  # the cost timed here, whatever the chunks held already
+    levels = [{"requested": h, "n_harmonics": g, "seconds_per_supercell_core": _solve_seconds(probe, lib.stack, h),
+               "alone": _stats(relative_error(lpa[te] + c[k][te], labels[te], tu[te]))}
+              for k, (h, g) in enumerate(zip(harmonics, nGs))]
+    label_h = table.meta.get("n_harmonics")
+    label_cost = _solve_seconds(probe[:1], lib.stack, label_h + 1) if label_h and probe_label else None
+    target = labels - lpa
+    curve, coef = [], None
+    for n in sorted({min(int(v), len(fit_rows)) for v in sizes}):
+        rows = fit_rows[:n]
+        coef = fit_peds(c[:, rows], target[rows])
+        e = relative_error(peds_t(coef, c[:, te], lpa[te]), labels[te], tu[te])
+        curve.append({"supercells": n, "held_out": _stats(e), "coef": [[a.real, a.imag] for a in coef]})
+        log(f"  calibrated on {n}: held-out mean {e.mean():.4f}, p90 {np.percentile(e, 90):.4f}")
+    used = fit_rows[:curve[-1]["supercells"]]
+    e_fit = relative_error(peds_t(coef, c[:, used], lpa[used]), labels[used], tu[used])
+    by_source = {}
+    for s, name in enumerate(SOURCES):
+        sel = table.source[test_rows] == s
+        if sel.any():
+            by_source[name] = {"n": int(sel.sum()), "model": _stats(e[sel]), "lpa": _stats(e_lpa[sel])}
+    m, p90 = float(e.mean()), float(np.percentile(e, 90))
+    per_sc = sum(lv["seconds_per_supercell_core"] for lv in levels)
+    report = {
+        "metric": "|t_model - t_RCWA| / rms_i |t_i| (the four pillars' rms library |t|), per polarisation",
+        "structure": "t = mean_i t_lib(w_i) + sum_k a_k [t_super(nG_k) - mean_i t_unit,i(nG_k)], a_k complex, "
+                     "shared by both polarisations",
+        "held_out_supercells": int(len(test_rows)), "fitted_supercells": curve[-1]["supercells"],
+        "model": _stats(e), "fitted_rows": _stats(e_fit), "lpa": _stats(e_lpa), "by_source": by_source,
+        "levels": levels, "goal": {"mean": goal[0], "p90": goal[1]},
+        "passed": bool(m <= goal[0] and p90 <= goal[1]), "mean_both": m, "p90_both": p90,
+        "lpa_mean_both": float(e_lpa.mean()), "lpa_p90_both": float(np.percentile(e_lpa, 90)),
+        "learning_curve": curve,
+        "cost": {"seconds_per_supercell_core": per_sc, "core_hours_per_million": per_sc * 1e6 / 3600,
+                 "label_seconds_per_supercell_core": label_cost,
+                 "label_n_harmonics": label_h, "probe_supercells": int(len(probe))},
+        "table": {"supercells": len(table), "n_harmonics": table.meta.get("n_harmonics"), "seed": table.meta.get("seed")},
+        "_e": e, "_e_lpa": e_lpa,
+    }
+    return PedsModel(tuple(harmonics), tuple(complex(a) for a in coef), lib.identity), report
+
+
+def _solve_seconds(widths: np.ndarray, stack, harmonics: int) -> float:
+    """Seconds per supercell on this core of a fresh solve at ``harmonics`` (requested) with its matched unit
+    cells (no cache)."""
+    ns, nu = matched_unit_harmonics(int(harmonics), stack)
+    t0 = time.perf_counter()
+    for w in widths:
+        solve_supercell(w, stack, ns)
+        unit_cells(w[None], stack, nu)
+    return (time.perf_counter() - t0) / max(1, len(widths))
+
+
+def plot_peds(rep: dict, out: Path, networks: dict | None = None) -> Path:
+    """Learning curve of the calibrated surrogate (held-out mean and p90 vs labels), each level alone, the LPA,
+    the goal and (``networks``: name -> a coupling card's certification) the networks' curves; the held-out
+    error distributions."""
+    plt = pyplot()
+    fig, axs = plt.subplots(1, 2, figsize=(12, 5.6), constrained_layout=True)
+    c = rep["learning_curve"]
+    n = [r["supercells"] for r in c]
+    ax = axs[0]
+    for k, ls in (("mean", "o-"), ("p90", "s--")):
+        ax.plot(n, [np.mean(r["held_out"][k]) for r in c], ls, color="C0", label=f"PEDS (levels + {len(rep['levels'])} "
+                f"coefficients), {k}")
+        ax.axhline(np.mean(rep["lpa"][k]), color="C3", ls=ls[1:], lw=1, label=f"LPA, {k}")
+        ax.axhline(rep["goal"][k], color="0.5", ls=":", lw=1)
+        ax.annotate(f"goal {k} {rep['goal'][k]:g}", (n[0], rep["goal"][k]), fontsize=8, color="0.4", va="bottom")
+    for j, lv in enumerate(rep["levels"]):
+        ax.axhline(np.mean(lv["alone"]["mean"]), color=("C1", "C5", "C7", "C8")[j % 4], ls="-.", lw=1,
+                   label=f"nG {lv['n_harmonics']} alone, mean")
+    for j, (name, cert) in enumerate((networks or {}).items()):
+        cc = cert["learning_curve"]
+        ax.plot([r["supercells"] for r in cc], [np.mean(r["held_out"]["mean"]) for r in cc], "^-",
+                color=("C2", "C4", "C6", "C9")[j % 4],
+                label=f"network alone ({name}), mean")
+    ax.set(xscale="log", yscale="log", xlabel="labels fitted (RCWA solves)",
+           ylabel="held-out |t - t_RCWA| / rms|t_i|",
+           title=f"supercell surrogates ({rep['held_out_supercells']} held-out supercells)")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+    e, el = rep["_e"].ravel(), rep["_e_lpa"].ravel()
+    bins = np.linspace(0, np.percentile(el, 99), 40)
+    axs[1].hist(el, bins, alpha=0.6, color="C3", label=f"LPA (mean {el.mean():.3f})")
+    axs[1].hist(e, bins, alpha=0.6, color="C0", label=f"PEDS (mean {e.mean():.3f})")
     axs[1].set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
                title="held-out error")
     axs[1].legend(fontsize=8)

@@ -1,0 +1,156 @@
+"""A physics-enhanced surrogate of the 2 x 2 supercell (issue #34): cheap supercell solves, calibrated.
+
+The low fidelity is the project's own supercell RCWA (:func:`~metadesign.library.supercell.solve_supercell`)
+at a few low truncations, each with its four unit cells at the matched truncation, so that what a level
+measures is the coupling ``c_k = t_super(nG_k) - mean_i t_unit,i(nG_k)`` (the truncation errors of the two
+terms cancel in part: :meth:`~metadesign.library.supercells.SupercellTable.labels`).  The surrogate is
+
+    t = mean_i t_lib(w_i) + sum_k a_k c_k
+
+with one complex coefficient ``a_k`` per level, shared by both polarisations, fitted by least squares on
+converged labels (PEDS: Pestourie et al., Nature Machine Intelligence 2023, a low-fidelity solver plus a
+learned correction; here the correction is a linear extrapolation in truncation, which a handful of labels
+pins down).  By construction four identical pillars give the library's unit cell exactly (every ``c_k`` is
+zero at a matched truncation), and the lattice symmetries are the solver's (a translated supercell is the
+same periodic structure; the x <-> y mirror swaps the polarisations, which share the coefficients).
+
+The cost is the solves: a fraction of a second per supercell instead of seconds at convergence, which
+certifies single supercells (checks, samples, labels) but not a device's millions in minutes; the device
+path keeps the fast coupling network (:mod:`metadesign.library.coupling_net`).  Numpy only.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..io import atomic_write_text
+from ..paths import repo_root
+from ..validation import ValidationError
+from .coupling import lpa_t
+from .rcwa import Stack
+from .store import UnitCellLibrary, interpolate_t
+from .supercells import matched_unit_harmonics, solve_table
+
+__all__ = ["PEDS_FORMAT", "PedsModel", "low_fidelity_couplings", "fit_peds", "peds_t", "save_peds", "load_peds",
+           "find_peds", "certified_t"]
+
+PEDS_FORMAT = "metadesign.peds/1"
+
+
+@dataclass(frozen=True)
+class PedsModel:
+    """Low-fidelity levels (requested supercell truncations, ascending) and one complex coefficient per level;
+    ``library_sha256`` the unit-cell library it was calibrated against; ``card`` its certification."""
+
+    harmonics: tuple[int, ...]
+    coef: tuple[complex, ...]
+    library_sha256: str = ""
+    card: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        if not self.harmonics or len(self.harmonics) != len(self.coef):
+            raise ValidationError(f"PEDS model: {len(self.harmonics)} levels but {len(self.coef)} coefficients")
+        if list(self.harmonics) != sorted(set(self.harmonics)) or min(self.harmonics) < 20:
+            raise ValidationError(f"PEDS model: levels must be distinct truncations >= 20, ascending; got "
+                                  f"{list(self.harmonics)}")
+        if not all(np.isfinite(complex(a).real) and np.isfinite(complex(a).imag) for a in self.coef):
+            raise ValidationError("PEDS model: a coefficient is not finite")
+
+
+def low_fidelity_couplings(widths: np.ndarray, stack: Stack, harmonics, partial: str | Path, *, workers: int = 1,
+                           scheduler: str | None = None, chunk_size: int = 16,
+                           progress: Callable[[int, int], None] | None = None,
+                           log: Callable[[str], None] = lambda s: None) -> tuple[np.ndarray, list[int], list[float]]:
+    """``(c (K, n, 2) complex, nG per level, seconds spent per level)``: the coupling of each supercell
+    ``widths`` (n, 2, 2, 2) m at each requested truncation of ``harmonics``, its unit cells at the matched
+    truncation.  Chunks under ``partial/nG-<n>`` (content-keyed: resumable, the same bytes on any worker
+    count; a rerun on the same rows solves nothing)."""
+    out, nGs, secs = [], [], []
+    for h in harmonics:
+        ns, nu = matched_unit_harmonics(int(h), stack)
+        t, nG, seconds, t_unit = solve_table(widths, stack, ns, Path(partial) / f"nG-{ns - 1}", workers=workers,
+                                             scheduler=scheduler, chunk_size=chunk_size, unit_harmonics=nu,
+                                             progress=progress, log=log)
+        out.append(t - t_unit.mean((1, 2)))
+        nGs.append(int(nG))
+        secs.append(float(seconds))
+    return np.stack(out), nGs, secs
+
+
+def fit_peds(couplings: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Least-squares complex coefficients ``a`` (K,) of ``target (n, 2) ~= sum_k a_k couplings[k] (n, 2)``
+    (``target``: the labels minus the LPA), one set for both polarisations."""
+    c = np.asarray(couplings)
+    M = c.reshape(len(c), -1).T
+    a, *_ = np.linalg.lstsq(M, np.asarray(target).ravel(), rcond=None)
+    return a
+
+
+def peds_t(coef, couplings: np.ndarray, t_lpa: np.ndarray) -> np.ndarray:
+    """(n, 2) the surrogate's supercell ``t``: the LPA plus the calibrated couplings."""
+    return np.asarray(t_lpa) + np.tensordot(np.asarray(coef, complex), np.asarray(couplings), axes=1)
+
+
+def save_peds(path: str | Path, model: PedsModel) -> Path:
+    """The model as one JSON file (levels, coefficients, library, card)."""
+    rec = {"format": PEDS_FORMAT, "harmonics": list(model.harmonics),
+           "coef": [[float(complex(a).real), float(complex(a).imag)] for a in model.coef],
+           "library": {"sha256": model.library_sha256}, **model.card}
+    atomic_write_text(path, json.dumps(rec, indent=1))
+    return Path(path)
+
+
+def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel:
+    """A saved model; with ``lib``, checked to be calibrated against that library."""
+    try:
+        rec = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValidationError(f"{path}: not a PEDS supercell model ({e})") from None
+    if not isinstance(rec, dict) or rec.get("format") != PEDS_FORMAT:
+        raise ValidationError(f"{path}: not a PEDS supercell model ({PEDS_FORMAT})")
+    sha = (rec.get("library") or {}).get("sha256", "")
+    if lib is not None and sha != lib.identity:
+        raise ValidationError(f"{path}: calibrated against another library (sha256 {sha[:12]}), not this one "
+                              f"({lib.identity[:12]})")
+    card = {k: v for k, v in rec.items() if k not in ("format", "harmonics", "coef", "library")}
+    card["library"] = rec.get("library")
+    return PedsModel(tuple(int(h) for h in rec["harmonics"]), tuple(complex(a, b) for a, b in rec["coef"]), sha,
+                     card)
+
+
+def find_peds(lib: UnitCellLibrary) -> Path:
+    """The PEDS model calibrated against ``lib`` among the JSON files of the products' ``library/`` folder."""
+    folder = repo_root() / "library"
+    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            rec = json.loads(p.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(rec, dict) and rec.get("format") == PEDS_FORMAT and \
+                (rec.get("library") or {}).get("sha256") == lib.identity:
+            return p
+    raise ValidationError(f"no PEDS supercell model calibrated against this library (sha256 {lib.identity[:12]}) "
+                          "in library/; calibrate one (metadesign library peds TABLE)")
+
+
+def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, model: PedsModel | str | Path | None = None,
+                *, workers: int = 1, scheduler: str | None = None,
+                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """(n, 2) complex: the certified surrogate's transmissions (x-pol, y-pol) of supercells ``widths``
+    (n, 2, 2, 2) m, for ``lib`` (``model``: a :class:`PedsModel`, its file, or None for the one in
+    ``library/`` calibrated against ``lib``).  Solves each supercell at the model's levels (chunks under
+    ``partial``: resumable; the caller removes it)."""
+    if not isinstance(model, PedsModel):
+        model = load_peds(model if model is not None else find_peds(lib), lib)
+    w = np.asarray(widths, float)
+    if w.ndim != 4 or w.shape[1:] != (2, 2, 2):
+        raise ValidationError(f"certified_t: widths must be (n, 2, 2, 2) metres, got {w.shape}")
+    c, _, _ = low_fidelity_couplings(w, lib.stack, model.harmonics, partial, workers=workers, scheduler=scheduler,
+                                     progress=progress)
+    tu = interpolate_t(lib, w[..., 0], w[..., 1])[0]
+    return peds_t(model.coef, c, lpa_t(tu))

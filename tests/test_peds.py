@@ -1,0 +1,113 @@
+"""The PEDS supercell surrogate (issue #34): low-truncation supercell solves with matched unit cells, one
+complex coefficient per level.  Checked against exact facts, not its own output: four identical pillars are
+the library's unit cell whatever the coefficients; a lattice translation leaves t unchanged and the x <-> y
+mirror swaps the polarisations (the solver's symmetries, kept by shared coefficients); least squares recovers
+known coefficients; calibrated against labels solved at one of its own levels it becomes that level exactly
+(coefficients 0 and 1, error at round-off); the CLI's bad inputs are one line and write nothing."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from metadesign.library.coupling import lpa_t, transpose_supercells
+from metadesign.library.peds import PedsModel, certified_t, fit_peds, load_peds, low_fidelity_couplings, peds_t, save_peds
+from metadesign.library.store import interpolate_t
+from metadesign.validation import ValidationError
+
+LEVELS = (25, 41)  # tiny truncations: the facts below hold at any truncation
+COEF = (0.3 - 0.7j, 1.2 + 0.4j)
+
+
+def _widths(n, seed=0):
+    return np.random.default_rng(seed).uniform(0.15e-6, 0.45e-6, size=(n, 2, 2, 2))
+
+
+@pytest.fixture(scope="module")
+def model(paper_library):
+    return PedsModel(LEVELS, COEF, paper_library.identity)
+
+
+def test_identical_pillars_are_the_unit_cell(model, paper_library, tmp_path):
+    w = _widths(3, 1)[:, :1, :1].repeat(2, 1).repeat(2, 2)
+    t = certified_t(paper_library, w, tmp_path / "p", model)
+    ref = interpolate_t(paper_library, w[:, 0, 0, 0], w[:, 0, 0, 1])[0]
+    np.testing.assert_allclose(t, ref, atol=1e-8)
+
+
+def test_symmetries_of_the_lattice(model, paper_library, tmp_path):
+    """Rows or columns swapped (a translation by one pitch): the same t; x <-> y mirrored: t_x and t_y swap.
+    And the correction is not trivially zero."""
+    w = _widths(3, 2)
+    t = certified_t(paper_library, w, tmp_path / "p", model)
+    for shifted in (w[:, ::-1], w[:, :, ::-1]):
+        np.testing.assert_allclose(certified_t(paper_library, shifted, tmp_path / "p", model), t, atol=1e-6)
+    np.testing.assert_allclose(certified_t(paper_library, transpose_supercells(w), tmp_path / "p", model),
+                               t[:, ::-1], atol=1e-6)  # the library table is float32
+    tu = interpolate_t(paper_library, w[..., 0], w[..., 1])[0]
+    assert np.abs(t - lpa_t(tu)).min() > 1e-3
+
+
+def test_least_squares_recovers_known_coefficients():
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=(3, 40, 2)) + 1j * rng.normal(size=(3, 40, 2))
+    a = np.array([0.5 + 0.2j, -1.0j, 2.0])
+    np.testing.assert_allclose(fit_peds(c, np.tensordot(a, c, axes=1)), a, atol=1e-12)
+    lpa = rng.normal(size=(40, 2)) + 0j
+    np.testing.assert_allclose(peds_t(a, c, lpa) - lpa, np.tensordot(a, c, axes=1))
+
+
+def test_calibrated_on_one_of_its_levels_it_is_that_level(paper_library, tmp_path):
+    """Labels solved at the top level (LPA + the coupling measured there, as a table at another truncation
+    holds them): the fit gives that level coefficient 1 and the other 0, and the held-out error is round-off;
+    the report's learning curve, levels and cost are there."""
+    from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
+    from metadesign.studies.supercells import certify_peds
+
+    w = _widths(8, 4)
+    ns, nu = matched_unit_harmonics(LEVELS[1], paper_library.stack)
+    t, nG, _, t_unit = solve_table(w, paper_library.stack, ns, tmp_path / "labels", unit_harmonics=nu)
+    test = np.arange(8) % 2 == 1
+    table = SupercellTable(w, t, np.zeros(8, int), test, {"n_harmonics": nG}, t_unit)
+    m, rep = certify_peds(table, paper_library, LEVELS, (2, 4), tmp_path / "p", probe_rows=1, probe_label=False)
+    np.testing.assert_allclose(m.coef, [0, 1], atol=1e-8)
+    assert rep["mean_both"] < 1e-8 and rep["passed"]
+    assert [c["supercells"] for c in rep["learning_curve"]] == [2, 4]
+    assert rep["levels"][1]["n_harmonics"] == nG and rep["levels"][1]["alone"]["max"][0] < 1e-8
+    assert rep["levels"][0]["alone"]["mean"][0] > 1e-4  # the lower level alone is not the labels
+    assert rep["cost"]["seconds_per_supercell_core"] > 0
+
+
+def test_saved_model_round_trips_and_checks_its_library(model, paper_library, tmp_path):
+    p = save_peds(tmp_path / "m.json", model)
+    back = load_peds(p, paper_library)
+    assert back == model
+    rec = json.loads(p.read_text())
+    rec["library"]["sha256"] = "0" * 64
+    p.write_text(json.dumps(rec))
+    with pytest.raises(ValidationError, match="another library"):
+        load_peds(p, paper_library)
+    with pytest.raises(ValidationError, match="ascending"):
+        PedsModel((41, 25), COEF)
+
+
+def test_resolved_couplings_are_resumable(paper_library, tmp_path):
+    """A second call on the same rows solves nothing (content-keyed chunks) and returns the same bytes."""
+    w = _widths(4, 5)
+    c1, n1, _ = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
+    stamp = {f: f.stat().st_mtime_ns for f in (tmp_path / "p").rglob("*.npz")}
+    c2, n2, _ = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
+    assert n1 == n2 and c1.tobytes() == c2.tobytes()
+    assert stamp == {f: f.stat().st_mtime_ns for f in (tmp_path / "p").rglob("*.npz")}
+
+
+def test_cli_refuses_levels_above_the_table(tmp_path, capsys):
+    from conftest import REPO, run_main
+
+    out = tmp_path / "peds.json"
+    rc, _, err = run_main(["library", "peds", REPO / "library" / "paper-supercells.npz", "--harmonics", "97", "900",
+                           "-o", out], capsys)
+    assert rc == 2 and len(err) == 1 and "below the table's truncation" in err[0], err
+    assert not out.exists()
