@@ -12,6 +12,9 @@ _EXPORTS = {
     "tuple_t": "coupling", "coupling_card": "coupling", "is_coupling": "coupling", "transpose_supercells": "coupling", "Coupling": "coupling_net", "build_coupling": "coupling_net",
     "coupling_t": "coupling_net", "find_coupling": "coupling_net", "fit_coupling": "coupling_net",
     "load_coupling": "coupling_net", "pair_tables": "coupling_net", "pillar_terms": "coupling_net",
+    # the certified supercell surrogate (cheap solves, calibrated; numpy)
+    "PedsModel": "peds", "certified_t": "peds", "fit_peds": "peds", "find_peds": "peds", "load_peds": "peds",
+    "save_peds": "peds", "low_fidelity_couplings": "peds", "peds_t": "peds",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
