@@ -335,6 +335,16 @@ def _stats(e: np.ndarray) -> dict:
             "max": e.max(0).tolist()}
 
 
+def _by_source(source: np.ndarray, e: np.ndarray, e_lpa: np.ndarray) -> dict:
+    """The held-out errors of a model and of the LPA per row source (:data:`SOURCES`)."""
+    out = {}
+    for s, name in enumerate(SOURCES):
+        sel = source == s
+        if sel.any():
+            out[name] = {"n": int(sel.sum()), "model": _stats(e[sel]), "lpa": _stats(e_lpa[sel])}
+    return out
+
+
 def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: CouplingConfig = CouplingConfig(),
                      steps: int = 4000, seed: int = 0, goal=(0.05, 0.1), weight_decay: float = 1e-3,
                      reference: SupercellTable | None = None, log=lambda s: None) -> tuple[object, dict]:
@@ -373,11 +383,7 @@ def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: Co
     info = last.pop("_info")
     for c in curve:
         c.pop("_e", None), c.pop("_info", None)
-    by_source = {}
-    for s, name in enumerate(SOURCES):
-        sel = ref.source[test_rows] == s
-        if sel.any():
-            by_source[name] = {"n": int(sel.sum()), "model": _stats(e[sel]), "lpa": _stats(e_lpa[sel])}
+    by_source = _by_source(ref.source[test_rows], e, e_lpa)
     m, p90 = float(e.mean()), float(np.percentile(e, 90))
     report = {
         "metric": "|t_model - t_RCWA| / rms_i |t_i| (the four pillars' rms library |t|), per polarisation",
@@ -462,11 +468,7 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
         log(f"  calibrated on {n}: held-out mean {e.mean():.4f}, p90 {np.percentile(e, 90):.4f}")
     used = fit_rows[:curve[-1]["supercells"]]
     e_fit = relative_error(peds_t(coef, c[:, used], lpa[used]), labels[used], tu[used])
-    by_source = {}
-    for s, name in enumerate(SOURCES):
-        sel = table.source[test_rows] == s
-        if sel.any():
-            by_source[name] = {"n": int(sel.sum()), "model": _stats(e[sel]), "lpa": _stats(e_lpa[sel])}
+    by_source = _by_source(table.source[test_rows], e, e_lpa)
     m, p90 = float(e.mean()), float(np.percentile(e, 90))
     per_sc = sum(lv["seconds_per_supercell_core"] for lv in levels)
     report = {
