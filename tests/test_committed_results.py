@@ -23,6 +23,7 @@ STUDIES = {
     "transfer-demo-out/transfer.json": "transfer-demo.toml",
     "tolerance-codesign-out/tolerance.json": "tolerance-codesign.toml",
     "tolerance-codesign-paper-out/tolerance.json": "tolerance-codesign-paper.toml",
+    "tolerance-codesign-wide-out/tolerance.json": "tolerance-codesign-wide.toml",
 }
 COMPARES = ["compare-demo/compare.json", "compare-demo-refine/compare.json"]
 
