@@ -111,3 +111,25 @@ def test_cli_refuses_levels_above_the_table(tmp_path, capsys):
                            "-o", out], capsys)
     assert rc == 2 and len(err) == 1 and "below the table's truncation" in err[0], err
     assert not out.exists()
+
+
+def test_level_selection_uses_the_fitting_rows_only_and_prefers_the_cheap():
+    """Labels that are level 2 exactly (plus a little noise): every subset holding level 2 cross-validates
+    alike, and the cheapest of them (level 2 alone) is chosen; rows outside ``rows`` (the held-out ones)
+    can be anything without changing the choice or the scores."""
+    from metadesign.studies.supercells import select_levels
+
+    rng = np.random.default_rng(7)
+    c = rng.normal(size=(3, 200, 2)) + 1j * rng.normal(size=(3, 200, 2))
+    tu = np.ones((200, 2, 2, 2), complex)
+    target = (0.8 - 0.3j) * c[2] + 1e-3 * rng.normal(size=(200, 2))
+    rows = np.arange(150)
+    sel = select_levels(c, target, rows, tu, seconds=[0.01, 0.05, 0.2])
+    assert sel["chosen"] == [2]
+    assert len(sel["subsets"]) == 7
+    worst = max(sel["subsets"], key=lambda r: r["cv_mean"])
+    assert 2 not in worst["levels"] and worst["cv_mean"] > 0.5
+    scrambled = target.copy()
+    scrambled[150:] = 99.0
+    again = select_levels(c, scrambled, rows, tu, seconds=[0.01, 0.05, 0.2])
+    assert again == sel

@@ -615,7 +615,8 @@ def _cmd_peds(a: argparse.Namespace) -> int:
                                **{f"--network {i + 1}": p for i, p in enumerate(a.network or ())}},
                  also=(out.with_suffix(".png"),), scratch=(partial,)):
         model, rep = certify_peds(table, lib, a.harmonics, a.sizes, partial, workers=a.workers, scheduler=a.scheduler,
-                                  progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+                                  select=a.select, progress=None if a.json else progress_bar("supercells", unit="cell"),
+                                  log=log)
         fig = plot_peds(rep, out.with_suffix(".png"), networks)
         rep.pop("_e"), rep.pop("_e_lpa")
         rep["networks"] = {k: {"learning_curve": v["learning_curve"], "mean_both": v.get("mean_both"),
@@ -628,7 +629,7 @@ def _cmd_peds(a: argparse.Namespace) -> int:
     rep["output"], rep["figure"] = str(out), str(fig)
     m, l = rep["model"], rep["lpa"]
     lines = [f"wrote {out} (+ {fig.name}): PEDS surrogate, levels nG "
-             + ", ".join(str(v["n_harmonics"]) for v in rep["levels"]) + ", coefficients "
+             + ", ".join(str(v["n_harmonics"]) for v in rep["levels"] if v.get("chosen", True)) + ", coefficients "
              + ", ".join(f"{complex(*c):.3f}" for c in rep["learning_curve"][-1]["coef"]),
              f"  held-out |t - t_RCWA| / rms|t_i| on {rep['held_out_supercells']} supercells never fitted",
              "                    x-pol mean / p90     y-pol mean / p90",
@@ -636,7 +637,15 @@ def _cmd_peds(a: argparse.Namespace) -> int:
              f"  LPA               {l['mean'][0]:.4f} / {l['p90'][0]:.4f}      {l['mean'][1]:.4f} / {l['p90'][1]:.4f}"]
     for v in rep["levels"]:
         lines.append(f"  nG {v['n_harmonics']:<4d} alone      {np.mean(v['alone']['mean']):.4f} / "
-                     f"{np.mean(v['alone']['p90']):.4f} (both)   {v['seconds_per_supercell_core']:.3f} s per supercell")
+                     f"{np.mean(v['alone']['p90']):.4f} (both)   {v['seconds_per_supercell_core']:.3f} s per supercell"
+                     + ("" if v.get("chosen", True) else "   (not chosen)"))
+    if rep["selection"]:
+        sel = rep["selection"]
+        lines.append(f"  levels by {sel['folds']}-fold cross-validation on the fitting rows (mean / p90, s per supercell):")
+        for r in sorted(sel["subsets"], key=lambda r: r["cv_mean"]):
+            lines.append(f"    nG {'+'.join(str(rep['levels'][j]['n_harmonics']) for j in r['levels']):<20s}"
+                         f"{r['cv_mean']:.4f} / {r['cv_p90']:.4f}   {r['seconds_per_supercell_core']:.3f}"
+                         + ("   <- chosen" if r["levels"] == sel["chosen"] else ""))
     lines += [f"  goal              <= {rep['goal']['mean']:g} / <= {rep['goal']['p90']:g}: "
               + ("met" if rep["passed"] else "NOT met") + f" (both: {rep['mean_both']:.4f} / {rep['p90_both']:.4f})",
               "  learning curve: " + ", ".join(f"{c['supercells']}: {np.mean(c['held_out']['mean']):.4f}"
@@ -862,6 +871,9 @@ def register(sub, groups: dict) -> None:
                     help="requested low-fidelity truncations (97 220: nG 89 and 213)")
     pe.add_argument("--sizes", type=integer(1, 10_000_000), nargs="+", default=[10, 25, 50, 100, 250, 500, 1000],
                     help="fitting rows of the learning curve (the last is the model)")
+    pe.add_argument("--select", action="store_true",
+                    help="treat --harmonics as candidates: keep the cheapest subset within 2 %% of the best by "
+                    "5-fold cross-validation on the fitting rows (the held-out rows play no part)")
     pe.add_argument("--network", nargs="+", metavar="CARD",
                     help="coupling models' cards whose learning curves to draw beside (the network alone)")
     pe.add_argument("--library", help="the unit-cell library (default: the table's, found by sha256)")

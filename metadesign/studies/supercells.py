@@ -47,7 +47,7 @@ from ..outputs import Need, temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder",
            "patch_study", "design_source", "SOURCES", "certify_coupling",
-           "plot_coupling", "certify_peds", "plot_peds"]
+           "plot_coupling", "certify_peds", "plot_peds", "select_levels"]
 
 SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
 
@@ -433,12 +433,14 @@ def plot_coupling(rep: dict, out: Path) -> Path:
 
 def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *, workers: int = 1,
                  scheduler: str | None = None, goal=(0.05, 0.1), probe_rows: int = 4, probe_label: bool = True,
-                 progress=None, log=lambda s: None) -> tuple[object, dict]:
+                 select: bool = False, progress=None, log=lambda s: None) -> tuple[object, dict]:
     """Calibrate the PEDS surrogate (:mod:`metadesign.library.peds`) on the table's converged labels: every row
     solved at the low truncations ``harmonics`` (resumable under ``partial``), the coefficients fitted on the
     first ``n`` fitting rows for each ``n`` of ``sizes`` (a learning curve; each fit certified on every
     held-out row, never fitted), each level alone (uncalibrated) beside it; returns the model of the largest
-    size and the report (by source, cost per supercell and per million)."""
+    size and the report (by source, cost per supercell and per million).  ``select``: the levels are
+    candidates, and the model uses the subset that cross-validation on the fitting rows picks
+    (:func:`select_levels`; the held-out rows play no part in the choice)."""
     from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
 
     harmonics = sorted({int(h) for h in harmonics})
@@ -459,6 +461,16 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     label_h = table.meta.get("n_harmonics")
     label_cost = _solve_seconds(probe[:1], lib.stack, label_h + 1) if label_h and probe_label else None
     target = labels - lpa
+    selection = None
+    if select and len(harmonics) > 1:
+        selection = select_levels(c, target, fit_rows, tu, [lv["seconds_per_supercell_core"] for lv in levels])
+        keep = selection["chosen"]
+        log("  levels chosen by cross-validation on the fitting rows: nG "
+            + ", ".join(str(levels[k]["n_harmonics"]) for k in keep))
+        for k, lv in enumerate(levels):
+            lv["chosen"] = k in keep
+        c, harmonics = c[keep], [harmonics[k] for k in keep]
+    chosen = [lv for lv in levels if lv.get("chosen", True)]
     curve, coef = [], None
     for n in sorted({min(int(v), len(fit_rows)) for v in sizes}):
         rows = fit_rows[:n]
@@ -470,14 +482,14 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     e_fit = relative_error(peds_t(coef, c[:, used], lpa[used]), labels[used], tu[used])
     by_source = _by_source(table.source[test_rows], e, e_lpa)
     m, p90 = float(e.mean()), float(np.percentile(e, 90))
-    per_sc = sum(lv["seconds_per_supercell_core"] for lv in levels)
+    per_sc = sum(lv["seconds_per_supercell_core"] for lv in chosen)
     report = {
         "metric": "|t_model - t_RCWA| / rms_i |t_i| (the four pillars' rms library |t|), per polarisation",
         "structure": "t = mean_i t_lib(w_i) + sum_k a_k [t_super(nG_k) - mean_i t_unit,i(nG_k)], a_k complex, "
                      "shared by both polarisations",
         "held_out_supercells": int(len(test_rows)), "fitted_supercells": curve[-1]["supercells"],
         "model": _stats(e), "fitted_rows": _stats(e_fit), "lpa": _stats(e_lpa), "by_source": by_source,
-        "levels": levels, "goal": {"mean": goal[0], "p90": goal[1]},
+        "levels": levels, "selection": selection, "goal": {"mean": goal[0], "p90": goal[1]},
         "passed": bool(m <= goal[0] and p90 <= goal[1]), "mean_both": m, "p90_both": p90,
         "lpa_mean_both": float(e_lpa.mean()), "lpa_p90_both": float(np.percentile(e_lpa, 90)),
         "learning_curve": curve,
@@ -488,6 +500,36 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
         "_e": e, "_e_lpa": e_lpa,
     }
     return PedsModel(tuple(harmonics), tuple(complex(a) for a in coef), lib.identity), report
+
+
+def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.ndarray, seconds, folds: int = 5,
+                  tolerance: float = 0.02, seed: int = 0) -> dict:
+    """Every non-empty subset of the levels ``c`` (K, n, 2) scored by ``folds``-fold cross-validation of the
+    calibration on ``rows`` only (mean error of the out-of-fold predictions against ``target`` = labels -
+    LPA); the chosen subset is the cheapest (sum of ``seconds``) within ``tolerance`` (relative) of the best
+    mean.  Returns ``{"chosen": level indices, "subsets": [{levels, cv mean, cv p90, seconds}]}``."""
+    from itertools import combinations
+
+    from ..library.peds import fit_peds
+
+    parts = np.array_split(np.random.default_rng(seed).permutation(rows), folds)
+    out = []
+    for k in range(1, len(c) + 1):
+        for sub in combinations(range(len(c)), k):
+            cs = c[list(sub)]
+            errs = []
+            for f in range(folds):
+                fit = np.concatenate([parts[g] for g in range(folds) if g != f])
+                a = fit_peds(cs[:, fit], target[fit])
+                va = parts[f]
+                errs.append(relative_error(np.tensordot(a, cs[:, va], axes=1), target[va], tu[va]))
+            e = np.concatenate(errs)
+            out.append({"levels": list(sub), "cv_mean": float(e.mean()), "cv_p90": float(np.percentile(e, 90)),
+                        "seconds_per_supercell_core": float(sum(seconds[j] for j in sub))})
+    best = min(r["cv_mean"] for r in out)
+    pick = min((r for r in out if r["cv_mean"] <= best * (1 + tolerance)),
+               key=lambda r: (r["seconds_per_supercell_core"], r["cv_mean"]))
+    return {"chosen": pick["levels"], "folds": folds, "tolerance": tolerance, "subsets": out}
 
 
 def _solve_seconds(widths: np.ndarray, stack, harmonics: int) -> float:
@@ -511,8 +553,8 @@ def plot_peds(rep: dict, out: Path, networks: dict | None = None) -> Path:
     n = [r["supercells"] for r in c]
     ax = axs[0]
     for k, ls in (("mean", "o-"), ("p90", "s--")):
-        ax.plot(n, [np.mean(r["held_out"][k]) for r in c], ls, color="C0", label=f"PEDS (levels + {len(rep['levels'])} "
-                f"coefficients), {k}")
+        ax.plot(n, [np.mean(r["held_out"][k]) for r in c], ls, color="C0", label=f"PEDS ({sum(lv.get('chosen', True) for lv in rep['levels'])} "
+                f"levels, a coefficient each), {k}")
         ax.axhline(np.mean(rep["lpa"][k]), color="C3", ls=ls[1:], lw=1, label=f"LPA, {k}")
         ax.axhline(rep["goal"][k], color="0.5", ls=":", lw=1)
         ax.annotate(f"goal {k} {rep['goal'][k]:g}", (n[0], rep["goal"][k]), fontsize=8, color="0.4", va="bottom")
