@@ -583,9 +583,8 @@ def _cmd_peds(a: argparse.Namespace) -> int:
     from ..library.coupling import CARD_FORMAT
     from ..library.locate import file_sha256, find_library
     from ..library.peds import save_peds
-    from ..library.supercells import remove_partial
     from ..library.store import load_library
-    from ..library.supercells import load_table
+    from ..library.supercells import load_table, remove_partial
     from .supercells import certify_peds, plot_peds
 
     table = load_table(a.table)
@@ -597,6 +596,9 @@ def _cmd_peds(a: argparse.Namespace) -> int:
         raise InputError(f"{tp}: a table solved at nG {table.meta.get('n_harmonics')} with matched unit cells is a "
                          "low fidelity itself; calibrate on a converged table (solved at the library's truncation)")
     top = table.meta.get("n_harmonics") or 0
+    if a.select and len(set(a.harmonics)) > 8:
+        raise InputError(f"--select: at most 8 candidate levels (2^K - 1 subsets are cross-validated), got "
+                         f"{len(set(a.harmonics))}")
     if max(a.harmonics) >= top:
         raise InputError(f"--harmonics {max(a.harmonics)}: the levels must lie below the table's truncation (nG {top})")
     lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
