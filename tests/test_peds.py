@@ -91,6 +91,11 @@ def test_saved_model_round_trips_and_checks_its_library(model, paper_library, tm
         load_peds(p, paper_library)
     with pytest.raises(ValidationError, match="ascending"):
         PedsModel((41, 25), COEF)
+    with pytest.raises(ValidationError, match="another library"):
+        certified_t(paper_library, _widths(1), tmp_path / "p", PedsModel(LEVELS, COEF, "f" * 64))
+    p.write_text(json.dumps({"format": rec["format"], "coef": [[1, 0]]}))
+    with pytest.raises(ValidationError, match="needs harmonics"):
+        load_peds(p)
 
 
 def test_resolved_couplings_are_resumable(paper_library, tmp_path):
@@ -103,14 +108,39 @@ def test_resolved_couplings_are_resumable(paper_library, tmp_path):
     assert stamp == {f: f.stat().st_mtime_ns for f in (tmp_path / "p").rglob("*.npz")}
 
 
-def test_cli_refuses_levels_above_the_table(tmp_path, capsys):
+@pytest.mark.parametrize("args, msg", [
+    (["--harmonics", "97", "900"], "below the table's truncation"),
+    (["--harmonics", "93", "97"], "solve the same truncation"),
+    (["--harmonics", *map(str, range(40, 130, 10)), "--select"], "at most 8 candidate levels"),
+])
+def test_cli_bad_levels_are_one_line(args, msg, tmp_path, capsys):
     from conftest import REPO, run_main
 
     out = tmp_path / "peds.json"
-    rc, _, err = run_main(["library", "peds", REPO / "library" / "paper-supercells.npz", "--harmonics", "97", "900",
-                           "-o", out], capsys)
-    assert rc == 2 and len(err) == 1 and "below the table's truncation" in err[0], err
-    assert not out.exists()
+    rc, _, err = run_main(["library", "peds", REPO / "library" / "paper-supercells.npz", *args, "-o", out], capsys)
+    assert rc == 2 and len(err) == 1 and msg in err[0], err
+    assert not out.exists() and not (tmp_path / "peds.json.partial").exists()
+
+
+def test_selected_model_is_what_the_report_says(paper_library, tmp_path):
+    """With --select the model holds the chosen levels only, its coefficients are the last learning-curve
+    fit's, and its cost is the chosen levels' (labels solved at the top candidate: every subset holding it
+    is exact, the cheapest of them, the top level alone, is kept)."""
+    from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
+    from metadesign.studies.supercells import certify_peds
+
+    levels = (25, 33, 41)
+    w = _widths(10, 6)
+    ns, nu = matched_unit_harmonics(levels[-1], paper_library.stack)
+    t, nG, _, t_unit = solve_table(w, paper_library.stack, ns, tmp_path / "labels", unit_harmonics=nu)
+    table = SupercellTable(w, t, np.zeros(10, int), np.arange(10) % 2 == 1, {"n_harmonics": nG}, t_unit)
+    m, rep = certify_peds(table, paper_library, levels, (5,), tmp_path / "p", probe_rows=1, probe_label=False,
+                          select=True)
+    assert m.harmonics == (levels[-1],) and rep["selection"]["chosen"] == [2]
+    np.testing.assert_allclose(np.array(m.coef), [complex(*c) for c in rep["learning_curve"][-1]["coef"]])
+    np.testing.assert_allclose(m.coef, [1], atol=1e-8)
+    assert [lv["chosen"] for lv in rep["levels"]] == [False, False, True]
+    assert rep["cost"]["seconds_per_supercell_core"] == rep["levels"][2]["seconds_per_supercell_core"]
 
 
 def test_level_selection_uses_the_fitting_rows_only_and_prefers_the_cheap():
@@ -124,12 +154,12 @@ def test_level_selection_uses_the_fitting_rows_only_and_prefers_the_cheap():
     tu = np.ones((200, 2, 2, 2), complex)
     target = (0.8 - 0.3j) * c[2] + 1e-3 * rng.normal(size=(200, 2))
     rows = np.arange(150)
-    sel = select_levels(c, target, rows, tu, seconds=[0.01, 0.05, 0.2])
+    sel = select_levels(c, target, rows, tu, cost=[0.01, 0.05, 0.2])
     assert sel["chosen"] == [2]
     assert len(sel["subsets"]) == 7
     worst = max(sel["subsets"], key=lambda r: r["cv_mean"])
     assert 2 not in worst["levels"] and worst["cv_mean"] > 0.5
     scrambled = target.copy()
     scrambled[150:] = 99.0
-    again = select_levels(c, scrambled, rows, tu, seconds=[0.01, 0.05, 0.2])
+    again = select_levels(c, scrambled, rows, tu, cost=[0.01, 0.05, 0.2])
     assert again == sel

@@ -113,14 +113,19 @@ def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel
         raise ValidationError(f"{path}: not a PEDS supercell model ({e})") from None
     if not isinstance(rec, dict) or rec.get("format") != PEDS_FORMAT:
         raise ValidationError(f"{path}: not a PEDS supercell model ({PEDS_FORMAT})")
-    sha = (rec.get("library") or {}).get("sha256", "")
+    try:
+        sha = str((rec.get("library") or {}).get("sha256", ""))
+        harmonics = tuple(int(h) for h in rec["harmonics"])
+        coef = tuple(complex(float(a), float(b)) for a, b in rec["coef"])
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise ValidationError(f"{path}: a PEDS model needs harmonics, coef ([re, im] per level) and library "
+                              f"({type(e).__name__}: {e})") from None
     if lib is not None and sha != lib.identity:
         raise ValidationError(f"{path}: calibrated against another library (sha256 {sha[:12]}), not this one "
                               f"({lib.identity[:12]})")
     card = {k: v for k, v in rec.items() if k not in ("format", "harmonics", "coef", "library")}
     card["library"] = rec.get("library")
-    return PedsModel(tuple(int(h) for h in rec["harmonics"]), tuple(complex(a, b) for a, b in rec["coef"]), sha,
-                     card)
+    return PedsModel(harmonics, coef, sha, card)
 
 
 def find_peds(lib: UnitCellLibrary) -> Path:
@@ -147,6 +152,9 @@ def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, m
     ``partial``: resumable; the caller removes it)."""
     if not isinstance(model, PedsModel):
         model = load_peds(model if model is not None else find_peds(lib), lib)
+    elif model.library_sha256 and model.library_sha256 != lib.identity:
+        raise ValidationError(f"certified_t: the model was calibrated against another library (sha256 "
+                              f"{model.library_sha256[:12]}), not this one ({lib.identity[:12]})")
     w = np.asarray(widths, float)
     if w.ndim != 4 or w.shape[1:] != (2, 2, 2):
         raise ValidationError(f"certified_t: widths must be (n, 2, 2, 2) metres, got {w.shape}")

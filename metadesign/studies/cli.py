@@ -584,7 +584,7 @@ def _cmd_peds(a: argparse.Namespace) -> int:
     from ..library.locate import file_sha256, find_library
     from ..library.peds import save_peds
     from ..library.store import load_library
-    from ..library.supercells import load_table, remove_partial
+    from ..library.supercells import load_table, matched_unit_harmonics, remove_partial
     from .supercells import certify_peds, plot_peds
 
     table = load_table(a.table)
@@ -604,11 +604,20 @@ def _cmd_peds(a: argparse.Namespace) -> int:
     lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
                                                                 table.meta["library"]["path"], tp.parent)
     lib = load_library(lib_path)
+    resolved: dict[int, list[int]] = {}
+    for h in sorted(set(a.harmonics)):
+        resolved.setdefault(matched_unit_harmonics(h, lib.stack)[0] - 1, []).append(h)
+    for nG, hs in resolved.items():
+        if len(hs) > 1:
+            raise InputError(f"--harmonics {' '.join(map(str, hs))}: these requests solve the same truncation "
+                             f"(nG {nG}); give distinct levels")
     networks = {}
-    for path in a.network or ():
+    for i, path in enumerate(a.network or ()):
         _, _, card = read_card(path, CARD_FORMAT, "coupling model")
-        networks[f"{Path(path).name.split('.')[0]}, on {(card.get('table') or {}).get('path', '?')}"] = \
-            card["certification"]
+        if not isinstance(card.get("certification"), dict) or "learning_curve" not in card["certification"]:
+            raise InputError(f"--network {path}: its card holds no certification (learning curve) to draw")
+        name = f"{Path(path).name.split('.')[0]}, on {(card.get('table') or {}).get('path', '?')}"
+        networks[name if name not in networks else f"{name} ({i + 1})"] = card["certification"]
     out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-peds.json"),
                    suffixes=(".json",))
     partial = out.with_name(out.name + ".partial")
@@ -643,10 +652,12 @@ def _cmd_peds(a: argparse.Namespace) -> int:
                      + ("" if v.get("chosen", True) else "   (not chosen)"))
     if rep["selection"]:
         sel = rep["selection"]
-        lines.append(f"  levels by {sel['folds']}-fold cross-validation on the fitting rows (mean / p90, s per supercell):")
+        lines.append(f"  levels by {sel['folds']}-fold cross-validation on {sel['rows']} fitting rows (mean / p90, "
+                     "s per supercell; the cheapest by nG^3 within 2 % of the best is kept):")
         for r in sorted(sel["subsets"], key=lambda r: r["cv_mean"]):
             lines.append(f"    nG {'+'.join(str(rep['levels'][j]['n_harmonics']) for j in r['levels']):<20s}"
-                         f"{r['cv_mean']:.4f} / {r['cv_p90']:.4f}   {r['seconds_per_supercell_core']:.3f}"
+                         f"{r['cv_mean']:.4f} / {r['cv_p90']:.4f}   "
+                         f"{sum(rep['levels'][j]['seconds_per_supercell_core'] for j in r['levels']):.3f}"
                          + ("   <- chosen" if r["levels"] == sel["chosen"] else ""))
     lines += [f"  goal              <= {rep['goal']['mean']:g} / <= {rep['goal']['p90']:g}: "
               + ("met" if rep["passed"] else "NOT met") + f" (both: {rep['mean_both']:.4f} / {rep['p90_both']:.4f})",
@@ -872,7 +883,8 @@ def register(sub, groups: dict) -> None:
     pe.add_argument("--harmonics", type=integer(20, 5000), nargs="+", default=[97, 220],
                     help="requested low-fidelity truncations (97 220: nG 89 and 213)")
     pe.add_argument("--sizes", type=integer(1, 10_000_000), nargs="+", default=[10, 25, 50, 100, 250, 500, 1000],
-                    help="fitting rows of the learning curve (the last is the model)")
+                    help="fitting rows of the learning curve (the largest, at most the table's fitting rows, is "
+                    "the model)")
     pe.add_argument("--select", action="store_true",
                     help="treat --harmonics as candidates: keep the cheapest subset within 2 %% of the best by "
                     "5-fold cross-validation on the fitting rows (the held-out rows play no part)")

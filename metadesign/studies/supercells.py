@@ -459,11 +459,12 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
                "alone": _stats(relative_error(lpa[te] + c[k][te], labels[te], tu[te]))}
               for k, (h, g) in enumerate(zip(harmonics, nGs))]
     label_h = table.meta.get("n_harmonics")
-    label_cost = _solve_seconds(probe[:1], lib.stack, label_h + 1) if label_h and probe_label else None
+    label_cost = _solve_seconds(probe[:2], lib.stack, label_h + 1, units=False) if label_h and probe_label else None
     target = labels - lpa
     selection = None
     if select and len(harmonics) > 1:
-        selection = select_levels(c, target, fit_rows, tu, [lv["seconds_per_supercell_core"] for lv in levels])
+        n_model = min(max(int(v) for v in sizes), len(fit_rows))  # the rows the model is fitted on, no more
+        selection = select_levels(c, target, fit_rows[:n_model], tu, [float(g) ** 3 for g in nGs])
         keep = selection["chosen"]
         log("  levels chosen by cross-validation on the fitting rows: nG "
             + ", ".join(str(levels[k]["n_harmonics"]) for k in keep))
@@ -502,12 +503,13 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     return PedsModel(tuple(harmonics), tuple(complex(a) for a in coef), lib.identity), report
 
 
-def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.ndarray, seconds, folds: int = 5,
+def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.ndarray, cost, folds: int = 5,
                   tolerance: float = 0.02, seed: int = 0) -> dict:
     """Every non-empty subset of the levels ``c`` (K, n, 2) scored by ``folds``-fold cross-validation of the
     calibration on ``rows`` only (mean error of the out-of-fold predictions against ``target`` = labels -
-    LPA); the chosen subset is the cheapest (sum of ``seconds``) within ``tolerance`` (relative) of the best
-    mean.  Returns ``{"chosen": level indices, "subsets": [{levels, cv mean, cv p90, seconds}]}``."""
+    LPA); the chosen subset is the cheapest (sum of the levels' ``cost``: a fixed proxy such as nG^3, so the
+    choice does not depend on the machine's load) within ``tolerance`` (relative) of the best mean.  Returns
+    ``{"chosen": level indices, "subsets": [{levels, cv mean, cv p90, cost}]}``."""
     from itertools import combinations
 
     from ..library.peds import fit_peds
@@ -525,21 +527,23 @@ def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.nd
                 errs.append(relative_error(np.tensordot(a, cs[:, va], axes=1), target[va], tu[va]))
             e = np.concatenate(errs)
             out.append({"levels": list(sub), "cv_mean": float(e.mean()), "cv_p90": float(np.percentile(e, 90)),
-                        "seconds_per_supercell_core": float(sum(seconds[j] for j in sub))})
+                        "cost": float(sum(cost[j] for j in sub))})
     best = min(r["cv_mean"] for r in out)
-    pick = min((r for r in out if r["cv_mean"] <= best * (1 + tolerance)),
-               key=lambda r: (r["seconds_per_supercell_core"], r["cv_mean"]))
-    return {"chosen": pick["levels"], "folds": folds, "tolerance": tolerance, "subsets": out}
+    pick = min((r for r in out if r["cv_mean"] <= best * (1 + tolerance) + 1e-12),
+               key=lambda r: (r["cost"], r["cv_mean"]))
+    return {"chosen": pick["levels"], "folds": folds, "tolerance": tolerance, "rows": int(len(rows)),
+            "cost": "sum of nG^3 of the levels", "subsets": out}
 
 
-def _solve_seconds(widths: np.ndarray, stack, harmonics: int) -> float:
-    """Seconds per supercell on this core of a fresh solve at ``harmonics`` (requested) with its matched unit
-    cells (no cache)."""
+def _solve_seconds(widths: np.ndarray, stack, harmonics: int, units: bool = True) -> float:
+    """Seconds per supercell on this core of a fresh solve at ``harmonics`` (requested), with its matched unit
+    cells when ``units`` (a PEDS level; a converged label solves none), no cache."""
     ns, nu = matched_unit_harmonics(int(harmonics), stack)
     t0 = time.perf_counter()
     for w in widths:
         solve_supercell(w, stack, ns)
-        unit_cells(w[None], stack, nu)
+        if units:
+            unit_cells(w[None], stack, nu)
     return (time.perf_counter() - t0) / max(1, len(widths))
 
 
