@@ -77,3 +77,22 @@ def test_the_declared_key_follows_content_not_comments(tmp_path):
     (tmp_path / "sensing" / "turbulence.toml").write_text((SENSING / "turbulence.toml").read_text() + "\n\n")
     a.write_text(src)
     assert load_dataset_recipe(a).declared_key() == k0  # whitespace in a named recipe: the same content
+
+
+def test_the_committed_peds_model_matches_its_table_library_and_report():
+    """library/paper-peds.json: calibrated against the committed library (its sha256), on the committed
+    converged table (its sha256), and the model is what its report chose (levels) and fitted last."""
+    import numpy as np
+
+    from metadesign.library.locate import file_sha256
+    from metadesign.library.peds import load_peds
+    from metadesign.library.store import load_library
+
+    lib = load_library(REPO / "library" / "paper.npz")
+    m = load_peds(REPO / "library" / "paper-peds.json", lib)  # refuses another library
+    cert = m.card["certification"]
+    assert m.card["table"]["sha256"] == file_sha256(REPO / "library" / m.card["table"]["path"])
+    chosen = [lv["requested"] for lv in cert["levels"] if lv.get("chosen", True)]
+    assert list(m.harmonics) == chosen
+    np.testing.assert_allclose(np.array(m.coef), [complex(*c) for c in cert["learning_curve"][-1]["coef"]])
+    assert (REPO / "library" / m.card["figure"]).is_file()
