@@ -422,13 +422,18 @@ def plot_coupling(rep: dict, out: Path) -> Path:
     axs[0].set_xticks([], minor=True)  # the log axis's own minor labels would overprint the sizes
     axs[0].legend(fontsize=8)
     e, el = rep["_e"].ravel(), rep["_e_lpa"].ravel()
-    bins = np.linspace(0, max(el.max(), e.max()), 40)
-    axs[1].hist(el, bins, alpha=0.6, color="C3", label=f"LPA (mean {el.mean():.3f})")
-    axs[1].hist(e, bins, alpha=0.6, color="C0", label=f"coupling model (mean {e.mean():.3f})")
-    axs[1].set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
-               title="held-out error")
-    axs[1].legend(fontsize=8)
+    _error_histogram(axs[1], e, el, "coupling model", max(el.max(), e.max()))
     return save_figure(fig, out)
+
+
+def _error_histogram(ax, e: np.ndarray, e_lpa: np.ndarray, name: str, top: float) -> None:
+    """The held-out error distributions of a model and of the LPA on one axis (bins up to ``top``)."""
+    bins = np.linspace(0, top, 40)
+    ax.hist(e_lpa, bins, alpha=0.6, color="C3", label=f"LPA (mean {e_lpa.mean():.3f})")
+    ax.hist(e, bins, alpha=0.6, color="C0", label=f"{name} (mean {e.mean():.3f})")
+    ax.set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
+           title="held-out error")
+    ax.legend(fontsize=8)
 
 
 def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *, workers: int = 1,
@@ -575,10 +580,5 @@ def plot_peds(rep: dict, out: Path, networks: dict | None = None) -> Path:
            title=f"supercell surrogates ({rep['held_out_supercells']} held-out supercells)")
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     e, el = rep["_e"].ravel(), rep["_e_lpa"].ravel()
-    bins = np.linspace(0, np.percentile(el, 99), 40)
-    axs[1].hist(el, bins, alpha=0.6, color="C3", label=f"LPA (mean {el.mean():.3f})")
-    axs[1].hist(e, bins, alpha=0.6, color="C0", label=f"PEDS (mean {e.mean():.3f})")
-    axs[1].set(xlabel="|t - t_RCWA| / rms|t_i| (both polarisations)", ylabel="held-out supercells x pol",
-               title="held-out error")
-    axs[1].legend(fontsize=8)
+    _error_histogram(axs[1], e, el, "PEDS", np.percentile(el, 99))
     return save_figure(fig, out)
