@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from itertools import combinations
 from pathlib import Path
 from typing import Callable
 
@@ -30,6 +31,7 @@ from ..design.store import Design, design_file, load_design, run_design
 from ..library.coupling import CouplingConfig, lpa_t, relative_error
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
+from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
 from ..library.store import interpolate_t, load_library
 from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
@@ -446,8 +448,6 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     size and the report (by source, cost per supercell and per million).  ``select``: the levels are
     candidates, and the model uses the subset that cross-validation on the fitting rows picks
     (:func:`select_levels`; the held-out rows play no part in the choice)."""
-    from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
-
     harmonics = sorted({int(h) for h in harmonics})
     fit_rows, test_rows = np.flatnonzero(~table.test), np.flatnonzero(table.test)
     if not len(test_rows) or not len(fit_rows):
@@ -515,10 +515,6 @@ def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.nd
     LPA); the chosen subset is the cheapest (sum of the levels' ``cost``: a fixed proxy such as nG^3, so the
     choice does not depend on the machine's load) within ``tolerance`` (relative) of the best mean.  Returns
     ``{"chosen": level indices, "subsets": [{levels, cv mean, cv p90, cost}]}``."""
-    from itertools import combinations
-
-    from ..library.peds import fit_peds
-
     parts = np.array_split(np.random.default_rng(seed).permutation(rows), folds)
     out = []
     for k in range(1, len(c) + 1):
