@@ -101,9 +101,9 @@ def test_saved_model_round_trips_and_checks_its_library(model, paper_library, tm
 def test_resolved_couplings_are_resumable(paper_library, tmp_path):
     """A second call on the same rows solves nothing (content-keyed chunks) and returns the same bytes."""
     w = _widths(4, 5)
-    c1, n1, _ = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
+    c1, n1 = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
     stamp = {f: f.stat().st_mtime_ns for f in (tmp_path / "p").rglob("*.npz")}
-    c2, n2, _ = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
+    c2, n2 = low_fidelity_couplings(w, paper_library.stack, LEVELS, tmp_path / "p", chunk_size=2)
     assert n1 == n2 and c1.tobytes() == c2.tobytes()
     assert stamp == {f: f.stat().st_mtime_ns for f in (tmp_path / "p").rglob("*.npz")}
 

@@ -35,7 +35,7 @@ import numpy as np
 from ..cards import find_card, save_card_model
 from ..paths import repo_root
 from ..validation import ValidationError
-from .locate import file_sha256
+from .locate import file_sha256, find_fitted
 from .store import UnitCellLibrary
 
 __all__ = ["CouplingConfig", "CARD_FORMAT", "W0", "WS", "transpose_supercells", "lpa_t", "save_coupling",
@@ -100,15 +100,9 @@ def coupling_card(lib: UnitCellLibrary, path: str | Path | None = None) -> Path:
     among the cards in the products' ``library/`` folder and the working directory (no torch needed)."""
     if path is not None:
         return Path(path)
-    for folder in (repo_root() / "library", Path.cwd()):
-        for card_path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
-            try:
-                card = json.loads(card_path.read_text())
-            except (OSError, ValueError):
-                continue
-            if isinstance(card, dict) and card.get("format") == CARD_FORMAT and \
-                    (card.get("library") or {}).get("sha256") == lib.identity:
-                return card_path.with_name(card["weights"])
+    found = find_fitted(lib.identity, CARD_FORMAT, (repo_root() / "library", Path.cwd()))
+    if found is not None:
+        return found[0].with_name(found[1]["weights"])
     raise ValidationError(f"no supercell coupling model fitted against this library (sha256 {lib.identity[:12]}) "
                           "was found in library/; fit one (metadesign library coupling) or pass its path")
 

@@ -3,6 +3,7 @@ product file), then by its sha256 among the libraries a user keeps."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -53,3 +54,18 @@ def find_library(sha256: str | None, recorded: str | None, product_dir: str | Pa
             return c
     raise ValidationError(f"no unit-cell library with sha256 {str(sha256)[:12]} found (recorded path {recorded!r}, "
                           f"searched {len(tried)} files); pass --library")
+
+
+def find_fitted(identity: str, fmt: str, folders) -> tuple[Path, dict] | None:
+    """``(file, record)`` of the first JSON record of format ``fmt`` fitted against the library of sha256
+    ``identity`` among the ``*.json`` files of ``folders`` (in order, sorted by name), or None."""
+    for folder in folders:
+        for p in sorted(Path(folder).glob("*.json")) if Path(folder).is_dir() else []:
+            try:
+                rec = json.loads(p.read_text())
+            except (OSError, ValueError):
+                continue
+            if isinstance(rec, dict) and rec.get("format") == fmt and \
+                    (rec.get("library") or {}).get("sha256") == identity:
+                return p, rec
+    return None

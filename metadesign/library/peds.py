@@ -32,6 +32,7 @@ from ..io import atomic_write_text
 from ..paths import repo_root
 from ..validation import ValidationError
 from .coupling import lpa_t
+from .locate import find_fitted
 from .rcwa import Stack
 from .store import UnitCellLibrary, interpolate_t
 from .supercells import matched_unit_harmonics, solve_table
@@ -65,21 +66,20 @@ class PedsModel:
 def low_fidelity_couplings(widths: np.ndarray, stack: Stack, harmonics, partial: str | Path, *, workers: int = 1,
                            scheduler: str | None = None, chunk_size: int = 16,
                            progress: Callable[[int, int], None] | None = None,
-                           log: Callable[[str], None] = lambda s: None) -> tuple[np.ndarray, list[int], list[float]]:
-    """``(c (K, n, 2) complex, nG per level, seconds spent per level)``: the coupling of each supercell
+                           log: Callable[[str], None] = lambda s: None) -> tuple[np.ndarray, list[int]]:
+    """``(c (K, n, 2) complex, nG per level)``: the coupling of each supercell
     ``widths`` (n, 2, 2, 2) m at each requested truncation of ``harmonics``, its unit cells at the matched
     truncation.  Chunks under ``partial/nG-<n>`` (content-keyed: resumable, the same bytes on any worker
     count; a rerun on the same rows solves nothing)."""
-    out, nGs, secs = [], [], []
+    out, nGs = [], []
     for h in harmonics:
         ns, nu = matched_unit_harmonics(int(h), stack)
-        t, nG, seconds, t_unit = solve_table(widths, stack, ns, Path(partial) / f"nG-{ns - 1}", workers=workers,
+        t, nG, _, t_unit = solve_table(widths, stack, ns, Path(partial) / f"nG-{ns - 1}", workers=workers,
                                              scheduler=scheduler, chunk_size=chunk_size, unit_harmonics=nu,
                                              progress=progress, log=log)
         out.append(t - t_unit.mean((1, 2)))
         nGs.append(int(nG))
-        secs.append(float(seconds))
-    return np.stack(out), nGs, secs
+    return np.stack(out), nGs
 
 
 def fit_peds(couplings: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -130,15 +130,9 @@ def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel
 
 def find_peds(lib: UnitCellLibrary) -> Path:
     """The PEDS model calibrated against ``lib`` among the JSON files of the products' ``library/`` folder."""
-    folder = repo_root() / "library"
-    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
-        try:
-            rec = json.loads(p.read_text())
-        except (OSError, ValueError):
-            continue
-        if isinstance(rec, dict) and rec.get("format") == PEDS_FORMAT and \
-                (rec.get("library") or {}).get("sha256") == lib.identity:
-            return p
+    found = find_fitted(lib.identity, PEDS_FORMAT, (repo_root() / "library",))
+    if found is not None:
+        return found[0]
     raise ValidationError(f"no PEDS supercell model calibrated against this library (sha256 {lib.identity[:12]}) "
                           "in library/; calibrate one (metadesign library peds TABLE)")
 
@@ -158,7 +152,7 @@ def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, m
     w = np.asarray(widths, float)
     if w.ndim != 4 or w.shape[1:] != (2, 2, 2):
         raise ValidationError(f"certified_t: widths must be (n, 2, 2, 2) metres, got {w.shape}")
-    c, _, _ = low_fidelity_couplings(w, lib.stack, model.harmonics, partial, workers=workers, scheduler=scheduler,
+    c, _ = low_fidelity_couplings(w, lib.stack, model.harmonics, partial, workers=workers, scheduler=scheduler,
                                      progress=progress)
     tu = interpolate_t(lib, w[..., 0], w[..., 1])[0]
     return peds_t(model.coef, c, lpa_t(tu))

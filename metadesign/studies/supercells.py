@@ -455,9 +455,9 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     labels, tu = table.lpa_labels(lib)
     lpa = lpa_t(tu)
     log(f"PEDS levels nG {harmonics} on {len(table)} supercells ({len(test_rows)} held out)")
-    c, nGs, secs = low_fidelity_couplings(table.widths, lib.stack, harmonics, partial, workers=workers,
+    c, nGs = low_fidelity_couplings(table.widths, lib.stack, harmonics, partial, workers=workers,
                                           scheduler=scheduler, progress=progress, log=log)
-    te = np.s_[test_rows]
+    te = test_rows
     e_lpa = relative_error(lpa[te], labels[te], tu[te])
     probe = table.widths[test_rows[:probe_rows]]  # the cost timed here, whatever the chunks held already
     levels = [{"requested": h, "n_harmonics": g, "seconds_per_supercell_core": _solve_seconds(probe, lib.stack, h),
