@@ -60,3 +60,25 @@ bias_nm = [20.0]
         assert (tmp_path / "out" / f).stat().st_size > 0
     again = run_cli("tolerance", str(tmp_path / "tol.toml"), "-o", str(tmp_path / "out"), "-j", "1", "--json")
     assert again.returncode == 0 and json.loads(again.stdout)["rows"] == json.loads(r.stdout)["rows"]
+
+
+def test_a_study_without_fine_tuning_draws_nothing_called_fine_tuned(tmp_path, monkeypatch):
+    """finetune.epochs = 0: no row has an "after"; the figure's legends name only what was measured."""
+    from metadesign.plotting import pyplot
+    from metadesign.studies import tolerance
+
+    def row(case, bias=0.0, jitter=0.0):
+        return {"case": case, "bias_nm": bias, "jitter_nm": jitter, "corner_nm": 0.0,
+                "before": {"npib_unet": 0.5, "npib_phase_conjugate": 0.7, "npib_none": 0.1}}
+
+    labels = []
+    plt = pyplot()
+    real_save = tolerance.save_figure
+    monkeypatch.setattr(tolerance, "save_figure", lambda fig, out: (
+        labels.extend(t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()),
+        real_save(fig, out))[1])
+    tolerance.plot_tolerance([row("nominal"), row("bias+10nm", 10.0), row("jitter5nm", jitter=5.0)],
+                             tmp_path / "t.png", 5.0)
+    assert labels and not any("fine-tun" in t for t in labels), labels
+    assert "nominal model" in labels
+    plt.close("all")

@@ -234,6 +234,7 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
                    and r["case"] != "supercell"], key=lambda r: r["bias_nm"])
     other = [r for r in rows if r["jitter_nm"] or r["corner_nm"] or "height_nm" in r or r["case"] == "supercell"]
     nom = next((r for r in rows if r["case"] == "nominal"), None)
+    tuned = any("after" in r for r in rows)
     if len(bias) < 2:  # no bias sweep to draw: the nominal device is one more bar
         fig, a2 = plt.subplots(figsize=(1.6 * (len(bias) + len(other)) + 3, 4.5), constrained_layout=True)
         other = bias + other
@@ -242,9 +243,10 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
                                      gridspec_kw={"width_ratios": [3, 2]})
         x = [r["bias_nm"] for r in bias]
         a1.plot(x, [r["before"]["npib_unet"] for r in bias], "o-", label="U-Net trained on the nominal device")
-        fit = [r for r in bias if "after" in r or r["case"] == "nominal"]
-        a1.plot([r["bias_nm"] for r in fit], [r.get("after", r["before"])["npib_unet"] for r in fit], "s--",
-                label="after fine-tuning on the perturbed device")
+        if tuned:
+            fit = [r for r in bias if "after" in r or r["case"] == "nominal"]
+            a1.plot([r["bias_nm"] for r in fit], [r.get("after", r["before"])["npib_unet"] for r in fit], "s--",
+                    label="after fine-tuning on the perturbed device")
         a1.plot(x, [r["before"]["npib_phase_conjugate"] for r in bias], "g:", label="phase conjugate")
         a1.plot(x, [r["before"]["npib_none"] for r in bias], "k:", label="uncorrected")
         a1.set(xlabel="pillar width bias [nm] (both axes)", ylabel="mean NPiB (test split)",
@@ -253,8 +255,11 @@ def plot_tolerance(rows, out: Path, noise: float) -> Path:
     if other:
         lab = [r["case"] for r in other]
         xx = np.arange(len(other))
-        a2.bar(xx - 0.2, [r["before"]["npib_unet"] for r in other], 0.4, label="nominal model")
-        a2.bar(xx + 0.2, [r.get("after", r["before"])["npib_unet"] for r in other], 0.4, label="fine-tuned")
+        if tuned:
+            a2.bar(xx - 0.2, [r["before"]["npib_unet"] for r in other], 0.4, label="nominal model")
+            a2.bar(xx + 0.2, [r.get("after", r["before"])["npib_unet"] for r in other], 0.4, label="fine-tuned")
+        else:  # no case was fine-tuned (finetune.epochs = 0): one bar each, nothing called fine-tuned
+            a2.bar(xx, [r["before"]["npib_unet"] for r in other], 0.5, label="nominal model")
         if nom:
             a2.axhline(nom["before"]["npib_unet"], color="k", ls="--", lw=1, label="nominal device")
             a2.axhline(nom["before"]["npib_phase_conjugate"], color="g", ls=":", lw=1, label="phase conjugate")
