@@ -34,8 +34,8 @@ from ..determinism import single_thread_blas
 from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
-__all__ = ["CoarsePupil", "coarse_pupil", "quadrant_fields", "sensor_frames", "full_resolution_frames",
-           "asm_reference_intensity", "block_size_for"]
+__all__ = ["CoarsePupil", "coarse_pupil", "quadrant_fields", "quadrant_transform", "sensor_frames",
+           "full_resolution_frames", "asm_reference_intensity", "block_size_for"]
 
 
 @dataclass
@@ -170,13 +170,11 @@ def _nonparaxial(X: np.ndarray, c: tuple[float, float], k0: float, z: float) -> 
     return cexp(k0 * d)
 
 
-def quadrant_fields(cp: CoarsePupil, pol: int, xo: np.ndarray, yo: np.ndarray, centre: tuple[float, float],
-                    e_in: np.ndarray | None = None, channels=None, z: float | None = None) -> np.ndarray:
-    """Focal-plane intensity (W/m^2 for unit incident intensity) on the grid
-    ``xo x yo`` (``[y, x]``) from the coarse pupil; ``channels`` selects
-    sub-lattices (default: all).  ``z`` other than the pupil's refocuses by
-    the smooth factor ``exp(i k |X|^2 (1/z - 1/z0) / 2)`` on the coarse grid
-    (valid for a few mm around z0 at f/10: < 0.02 rad per block)."""
+def quadrant_transform(cp: CoarsePupil, pol: int, xo: np.ndarray, yo: np.ndarray, centre: tuple[float, float],
+                       e_in: np.ndarray | None = None, channels=None, z: float | None = None):
+    """``(U, comp, scale)``: the complex focal-plane transform of the coarse pupil on ``xo x yo``, linear in
+    ``cp.G``, with intensity ``|U|^2 / comp^2 * scale`` (:func:`quadrant_fields`, which documents the
+    arguments).  Linear quantities (a sum of pupils, a sampled correction) combine here, before the square."""
     k0 = 2 * np.pi / cp.wavelength
     z = cp.z if z is None else z
     g = cp.G[pol].sum(axis=0) if channels is None else cp.G[pol, list(channels)].sum(axis=0)
@@ -190,6 +188,17 @@ def quadrant_fields(cp: CoarsePupil, pol: int, xo: np.ndarray, yo: np.ndarray, c
     U = mft(g, cp.X, cp.X, fx, fy)
     comp = (np.sinc(fy * cp.pitch)[:, None] * np.sinc(fx * cp.pitch)[None, :]).astype(np.float32)
     scale = (cp.pitch**2 / (cp.wavelength * z)) ** 2
+    return U, comp, scale
+
+
+def quadrant_fields(cp: CoarsePupil, pol: int, xo: np.ndarray, yo: np.ndarray, centre: tuple[float, float],
+                    e_in: np.ndarray | None = None, channels=None, z: float | None = None) -> np.ndarray:
+    """Focal-plane intensity (W/m^2 for unit incident intensity) on the grid
+    ``xo x yo`` (``[y, x]``) from the coarse pupil; ``channels`` selects
+    sub-lattices (default: all).  ``z`` other than the pupil's refocuses by
+    the smooth factor ``exp(i k |X|^2 (1/z - 1/z0) / 2)`` on the coarse grid
+    (valid for a few mm around z0 at f/10: < 0.02 rad per block)."""
+    U, comp, scale = quadrant_transform(cp, pol, xo, yo, centre, e_in, channels, z)
     return (np.abs(U) ** 2 / comp**2 * scale).astype(np.float32)
 
 

@@ -251,9 +251,10 @@ def channels_from_provenance(prov: dict):
     return (r.spec.channels_x, r.spec.channels_y), r.spec.supercell
 
 
-def _best_focus(cp: CoarsePupil, pol: int, xo, yo, target, ch, zs) -> tuple[float, float]:
-    """(peak intensity, its distance): the window's maximum through focus, refined by a parabola."""
-    peaks = np.array([quadrant_fields(cp, pol, xo, yo, target, channels=ch, z=z).max() for z in zs])
+def _best_focus(window, zs) -> tuple[float, float]:
+    """(peak intensity, its distance): the maximum of ``window(z)`` (a focal window's intensity at distance
+    ``z``) through focus, refined by a parabola."""
+    peaks = np.array([window(z).max() for z in zs])
     i = int(np.argmax(peaks))
     if 0 < i < len(zs) - 1:  # parabolic refinement
         a, b, c_ = peaks[i - 1], peaks[i], peaks[i + 1]
@@ -307,12 +308,12 @@ def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focu
             win = 6 * 1.22 * cp.wavelength * f_k / (fab.n_cells * fab.period)  # a few Airy radii
             xo = target[0] + np.linspace(-win, win, 41)
             yo = target[1] + np.linspace(-win, win, 41)
-            peak, z_best = _best_focus(cp, p, xo, yo, target, ch, zs)
+            peak, z_best = _best_focus(lambda z: quadrant_fields(cp, p, xo, yo, target, channels=ch, z=z), zs)
             # Strehl: the peak over that of a perfect lens (a converging spherical wave to the same point,
             # the same power on the same aperture), found the same way: 1 for a perfect lens, whatever the
             # Fresnel number (at low ones the best focus moves toward the lens) and the block sampling.
             ref, ref_power = _perfect_lens_pupil(cp, target, f_k, np.abs(cp.G[p, k - 1]) > 0)
-            peak_ref, _ = _best_focus(ref, 0, xo, yo, target, [0], zs)
+            peak_ref, _ = _best_focus(lambda z: quadrant_fields(ref, 0, xo, yo, target, channels=[0], z=z), zs)
             power = float(np.sum(np.abs(cp.G[p, k - 1]) ** 2))
             strehl = peak / (peak_ref * power / ref_power) if peak_ref > 0 and ref_power > 0 else 0.0
             out.append({
@@ -330,14 +331,21 @@ def channel_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focu
 
 
 def spot_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_span: float = 0.3e-3,
-                 n_focus: int = 7, airy_radii: float = 2.0) -> list[dict]:
+                 n_focus: int = 7, airy_radii: float = 2.0, intensity=None) -> list[dict]:
     """Per channel (pol, k), measured on the total field, as a camera sees it (every sub-lattice at once):
     ``spot_efficiency`` the power within ``airy_radii`` Airy radii (1.22 lambda f_k / D) of the channel's
     spot over the incident power; ``spot_strehl`` the spot's peak at best focus over that of a perfect lens
     to the same spot delivering the same power into the quadrant; ``stray`` the fraction of the quadrant's
     power outside the spot; ``focal_shift_mm`` of the total field's peak.  Unlike :func:`channel_metrics`
     (one sub-lattice's light) these need no attribution of light to pillars, so they hold under the
-    supercell coupling model, where a pillar's light is not its own."""
+    supercell coupling model, where a pillar's light is not its own.
+
+    ``intensity(pol, xo, yo, centre, z=None)``: the device's focal intensity (default
+    :func:`~metadesign.sensing.forward.quadrant_fields` of ``cp``; e.g. a sampled estimate,
+    :class:`~metadesign.sensing.sampled.SampledIntensity`); ``cp`` still gives the grid and the support."""
+    if intensity is None:
+        def intensity(pol, xo, yo, centre, z=None):
+            return quadrant_fields(cp, pol, xo, yo, centre, z=z)
     X, Y = sensor.coords()
     area_px = sensor.focal_pitch**2
     D = fab.n_cells * fab.period
@@ -347,7 +355,7 @@ def spot_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_s
         frame = np.zeros((sensor.height_px, sensor.width_px), np.float32)
         for q in range(1, 5):
             r, c = quadrant_slices(sensor, q)
-            frame[r, c] = quadrant_fields(cp, p, X[c], Y[r], sensor.quadrant_centre(q)) * area_px
+            frame[r, c] = intensity(p, X[c], Y[r], sensor.quadrant_centre(q)) * area_px
         for k in range(1, 5):
             lens = fab.channels[p][k - 1] if fab.channels[p] else None
             target = (lens.offset_x, lens.offset_y) if lens else sensor.quadrant_centre(k)
@@ -363,10 +371,10 @@ def spot_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_s
             win = 6 * 1.22 * cp.wavelength * f_k / D
             xo = target[0] + np.linspace(-win, win, 41)
             yo = target[1] + np.linspace(-win, win, 41)
-            peak, z_best = _best_focus(cp, p, xo, yo, target, None, zs)
+            peak, z_best = _best_focus(lambda z: intensity(p, xo, yo, target, z=z), zs)
             # the reference: a perfect lens to the same spot whose quadrant receives the same power
             ref, _ = _perfect_lens_pupil(cp, target, f_k, np.abs(cp.G[p].sum(0)) > 0)
-            peak_ref, _ = _best_focus(ref, 0, xo, yo, target, [0], zs)
+            peak_ref, _ = _best_focus(lambda z: quadrant_fields(ref, 0, xo, yo, target, channels=[0], z=z), zs)
             ref_quad = float(quadrant_fields(ref, 0, X[c], Y[r], sensor.quadrant_centre(k)).sum()) * area_px
             strehl = peak / (peak_ref * quad / ref_quad) if peak_ref > 0 and ref_quad > 0 and quad > 0 else 0.0
             out.append({"pol": "xy"[p], "k": k, "spot_efficiency": spot / aperture, "spot_strehl": strehl,

@@ -679,17 +679,24 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     from ..paths import product as packaged
     from ..sensing.model import AsFabricated, load_sensing_recipe
     from ..validation import ValidationError
-    from .coupling_check import CASES, coupling_check, plot_coupling_frames
+    from ..library.supercells import remove_partial
+    from ..sensing.transmission import Perturbation
+    from .coupling_check import CASES, coupling_check, plot_case_metrics, plot_coupling_frames
 
     if (a.dataset is None) != (a.model is None):
         raise ValidationError("--dataset and --model go together (the NPiB needs both)")
+    if a.certified and a.certified < 2 * a.replicates:
+        raise ValidationError(f"--certified {a.certified}: at least two supercells per replicate "
+                              f"(--replicates {a.replicates}), so >= {2 * a.replicates}")
     src = Path(a.design)
     out = out_dir(a.output or (src if src.is_dir() else src.parent) / "coupling-check")
+    partial = out.with_name(out.name + ".partial")
     log = log_to(a.json)
     inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
-              "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model}
-    with product(out, "coupling-check", inputs):
+              "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
+              "--peds": a.peds}
+    with product(out, "coupling-check", inputs, scratch=(partial,)):
         fab = AsFabricated.from_design(load_design(src))
         fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
         if a.compensated:
@@ -708,18 +715,30 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
             sr = load_sensing_recipe(a.sensor or packaged("sensing", "paper.toml"))
             sensor, grid = sr.sensor, sr.pupil_grid
         log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
-        rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log)
+        cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
+                "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed} if a.certified else None
+        rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
+                                     certified=cert, pert=Perturbation.from_nm(a.bias_nm))
         rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
+        if cert:
+            rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
         rep["coupling_model_sha256"] = fabs["coupled"].coupling_card["weights_sha256"]
         atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
+        remove_partial(partial)
     lines = [f"wrote {out}/coupling-check.json and coupling-frames.png",
              "  case                        spot eff.  spot Strehl  stray    |focal shift| um"
              + ("   U-Net NPiB" if "downstream" in rep else "")]
     for name, c in rep["cases"].items():
         mm = c["mean"]
+        npib = rep.get("downstream", {}).get(name, {}).get("npib_unet")
         lines.append(f"  {c['label']:<27} {mm['spot_efficiency']:.4f}     {mm['spot_strehl']:.3f}        "
                      f"{mm['stray']:.4f}   {1e3 * mm['focal_shift_mm']:7.1f}"
-                     + (f"          {rep['downstream'][name]['npib_unet']:.3f}" if "downstream" in rep else ""))
+                     + (f"          {npib:.3f}" if npib is not None else ""))
+        if "stderr" in c:
+            se = c["stderr"]
+            lines.append(f"  {'  +- (standard error)':<27} {se['spot_efficiency']:.4f}     "
+                         f"{se['spot_strehl']:.3f}        {se['stray']:.4f}   {1e3 * se['focal_shift_mm']:7.1f}"
+                         f"   ({c['sampling']['supercells']} supercells of {c['sampling']['eligible_supercells']:,})")
     if "downstream" in rep:
         d = rep["downstream"]
         lines.append(f"  NPiB uncorrected {d['npib_none']:.3f}, phase conjugate {d['npib_phase_conjugate']:.3f} "
@@ -967,6 +986,17 @@ def register(sub, groups: dict) -> None:
     limit_arg(cc, "at most this many test samples (64)", type=integer(1, 100000), default=64)
     cc.add_argument("--noise-percent", "--noise", dest="noise", type=num(0, 100, unit="%"), default=5.0,
                     help="sensor noise, %% of peak (5)")
+    cc.add_argument("--certified", type=integer(0, 10_000_000), default=0, metavar="N",
+                    help="also each coupled design under the certified (PEDS) model, its correction measured on N "
+                    "supercells drawn at random (0.2 s each per core; resumable in OUT.partial/); 0: off (default)")
+    cc.add_argument("--replicates", type=integer(3, 256), default=8,
+                    help="independent replicates of the --certified sample (jackknife error bars; 8)")
+    cc.add_argument("--peds", help="certified model (default: the PEDS model calibrated against the library)")
+    cc.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the --certified sample (0)")
+    cc.add_argument("--bias-nm", type=num(-50, 50, unit="nm"), default=0.0,
+                    help="every device made with this width bias (nm; a fab study under each model; 0)")
+    cc.add_argument("--scheduler", help="Dask scheduler address for the certified solves (default: the local pool)")
+    workers_arg(cc)
     cc.add_argument("-o", "--output", help="output folder (default: coupling-check/ beside the design)")
     cc.add_argument("--json", action="store_true", help="print the report as JSON")
     cc.set_defaults(func=_cmd_coupling_check)

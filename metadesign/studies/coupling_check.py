@@ -14,18 +14,30 @@ import time
 
 import numpy as np
 
+from ..library.coupling_net import coupling_t
+from ..library.peds import certified_t, find_peds, load_peds
+from ..library.store import interpolate_t
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
+from ..sensing.sampled import (
+    delta_pupil,
+    eligible_supercells,
+    jackknife_se,
+    sampled_spot_metrics,
+    supercell_widths,
+)
 from ..sensing.sensor import SensorSpec
+from ..sensing.transmission import Perturbation
 from .lpa import pupil_downstream
 
-__all__ = ["coupling_check", "plot_coupling_frames", "CASES", "SPOT_KEYS"]
+__all__ = ["CASES", "SPOT_KEYS", "certified_case", "coupling_check", "plot_case_metrics", "plot_coupling_frames"]
 
 SPOT_KEYS = ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm")
 
 CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compensated": "compensated, coupling",
-         "compensated_lpa": "compensated, LPA"}
+         "compensated_lpa": "compensated, LPA", "certified": "design, certified (PEDS, sampled)",
+         "compensated_certified": "compensated, certified (PEDS, sampled)"}
 
 
 def _mean(rows, key):
@@ -33,14 +45,22 @@ def _mean(rows, key):
 
 
 def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, model=None, samples: int = 64,
-                   noise_percent: float = 5.0, seed: int = 0, log=lambda s: None) -> tuple[dict, dict]:
+                   noise_percent: float = 5.0, seed: int = 0, log=lambda s: None,
+                   certified: dict | None = None, pert: Perturbation = Perturbation()) -> tuple[dict, dict]:
     """``fabs``: case name -> :class:`~metadesign.sensing.model.AsFabricated` (its coupling set).  Returns
-    the report and the flat-wavefront frames per case."""
-    pupils, frames, rep = {}, {}, {"cases": {}, "sensor_distance_m": sensor.distance}
+    the report and the flat-wavefront frames per case.  ``certified``: ``{"supercells": n, "replicates": R,
+    "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s}``: each
+    coupled case (``coupled``, ``compensated``) also under the certified model, sampled
+    (:func:`certified_case`; no frames, no NPiB: a sampled device has no single pupil).  ``pert``: every
+    device made with that width bias (no jitter: a sampled device must be the same device in every case)."""
+    if pert.jitter or pert.corner_radius or pert.has_fab_axes:
+        raise ValueError("coupling_check: a width bias only (the certified model solves nominal-height pillars)")
+    pupils, frames = {}, {}
+    rep = {"cases": {}, "sensor_distance_m": sensor.distance, "bias_nm": [pert.bias_x * 1e9, pert.bias_y * 1e9]}
     for name, fab in fabs.items():
         t0 = time.perf_counter()
         log(f"  {CASES.get(name, name)}: pupil ...")
-        cp = fab.pupil(sensor.distance, grid)
+        cp = fab.pupil(sensor.distance, grid, pert)
         pupils[name] = cp
         frames[name] = sensor_frames(cp, sensor)
         m = spot_metrics(cp, sensor, fab)
@@ -51,6 +71,14 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
             "sublattice_mean": {k: _mean(sl, k) for k in ("focusing_efficiency", "strehl", "crosstalk")},
             "power_on_sensor": [float(f.sum()) / (fab.n_cells * fab.period) ** 2 for f in frames[name]],
         }
+    if certified:
+        for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
+            if name in fabs:
+                log(f"  {CASES[cert]}: {certified['supercells']} supercells through the certified model ...")
+                rep["cases"][cert] = certified_case(fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log,
+                                                    pert=pert,
+                                                    partial=f"{certified['partial']}/{name}",
+                                                    **{k: v for k, v in certified.items() if k != "partial"})
     base = rep["cases"].get("lpa", {}).get("mean")
     if base:
         for c in rep["cases"].values():
@@ -60,6 +88,98 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
         any_fab = next(iter(fabs.values()))
         rep["downstream"] = pupil_downstream(pupils, dataset, model, any_fab, samples, noise_percent, seed, log)
     return rep, frames
+
+
+def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 2000, replicates: int = 8,
+                   partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
+                   label: str = CASES["certified"], pert: Perturbation = Perturbation(),
+                   log=lambda s: None) -> dict:
+    """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
+    the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
+    uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
+    (:mod:`metadesign.sensing.sampled`), with the width bias of ``pert`` (``cp`` made with it).  The case's
+    metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
+    rms |t|, as the certification)."""
+    t0 = time.perf_counter()
+    if fab.coupling is None:
+        raise ValueError("certified_case: the device needs its coupling model (the control variate)")
+    pm = load_peds(peds if peds is not None else find_peds(fab.lib), fab.lib)
+    ids = eligible_supercells(fab)
+    m = supercells // replicates
+    if m < 1 or replicates < 3:
+        raise ValueError("certified_case: at least three replicates of one supercell each")
+    pick = ids[np.random.default_rng(seed).integers(0, len(ids), m * replicates)]
+    w = supercell_widths(fab, pick) + np.array([pert.bias_x, pert.bias_y])
+    tu = interpolate_t(fab.lib, w[..., 0], w[..., 1])[0]
+    t_pair = coupling_t(fab.coupling, w, tu)
+    said = {"pass": 0, "last": -1, "tenths": set()}
+
+    def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
+        if d < said["last"]:
+            said["pass"], said["tenths"] = said["pass"] + 1, set()
+        said["last"] = d
+        if d * 10 // max(n, 1) not in said["tenths"]:
+            said["tenths"].add(d * 10 // max(n, 1))
+            log(f"    certified solves, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
+
+    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress)
+    delta = (t_cert - t_pair).astype(np.complex64)
+    t_solved = time.perf_counter()
+    deltas = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
+              for r in range(replicates)]
+    rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
+    for i, row in enumerate(rows):
+        for k in SPOT_KEYS:
+            row[k + "_se"] = jackknife_se(row[k], [lo[i][k] for lo in loo])
+    rms = np.sqrt(np.mean(np.abs(tu) ** 2, axis=(1, 2)))  # (n, 2 pol) the pillars' rms |t|
+    rel = np.abs(delta) / rms
+    return {
+        "label": label,
+        "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
+        "seconds_solves": t_solved - t0, "channels": rows,
+        "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
+        "stderr": {k: jackknife_se(0.0, [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
+        # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are maxima
+        # over noisy points: biased up by O(1 / supercells)); small beside stderr when the sample suffices
+        "bias": {k: (replicates - 1) * (float(np.mean([_mean(lo, k) for lo in loo])) - _mean(rows, k))
+                 for k in SPOT_KEYS},
+        "sampling": {"supercells": int(m * replicates), "replicates": int(replicates), "seed": int(seed),
+                     "eligible_supercells": len(ids), "distinct_sampled": len(np.unique(pick))},
+        "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
+                 "coefficients": [[float(c.real), float(c.imag)] for c in np.atleast_1d(pm.coef)]},
+        "correction": {"mean_relative": [float(v) for v in rel.mean(0)],
+                       "p90_relative": [float(v) for v in np.percentile(rel, 90, axis=0)],
+                       "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},
+    }
+
+
+def plot_case_metrics(rep: dict, out):
+    """The mean spot metrics of every case side by side, sampled (certified) cases with their standard
+    errors (2 sigma bars): what the certified model changes, and how sure the sampling is of it."""
+    plt = pyplot()
+    names = list(rep["cases"])
+    keys = (("spot_efficiency", "spot efficiency"), ("spot_strehl", "spot Strehl"), ("stray", "stray fraction"),
+            ("focal_shift_mm", "|focal shift| (um)"))
+    fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
+    colours = {"lpa": "0.6", "compensated_lpa": "0.8", "coupled": "C0", "compensated": "C2", "certified": "C1",
+               "compensated_certified": "C3"}
+    for ax, (k, title) in zip(axs, keys):
+        scale = 1e3 if k == "focal_shift_mm" else 1.0
+        for i, n in enumerate(names):
+            c = rep["cases"][n]
+            se = c.get("stderr", {}).get(k, 0.0)
+            ax.errorbar(i, c["mean"][k] * scale, yerr=2 * se * scale if se else None, fmt="o", ms=7, capsize=4,
+                        color=colours.get(n, f"C{i}"))
+        ax.axhline(rep["cases"][names[0]]["mean"][k] * scale, color="0.6", lw=0.8, ls=":")
+        ax.set_xticks(range(len(names)), [c["label"] for c in rep["cases"].values()], rotation=35, ha="right",
+                      fontsize=7)
+        ax.set_xlim(-0.6, len(names) - 0.4)
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.grid(axis="y", alpha=0.3)
+    fig.suptitle("Spot metrics per device model (mean of 8 channels; sampled cases: +-2 standard errors)",
+                 fontsize=10)
+    return save_figure(fig, out)
 
 
 def plot_coupling_frames(frames: dict, sensor: SensorSpec, out, labels=CASES):

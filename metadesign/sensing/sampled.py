@@ -1,0 +1,159 @@
+"""A device under a forward model too costly to run on every supercell: the cheap model everywhere, the
+costly one's correction estimated from a random sample of supercells, with error bars.
+
+The field on the sensor is linear in the pillars' transmissions, so a device under model B is the device
+under model A plus the field of the corrections ``delta_s = t_B(s) - t_A(s)`` summed over its supercells.
+Drawing ``m`` supercells uniformly (with replacement) from the ``N`` the device has and giving each the
+weight ``N / m`` estimates that sum without bias (Hansen-Hurwitz).  Intensities are quadratic, so one
+sample's ``|U_A + dU|^2`` is biased up by the sample's noise power; ``R`` independent replicates give the
+unbiased U-statistic ``(|sum_r U_r|^2 - sum_r |U_r|^2) / (R (R - 1))`` per focal point
+(:class:`SampledIntensity`), and the replicates, left out one at a time, the jackknife's standard error of
+any metric computed from it (:func:`sampled_spot_metrics`).
+
+What it can and cannot measure: near a focus the device's light adds up coherently over ~N supercells and
+a sample's noise over ~m, so the spot's power, peak and best focus come out to ~``rms|delta| /
+(|t| sqrt(m))``; the light scattered over a whole quadrant (its stray fraction, and the Strehl's
+normalisation by the quadrant's power) is estimated without bias but with an error bar that only many
+more samples shrink: the report carries both."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .forward import CoarsePupil, coarse_pupil, quadrant_transform
+from .model import spot_metrics
+
+__all__ = [
+    "SampledIntensity",
+    "delta_pupil",
+    "eligible_supercells",
+    "jackknife_se",
+    "sampled_spot_metrics",
+    "supercell_widths",
+]
+
+_TILE_ROWS = 1024  # pillar rows read at a time (even: tiles start on a supercell row)
+
+
+def _tiles(fab):
+    n = fab.n_cells
+    for r0 in range(0, n - n % 2, _TILE_ROWS):
+        yield r0, min(r0 + _TILE_ROWS, n - n % 2)
+
+
+def eligible_supercells(fab) -> np.ndarray:
+    """Flat ids ``I * (n // 2) + J`` of the device's complete 2 x 2 supercells (rows 2I, 2I+1; columns 2J,
+    2J+1): four pillars, all inside the clear aperture (the ones a supercell coupling model changes), read
+    in row tiles (a layout of any size)."""
+    if fab.supercell != 2:
+        raise ValueError("sampled supercells need the 2 x 2 interleave")
+    C2 = fab.n_cells // 2
+    out = []
+    for r0, r1 in _tiles(fab):
+        has = np.asarray(fab.layout.index_map[r0:r1])[:, :2 * C2] >= 0
+        mask = fab.aperture_mask_rows(r0, r1)
+        if mask is not None:
+            has &= mask[:, :2 * C2]
+        full = has.reshape((r1 - r0) // 2, 2, C2, 2).all((1, 3))
+        out.append(np.flatnonzero(full.ravel()) + (r0 // 2) * C2)
+    return np.concatenate(out).astype(np.int64) if out else np.zeros(0, np.int64)
+
+
+def supercell_widths(fab, ids: np.ndarray) -> np.ndarray:
+    """(n, 2, 2, 2) nominal widths (m; ``[supercell, row, column, (wx, wy)]``) of supercells ``ids``."""
+    ids = np.asarray(ids, np.int64)
+    C2 = fab.n_cells // 2
+    I, J = ids // C2, ids % C2
+    w_at = np.asarray(fab.layout.atom_widths_nm, np.float64) * 1e-9
+    out = np.full((len(ids), 2, 2, 2), np.nan)
+    for r0, r1 in _tiles(fab):
+        sel = np.flatnonzero((2 * I >= r0) & (2 * I < r1))
+        if not len(sel):
+            continue
+        im = np.asarray(fab.layout.index_map[r0:r1])
+        for r in range(2):
+            for c in range(2):
+                k = im[2 * I[sel] + r - r0, 2 * J[sel] + c]
+                if (k < 0).any():
+                    raise ValueError("supercell_widths: a supercell without its four pillars")
+                out[sel, r, c] = w_at[k]
+    return out
+
+
+def delta_pupil(fab, z: float, pupil_grid: int, ids: np.ndarray, delta: np.ndarray, weight: float) -> CoarsePupil:
+    """The coarse pupil of corrections only: ``weight * delta[s]`` (n, 2 pol) complex added to each of the
+    four pillars of supercell ``ids[s]`` (so the supercell's ``t``, the mean of its four, moves by that),
+    nothing elsewhere; summed into blocks exactly as :meth:`AsFabricated.pupil` sums the device
+    (:func:`~metadesign.sensing.forward.coarse_pupil`), so it adds to a device's pupil."""
+    ids = np.asarray(ids, np.int64)
+    C2 = fab.n_cells // 2
+    I, J = ids // C2, ids % C2
+    d = (np.asarray(delta) * weight).astype(np.complex64)
+
+    def rows(r0, r1):
+        t = np.zeros((r1 - r0, fab.n_cells, 2), np.complex64)
+        sel = np.flatnonzero((2 * I >= r0) & (2 * I + 1 < r1))
+        for r in range(2):
+            for c in range(2):
+                np.add.at(t, (2 * I[sel] + r - r0, 2 * J[sel] + c), d[sel])
+        return t, 0
+
+    return coarse_pupil(rows, fab.n_cells, fab.period, fab.wavelength, z, fab.pupil_block(pupil_grid),
+                        fab.supercell, fab.tn_scale)
+
+
+@dataclass
+class SampledIntensity:
+    """Focal intensity of ``cp`` plus an estimated correction given by ``R >= 2`` independent replicate
+    pupils (:func:`delta_pupil`): the U-statistic over the replicates in ``active`` (default all), unbiased
+    for the intensity of ``cp`` plus the true correction.  Called as ``spot_metrics``' ``intensity``; the
+    complex transforms are cached, so switching ``active`` (the jackknife) only recombines them."""
+
+    cp: CoarsePupil
+    deltas: list
+    active: tuple = ()
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        if len(self.deltas) < 2:
+            raise ValueError("a sampled intensity needs at least two replicates")
+        self.active = tuple(self.active) or tuple(range(len(self.deltas)))
+
+    def __call__(self, pol, xo, yo, centre, z=None):
+        key = (pol, np.asarray(xo).tobytes(), np.asarray(yo).tobytes(), tuple(centre), z)
+        if key not in self._cache:
+            u0, comp, scale = quadrant_transform(self.cp, pol, xo, yo, centre, z=z)
+            du = np.stack([quadrant_transform(d, pol, xo, yo, centre, z=z)[0] for d in self.deltas])
+            self._cache[key] = (u0.astype(np.complex128), du.astype(np.complex128), comp, scale)
+        u0, du, comp, scale = self._cache[key]
+        U = u0[None] + du[list(self.active)]
+        R = len(self.active)
+        cross = (np.abs(U.sum(0)) ** 2 - (np.abs(U) ** 2).sum(0)) / (R * (R - 1))
+        return cross / comp.astype(np.float64) ** 2 * scale
+
+
+def jackknife_se(full: float, leave_one_out) -> float:
+    """Jackknife standard error from the leave-one-replicate-out values (``full`` unused but for symmetry
+    with the estimate it qualifies)."""
+    v = np.asarray(leave_one_out, np.float64)
+    R = len(v)
+    return float(np.sqrt((R - 1) / R * np.sum((v - v.mean()) ** 2)))
+
+
+def sampled_spot_metrics(cp: CoarsePupil, deltas: list, sensor, fab, metrics=None, **kw):
+    """``(rows, leave_one_out)``: :func:`~metadesign.sensing.model.spot_metrics` (or ``metrics``, same
+    signature) of ``cp`` plus the sampled correction, and the same with each replicate left out in turn
+    (for :func:`jackknife_se`)."""
+    if len(deltas) < 3:
+        raise ValueError("the jackknife needs at least three replicates")
+    metrics = metrics or spot_metrics
+    si = SampledIntensity(cp, deltas)
+    rows = metrics(cp, sensor, fab, intensity=si, **kw)
+    loo = []
+    for r in range(len(deltas)):
+        si.active = tuple(i for i in range(len(deltas)) if i != r)
+        loo.append(metrics(cp, sensor, fab, intensity=si, **kw))
+    si.active = tuple(range(len(deltas)))
+    return rows, loo

@@ -1,0 +1,160 @@
+"""A device under a costly forward model, sampled (issue #34): the correction pupil against its definition,
+the U-statistic against the exact device, unbiasedness where a naive square is biased, and the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+from metadesign.conventions import centered
+from metadesign.design.recipe import load_design_recipe
+from metadesign.design.store import run_design
+from metadesign.library.store import interpolate_t
+from metadesign.sensing.forward import CoarsePupil, quadrant_fields
+from metadesign.sensing.model import AsFabricated, load_sensing_recipe, spot_metrics
+from metadesign.sensing.sampled import (
+    SampledIntensity,
+    delta_pupil,
+    eligible_supercells,
+    jackknife_se,
+    sampled_spot_metrics,
+    supercell_widths,
+)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, repo):
+    out = tmp_path_factory.mktemp("sampled") / "demo"
+    d, _ = run_design(load_design_recipe(repo / "layouts" / "demo.toml"), out)
+    fab = AsFabricated.from_design(d)
+    sr = load_sensing_recipe(repo / "sensing" / "demo.toml")
+    return fab, sr, fab.pupil(sr.sensor.distance, sr.pupil_grid), out
+
+
+def _plus(cp, d):
+    return CoarsePupil(cp.G + d.G, cp.X, cp.block, cp.period, cp.wavelength, cp.z, 0)
+
+
+def _corrections(fab, ids, seed=1):
+    """A systematic part (a tenth of each supercell's own t: it changes the focused power) and a random one
+    (it scatters), of the size of the certified model's corrections to the coupling model."""
+    w = supercell_widths(fab, ids)
+    t = interpolate_t(fab.lib, w[..., 0], w[..., 1])[0].mean((1, 2))
+    rng = np.random.default_rng(seed)
+    return (-0.1 + 0.05j) * t + 0.15 * (rng.normal(size=t.shape) + 1j * rng.normal(size=t.shape))
+
+
+def test_supercells_and_their_widths(demo):
+    fab, _, _, _ = demo
+    ids = eligible_supercells(fab)
+    C2 = fab.n_cells // 2
+    im = fab.layout.index_map
+    full = (im[:2 * C2, :2 * C2] >= 0).reshape(C2, 2, C2, 2).all((1, 3))  # the demo's square aperture
+    assert np.array_equal(ids, np.flatnonzero(full))
+    pick = ids[[0, len(ids) // 3, -1]]
+    w = supercell_widths(fab, pick)
+    for s, i in enumerate(pick):
+        I, J = divmod(int(i), C2)
+        for r in range(2):
+            for c in range(2):
+                k = im[2 * I + r, 2 * J + c]
+                assert np.allclose(w[s, r, c], fab.layout.atom_widths_nm[k] * 1e-9)
+
+
+def test_delta_pupil_is_the_block_sum_of_its_definition(demo):
+    """Against the coarse pupil's definition written out per pillar: G[p, a + 2b, block] += tn * delta *
+    chirp(y) chirp(x) / B^2 for the four pillars (2I + b, 2J + a) of each corrected supercell."""
+    fab, sr, _, _ = demo
+    z, grid = sr.sensor.distance, sr.pupil_grid
+    ids = eligible_supercells(fab)
+    pick = ids[[5, 5, 900, len(ids) // 2, -3]]  # a supercell drawn twice counts twice
+    delta = _corrections(fab, pick, 7)
+    got = delta_pupil(fab, z, grid, pick, delta, 3.0).G
+    B = fab.pupil_block(grid)
+    k0 = 2 * np.pi / fab.wavelength
+    x = centered(fab.n_cells, fab.period)[0] + np.arange(fab.n_cells) * fab.period
+    chirp = np.exp(1j * k0 * x**2 / (2 * z))
+    ref = np.zeros(got.shape, complex)
+    C2 = fab.n_cells // 2
+    for s, i in enumerate(pick):
+        I, J = divmod(int(i), C2)
+        for b in range(2):
+            for a in range(2):
+                row, col = 2 * I + b, 2 * J + a
+                ref[:, a + 2 * b, row // B, col // B] += (fab.tn_scale * 3.0 * delta[s] * chirp[row] * chirp[col]
+                                                          / B**2)
+    assert np.abs(got - ref).max() < 1e-5 * np.abs(ref).max()
+    assert np.count_nonzero(np.abs(ref).sum((0, 1))) == 4  # four blocks touched (one twice)
+
+
+def test_exact_replicates_give_the_device(demo):
+    """Replicates that all carry the whole correction (every supercell, weight 1) are the corrected
+    device: the U-statistic is then its intensity exactly, and the jackknife's error bars vanish."""
+    fab, sr, cp, _ = demo
+    z, grid = sr.sensor.distance, sr.pupil_grid
+    ids = eligible_supercells(fab)
+    d = delta_pupil(fab, z, grid, ids, _corrections(fab, ids), 1.0)
+    exact = spot_metrics(_plus(cp, d), sr.sensor, fab)
+    rows, loo = sampled_spot_metrics(cp, [d, d, d], sr.sensor, fab)
+    base = spot_metrics(cp, sr.sensor, fab)
+    assert abs(exact[0]["spot_efficiency"] / base[0]["spot_efficiency"] - 1) > 0.05  # the correction matters
+    for e, r, *lo in zip(exact, rows, *loo):
+        for k in ("spot_efficiency", "spot_strehl", "focal_shift_mm"):
+            # the device's intensities are float32, the estimate's float64: the parabolic refinement of the
+            # best focus turns that rounding into nanometres
+            assert r[k] == pytest.approx(e[k], rel=1e-5, abs=1e-5 if k == "focal_shift_mm" else 1e-9)
+            assert jackknife_se(r[k], [x[k] for x in lo]) < 1e-6 * max(abs(e[k]), 1e-3)
+
+
+def test_sampled_intensity_is_unbiased_where_a_square_is_not(demo):
+    """Between two spots, where the sampled correction's noise dominates: over many independent samples the
+    U-statistic averages to the corrected device's intensity, the square of the averaged field does not
+    (its excess is the sample's noise power); the jackknife's error bar matches the spread of estimates."""
+    fab, sr, cp, _ = demo
+    z, grid = sr.sensor.distance, sr.pupil_grid
+    ids = eligible_supercells(fab)
+    delta = _corrections(fab, ids)
+    exact_cp = _plus(cp, delta_pupil(fab, z, grid, ids, delta, 1.0))
+    c1, c2 = sr.sensor.quadrant_centre(1), sr.sensor.quadrant_centre(2)
+    xo = np.linspace(-20e-6, 20e-6, 9) + 0.5 * (c1[0] + c2[0])  # the gap between quadrants I and II
+    yo = np.linspace(-20e-6, 20e-6, 9) + c1[1]
+    exact = quadrant_fields(exact_cp, 0, xo, yo, c1).mean()
+    R, m, runs = 4, 20, 120
+    u, naive, se = [], [], []
+    for seed in range(runs):
+        pick = np.random.default_rng(seed).integers(0, len(ids), R * m)
+        reps = [delta_pupil(fab, z, grid, ids[pick[r * m:(r + 1) * m]], delta[pick[r * m:(r + 1) * m]],
+                            len(ids) / m) for r in range(R)]
+        si = SampledIntensity(cp, reps)
+        u.append(si(0, xo, yo, c1).mean())
+        lo = []
+        for r in range(R):
+            si.active = tuple(i for i in range(R) if i != r)
+            lo.append(si(0, xo, yo, c1).mean())
+        se.append(jackknife_se(u[-1], lo))
+        mean_cp = _plus(cp, CoarsePupil(sum(d.G for d in reps) / R, cp.X, cp.block, cp.period, cp.wavelength,
+                                        cp.z, 0))
+        naive.append(quadrant_fields(mean_cp, 0, xo, yo, c1).mean())
+    u, naive = np.array(u), np.array(naive)
+    sem = u.std() / np.sqrt(runs)
+    assert abs(u.mean() - exact) < 4 * sem, (u.mean(), exact, sem)
+    assert naive.mean() - exact > 5 * naive.std() / np.sqrt(runs)  # the square is biased up by the noise
+    assert 0.6 < np.mean(se) / u.std() < 1.4
+
+
+def test_coupling_check_certified_cli(demo, tmp_path, repo):
+    fab, _, _, out = demo
+    res = run_cli("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "--certified", "6",
+                  "--replicates", "3", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
+    assert res.returncode == 0, res.stderr
+    rep = json.loads(res.stdout)
+    c = rep["cases"]["certified"]
+    assert c["sampling"]["supercells"] == 6 and c["sampling"]["eligible_supercells"] == (fab.n_cells // 2) ** 2
+    assert set(c["stderr"]) == {"spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"}
+    assert all(np.isfinite(v) and v >= 0 for v in c["stderr"].values())
+    assert (tmp_path / "cc" / "coupling-metrics.png").exists() and not (tmp_path / "cc.partial").exists()
+    bad = run_cli("library", "coupling-check", str(out), "--certified", "5", "--replicates", "3",
+                  "-o", str(tmp_path / "bad"))
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--certified" in bad.stderr
+    assert not (tmp_path / "bad").exists()
