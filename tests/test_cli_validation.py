@@ -63,6 +63,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("library", "supercells"): [str(REPO / "library" / "paper-supercells.toml"), "-o", str(out / "t.npz")],
         ("library", "coupling"): [str(out / "no-table.npz"), "-o", str(out / "c.safetensors")],
         ("library", "coupling-check"): [d, "--sensor", sen, "-o", str(out / "cc")],
+        ("library", "coupling-sweep"): [str(out / "no-report"), "-o", str(out / "sweep.png")],
         ("library", "ladder"): [str(out / "no-table.npz"), "-o", str(out / "l.json")],
         ("library", "active"): [str(out / "no-recipe.toml"), "--reference", str(out / "no-table.npz")],
         ("library", "patches"): [str(out / "no-design"), "-o", str(out / "p.json")],

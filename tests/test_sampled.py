@@ -11,11 +11,13 @@ from metadesign.conventions import centered
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import run_design
 from metadesign.library.store import interpolate_t
-from metadesign.sensing.forward import CoarsePupil, quadrant_fields
+from metadesign.sensing.forward import CoarsePupil, coarse_pupil, quadrant_fields
 from metadesign.sensing.model import AsFabricated, load_sensing_recipe, spot_metrics
+from metadesign.sensing.transmission import Perturbation
 from metadesign.sensing.sampled import (
     SampledIntensity,
     delta_pupil,
+    device_widths_rows,
     eligible_supercells,
     jackknife_se,
     sampled_spot_metrics,
@@ -60,6 +62,32 @@ def test_supercells_and_their_widths(demo):
             for c in range(2):
                 k = im[2 * I + r, 2 * J + c]
                 assert np.allclose(w[s, r, c], fab.layout.atom_widths_nm[k] * 1e-9)
+
+
+def test_a_jittered_device_is_one_device(demo):
+    """The replayed widths of a jittered device (bias 3 nm, jitter 5 nm) rebuild, through the library alone,
+    the pupil the forward model makes of it: the sample's supercells are the device's own pillars."""
+    fab, sr, _, _ = demo
+    z, grid = sr.sensor.distance, sr.pupil_grid
+    pert = Perturbation.from_nm(3.0, jitter_nm=5.0, seed=11)
+    ref = fab.pupil(z, grid, pert)
+    st = fab.lib.meta["stack"]
+    bare = 2 * st["n_substrate"] / (st["n_substrate"] + st["n_superstrate"])
+    tiles = device_widths_rows(fab, grid, pert)
+
+    def rows(r0, r1):
+        a, b, w, has = next(tiles)
+        assert (a, b) == (r0, r1)
+        t = interpolate_t(fab.lib, w[..., 0], w[..., 1])[0]
+        t[~has] = bare
+        return t, 0
+
+    got = coarse_pupil(rows, fab.n_cells, fab.period, fab.wavelength, z, fab.pupil_block(grid), 2, fab.tn_scale)
+    assert np.abs(got.G - ref.G).max() < 1e-5 * np.abs(ref.G).max()
+    assert np.abs(fab.pupil(z, grid).G - ref.G).max() > 1e-3 * np.abs(ref.G).max()  # the jitter is there
+    ids = eligible_supercells(fab)[::997]
+    dw = supercell_widths(fab, ids, pert, grid) - supercell_widths(fab, ids) - 3e-9
+    assert abs(dw.mean()) < 1e-9 and 4e-9 < dw.std() < 6e-9
 
 
 def test_delta_pupil_is_the_block_sum_of_its_definition(demo):
@@ -146,14 +174,27 @@ def test_sampled_intensity_is_unbiased_where_a_square_is_not(demo):
 def test_coupling_check_certified_cli(demo, tmp_path, repo):
     fab, _, _, out = demo
     res = run_cli("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "--certified", "6",
-                  "--replicates", "3", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
+                  "--replicates", "3", "--jitter-nm", "5", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)
     c = rep["cases"]["certified"]
     assert c["sampling"]["supercells"] == 6 and c["sampling"]["eligible_supercells"] == (fab.n_cells // 2) ** 2
+    assert rep["jitter_nm"] == pytest.approx(5.0)
     assert set(c["stderr"]) == {"spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"}
     assert all(np.isfinite(v) and v >= 0 for v in c["stderr"].values())
     assert (tmp_path / "cc" / "coupling-metrics.png").exists() and not (tmp_path / "cc.partial").exists()
+    res = run_cli("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "--bias-nm", "4",
+                  "--jitter-nm", "5", "-o", str(tmp_path / "cc4"))
+    assert res.returncode == 0, res.stderr
+    res = run_cli("library", "coupling-sweep", str(tmp_path / "cc4"), str(tmp_path / "cc"), "-o",
+                  str(tmp_path / "sweep.png"), "--json")
+    assert res.returncode == 0, res.stderr
+    sweep = json.loads(res.stdout)
+    assert sweep["bias_nm"] == [0.0, 4.0] and (tmp_path / "sweep.png").exists()
+    assert set(sweep["cases"]) == {"lpa", "coupled"}  # the certified case is not in both reports
+    same = run_cli("library", "coupling-sweep", str(tmp_path / "cc"), str(tmp_path / "cc"), "-o",
+                   str(tmp_path / "same.png"))
+    assert same.returncode == 2 and "repeat" in same.stderr and not (tmp_path / "same.png").exists()
     bad = run_cli("library", "coupling-check", str(out), "--certified", "5", "--replicates", "3",
                   "-o", str(tmp_path / "bad"))
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--certified" in bad.stderr

@@ -34,7 +34,7 @@ from ..determinism import single_thread_blas
 from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
-__all__ = ["CoarsePupil", "coarse_pupil", "quadrant_fields", "quadrant_transform", "sensor_frames",
+__all__ = ["CoarsePupil", "coarse_pupil", "pupil_tiles", "quadrant_fields", "quadrant_transform", "sensor_frames",
            "full_resolution_frames", "asm_reference_intensity", "block_size_for"]
 
 
@@ -69,6 +69,20 @@ def block_size_for(n_cells: int, pupil_n: int, m: int) -> int:
 TILE_BYTES = 1 << 28
 
 
+def pupil_tiles(n_cells: int, block: int, tile_blocks: int | None = None,
+                block_rows: tuple[int, int] | None = None):
+    """``(B0, B1, r0, r1)`` per row tile, in the order :func:`coarse_pupil` asks for the pillar rows
+    ``r0:r1`` (block rows ``B0:B1``): whoever replays a per-tile random stream (a jittered device's pillars)
+    walks the same tiles."""
+    nb = int(np.ceil(n_cells / block))
+    first, last = block_rows if block_rows is not None else (0, nb)
+    if tile_blocks is None:
+        tile_blocks = int(max(1, min(16, TILE_BYTES // (block * nb * block * 2 * 8))))
+    for B0 in range(first, last, tile_blocks):
+        B1 = min(last, B0 + tile_blocks)
+        yield B0, B1, B0 * block, min(n_cells, B1 * block)
+
+
 def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: int, period: float,
                  wavelength: float, z: float, block: int, m: int = 2, tn_scale: float = 1.0,
                  tile_blocks: int | None = None, progress: Callable[[int, int], None] | None = None,
@@ -93,14 +107,10 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
     chirp[n_cells:] = 0  # outside the aperture: no light
     first, last = block_rows if block_rows is not None else (0, nb)
     G = np.zeros((2, m * m, last - first, nb), np.complex64)
-    if tile_blocks is None:
-        tile_blocks = int(max(1, min(16, TILE_BYTES // (block * npad * 2 * 8))))
     s = block // m
     clamped = 0
     compiled = jit.enabled()
-    for B0 in range(first, last, tile_blocks):
-        B1 = min(last, B0 + tile_blocks)
-        r0, r1 = B0 * block, min(n_cells, B1 * block)
+    for B0, B1, r0, r1 in pupil_tiles(n_cells, block, tile_blocks, block_rows):
         tt, c = transmission_rows(r0, r1)
         clamped += c
         cy = chirp[r0:B1 * block]

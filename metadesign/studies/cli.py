@@ -718,7 +718,8 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
                 "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
-                                     certified=cert, pert=Perturbation.from_nm(a.bias_nm))
+                                     certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
+                                                                               seed=a.jitter_seed))
         rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
         if cert:
             rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
@@ -744,6 +745,40 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         lines.append(f"  NPiB uncorrected {d['npib_none']:.3f}, phase conjugate {d['npib_phase_conjugate']:.3f} "
                      f"({d['samples']} test samples, {d['noise_percent']:g} % noise)")
     emit(rep, a.json, "\n".join(lines))
+    return 0
+
+
+def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
+    from .coupling_check import plot_sweep, sweep_table
+
+    reports, inputs = [], {}
+    for i, folder in enumerate(a.reports):
+        path = Path(folder) / "coupling-check.json" if Path(folder).is_dir() else Path(folder)
+        try:
+            rep = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{folder}: not a coupling-check output ({exc})") from None
+        if not isinstance(rep, dict) or "cases" not in rep:
+            raise InputError(f"{folder}: not a coupling-check output (no cases)")
+        reports.append(rep)
+        inputs[f"report {i + 1}"] = path
+    biases = [(r.get("bias_nm") or [0.0])[0] for r in reports]
+    if len(set(biases)) != len(biases):
+        raise InputError(f"the reports' width biases repeat ({', '.join(f'{b:g}' for b in biases)} nm): one report "
+                         "per bias")
+    out = out_file(a.output, suffixes=(".png",))
+    table = sweep_table(reports)
+    with product(out, "figure", inputs):
+        fig = plot_sweep(table, out)
+    table["figure"] = str(fig)
+    lines = [f"wrote {fig}", "  bias nm  " + "  ".join(f"{r['label'][:30]:>30}" for r in table["cases"].values())]
+    for j, b in enumerate(table["bias_nm"]):
+        cells = []
+        for r in table["cases"].values():
+            se = r["spot_efficiency_se"][j]
+            cells.append(f"{r['spot_efficiency'][j]:.4f}" + (f" +- {se:.4f}" if se else "        "))
+        lines.append(f"  {b:+7.1f}  " + "  ".join(f"{c:>30}" for c in cells))
+    emit(table, a.json, "\n".join(lines + ["  (spot efficiency; the figure has Strehl, stray and focal shift)"]))
     return 0
 
 
@@ -995,11 +1030,23 @@ def register(sub, groups: dict) -> None:
     cc.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the --certified sample (0)")
     cc.add_argument("--bias-nm", type=num(-50, 50, unit="nm"), default=0.0,
                     help="every device made with this width bias (nm; a fab study under each model; 0)")
+    cc.add_argument("--jitter-nm", type=num(0, 20, unit="nm"), default=0.0,
+                    help="every device made with this random width error per pillar (nm, sigma; 0)")
+    cc.add_argument("--jitter-seed", type=integer(0, 2**63 - 1), default=0, help="seed of the jitter (0)")
     cc.add_argument("--scheduler", help="Dask scheduler address for the certified solves (default: the local pool)")
     workers_arg(cc)
     cc.add_argument("-o", "--output", help="output folder (default: coupling-check/ beside the design)")
     cc.add_argument("--json", action="store_true", help="print the report as JSON")
     cc.set_defaults(func=_cmd_coupling_check)
+    sw = lsub.add_parser(
+        "coupling-sweep", help="fab-tolerance curves from coupling-check reports at several width biases",
+        description="Reads coupling-check outputs of one design made with different --bias-nm and draws spot "
+        "efficiency, Strehl, stray light and focal shift against the bias under each device model (LPA, "
+        "coupling model, certified with its error bars). Writes OUT (.png).")
+    sw.add_argument("reports", nargs="+", help="coupling-check output folders (or their coupling-check.json)")
+    sw.add_argument("-o", "--output", required=True, help="figure (.png)")
+    sw.add_argument("--json", action="store_true", help="print the table as JSON")
+    sw.set_defaults(func=_cmd_coupling_sweep)
     sy = dsub.add_parser(
         "synth-captures", help="synthetic camera captures from a dataset's phases through a (perturbed) device",
         description="The SLM shows the received phases of PHASES' samples; frames are rendered through DEVICE's "

@@ -31,7 +31,8 @@ from ..sensing.sensor import SensorSpec
 from ..sensing.transmission import Perturbation
 from .lpa import pupil_downstream
 
-__all__ = ["CASES", "SPOT_KEYS", "certified_case", "coupling_check", "plot_case_metrics", "plot_coupling_frames"]
+__all__ = ["CASES", "SPOT_KEYS", "certified_case", "coupling_check", "plot_case_metrics", "plot_coupling_frames",
+           "sweep_table", "plot_sweep"]
 
 SPOT_KEYS = ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm")
 
@@ -52,11 +53,13 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
     "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s}``: each
     coupled case (``coupled``, ``compensated``) also under the certified model, sampled
     (:func:`certified_case`; no frames, no NPiB: a sampled device has no single pupil).  ``pert``: every
-    device made with that width bias (no jitter: a sampled device must be the same device in every case)."""
-    if pert.jitter or pert.corner_radius or pert.has_fab_axes:
-        raise ValueError("coupling_check: a width bias only (the certified model solves nominal-height pillars)")
+    device made with those widths (bias, jitter: the same pillars in every case and in the sample)."""
+    if pert.has_fab_axes:
+        raise ValueError("coupling_check: width perturbations only (the certified model solves nominal-height "
+                         "pillars)")
     pupils, frames = {}, {}
-    rep = {"cases": {}, "sensor_distance_m": sensor.distance, "bias_nm": [pert.bias_x * 1e9, pert.bias_y * 1e9]}
+    rep = {"cases": {}, "sensor_distance_m": sensor.distance, "bias_nm": [pert.bias_x * 1e9, pert.bias_y * 1e9],
+           "jitter_nm": pert.jitter * 1e9, "jitter_seed": pert.seed, "corner_nm": pert.corner_radius * 1e9}
     for name, fab in fabs.items():
         t0 = time.perf_counter()
         log(f"  {CASES.get(name, name)}: pupil ...")
@@ -97,7 +100,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
-    (:mod:`metadesign.sensing.sampled`), with the width bias of ``pert`` (``cp`` made with it).  The case's
+    (:mod:`metadesign.sensing.sampled`), with the widths of ``pert`` (``cp`` made with it, on ``grid``).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
     rms |t|, as the certification)."""
     t0 = time.perf_counter()
@@ -109,7 +112,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     if m < 1 or replicates < 3:
         raise ValueError("certified_case: at least three replicates of one supercell each")
     pick = ids[np.random.default_rng(seed).integers(0, len(ids), m * replicates)]
-    w = supercell_widths(fab, pick) + np.array([pert.bias_x, pert.bias_y])
+    w = supercell_widths(fab, pick, pert, grid)
     tu = interpolate_t(fab.lib, w[..., 0], w[..., 1])[0]
     t_pair = coupling_t(fab.coupling, w, tu)
     said = {"pass": 0, "last": -1, "tenths": set()}
@@ -177,7 +180,10 @@ def plot_case_metrics(rep: dict, out):
         ax.set_title(title, fontsize=9)
         ax.tick_params(labelsize=7)
         ax.grid(axis="y", alpha=0.3)
-    fig.suptitle("Spot metrics per device model (mean of 8 channels; sampled cases: +-2 standard errors)",
+    made = [f"bias {(rep.get('bias_nm') or [0.0])[0]:+g} nm" if (rep.get("bias_nm") or [0.0])[0] else "",
+            f"jitter {rep['jitter_nm']:g} nm" if rep.get("jitter_nm") else ""]
+    made = ", ".join(m for m in made if m) or "nominal widths"
+    fig.suptitle(f"Spot metrics per device model, {made} (mean of 8 channels; sampled cases: +-2 standard errors)",
                  fontsize=10)
     return save_figure(fig, out)
 
@@ -201,4 +207,48 @@ def plot_coupling_frames(frames: dict, sensor: SensorSpec, out, labels=CASES):
                 ax.set_ylabel("y (um)", fontsize=8)
             ax.tick_params(labelsize=7)
     fig.suptitle("8-PSF frames (sqrt of intensity, relative to the LPA design's peak)", fontsize=10)
+    return save_figure(fig, out)
+
+
+def sweep_table(reports: list[dict]) -> dict:
+    """Coupling-check reports of one design made with different width biases -> per case, per metric, the
+    values (and standard errors) in order of bias: ``{"bias_nm": [...], "cases": {name: {"label", key:
+    [...], key + "_se": [...]}}}`` (cases present in every report)."""
+    reps = sorted(reports, key=lambda r: (r.get("bias_nm") or [0.0])[0])
+    names = [n for n in reps[0]["cases"] if all(n in r["cases"] for r in reps)]
+    out = {"bias_nm": [(r.get("bias_nm") or [0.0])[0] for r in reps],
+           "jitter_nm": [r.get("jitter_nm", 0.0) for r in reps], "cases": {}}
+    for n in names:
+        row = {"label": reps[0]["cases"][n]["label"]}
+        for k in SPOT_KEYS:
+            row[k] = [r["cases"][n]["mean"][k] for r in reps]
+            row[k + "_se"] = [r["cases"][n].get("stderr", {}).get(k, 0.0) for r in reps]
+        out["cases"][n] = row
+    return out
+
+
+def plot_sweep(table: dict, out):
+    """Spot efficiency, Strehl, stray light and |focal shift| against the width bias, one line per device
+    model; the sampled (certified) ones with +-2 standard-error bars: a fab-tolerance curve per model."""
+    plt = pyplot()
+    fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
+    b = np.asarray(table["bias_nm"])
+    styles = {"lpa": dict(color="0.5", ls="--", marker="s"), "coupled": dict(color="C0", marker="o"),
+              "certified": dict(color="C1", marker="D", lw=2)}
+    keys = (("spot_efficiency", "spot efficiency"), ("spot_strehl", "spot Strehl"), ("stray", "stray fraction"),
+            ("focal_shift_mm", "|focal shift| (um)"))
+    for ax, (k, title) in zip(axs, keys):
+        scale = 1e3 if k == "focal_shift_mm" else 1.0
+        for i, (n, row) in enumerate(table["cases"].items()):
+            v = np.abs(row[k]) * scale if k == "focal_shift_mm" else np.asarray(row[k])
+            se = np.asarray(row[k + "_se"]) * scale
+            ax.errorbar(b, v, yerr=2 * se if se.any() else None, capsize=3, label=row["label"],
+                        **styles.get(n, dict(color=f"C{i + 2}", marker="^")))
+        ax.set_xlabel("width bias (nm)", fontsize=8)
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=7)
+    fig.suptitle("Fab tolerance of the spots under each device model (mean of 8 channels; sampled: +-2 standard "
+                 "errors)", fontsize=10)
     return save_figure(fig, out)
