@@ -1040,7 +1040,8 @@ def register(sub, groups: dict) -> None:
     cc.set_defaults(func=_cmd_coupling_check)
     sw = lsub.add_parser(
         "coupling-sweep", help="fab-tolerance curves from coupling-check reports at several width biases",
-        description="Reads coupling-check outputs of one design made with different --bias-nm and draws spot "
+        description="Reads coupling-check outputs of one design (the same --seed, so the certified points "
+        "share their sample) made with different --bias-nm and draws spot "
         "efficiency, Strehl, stray light and focal shift against the bias under each device model (LPA, "
         "coupling model, certified with its error bars). Writes OUT (.png).")
     sw.add_argument("reports", nargs="+", help="coupling-check output folders (or their coupling-check.json)")
