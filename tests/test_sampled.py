@@ -192,6 +192,14 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo):
     sweep = json.loads(res.stdout)
     assert sweep["bias_nm"] == [0.0, 4.0] and (tmp_path / "sweep.png").exists()
     assert set(sweep["cases"]) == {"lpa", "coupled"}  # the certified case is not in both reports
+    other = json.loads((tmp_path / "cc4" / "coupling-check.json").read_text())
+    assert other["design"]["sha256"] == rep["design"]["sha256"]
+    other["design"]["sha256"] = "0" * 64  # a report of another design
+    other["bias_nm"] = [8.0, 8.0]
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    mixed = run_cli("library", "coupling-sweep", str(tmp_path / "cc"), str(tmp_path / "other.json"), "-o",
+                    str(tmp_path / "mixed.png"))
+    assert mixed.returncode == 2 and "different designs" in mixed.stderr and not (tmp_path / "mixed.png").exists()
     same = run_cli("library", "coupling-sweep", str(tmp_path / "cc"), str(tmp_path / "cc"), "-o",
                    str(tmp_path / "same.png"))
     assert same.returncode == 2 and "repeat" in same.stderr and not (tmp_path / "same.png").exists()

@@ -676,11 +676,12 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
 
     from ..design.store import load_design
     from ..io import atomic_write_text
+    from ..library.locate import file_sha256
+    from ..library.supercells import remove_partial
     from ..paths import product as packaged
     from ..sensing.model import AsFabricated, load_sensing_recipe
-    from ..validation import ValidationError
-    from ..library.supercells import remove_partial
     from ..sensing.transmission import Perturbation
+    from ..validation import ValidationError
     from .coupling_check import CASES, coupling_check, plot_case_metrics, plot_coupling_frames
 
     if (a.dataset is None) != (a.model is None):
@@ -724,6 +725,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         if cert:
             rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
         rep["coupling_model_sha256"] = fabs["coupled"].coupling_card["weights_sha256"]
+        rep["design"] = {"path": str(src), "sha256": file_sha256(design_file(src))}  # coupling-sweep matches it
         atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
         remove_partial(partial)
     lines = [f"wrote {out}/coupling-check.json and coupling-frames.png",
@@ -762,6 +764,9 @@ def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
             raise InputError(f"{folder}: not a coupling-check output (no cases)")
         reports.append(rep)
         inputs[f"report {i + 1}"] = path
+    designs = {(r.get("design") or {}).get("sha256") for r in reports} - {None}
+    if len(designs) > 1:
+        raise InputError("the reports are of different designs (their design sha256 differ): one design per sweep")
     biases = [(r.get("bias_nm") or [0.0])[0] for r in reports]
     if len(set(biases)) != len(biases):
         raise InputError(f"the reports' width biases repeat ({', '.join(f'{b:g}' for b in biases)} nm): one report "
@@ -1043,7 +1048,8 @@ def register(sub, groups: dict) -> None:
         description="Reads coupling-check outputs of one design (the same --seed, so the certified points "
         "share their sample) made with different --bias-nm and draws spot "
         "efficiency, Strehl, stray light and focal shift against the bias under each device model (LPA, "
-        "coupling model, certified with its error bars). Writes OUT (.png).")
+        "coupling model, certified with its error bars); reports of different designs are refused. Writes OUT "
+        "(.png).")
     sw.add_argument("reports", nargs="+", help="coupling-check output folders (or their coupling-check.json)")
     sw.add_argument("-o", "--output", required=True, help="figure (.png)")
     sw.add_argument("--json", action="store_true", help="print the table as JSON")
