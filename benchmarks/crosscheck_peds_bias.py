@@ -39,7 +39,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     from metadesign.design.store import load_design
-    from metadesign.library.coupling import lpa_t, relative_error
+    from metadesign.library.coupling import lpa_t, relative_error, unit_rms
     from metadesign.library.coupling_net import coupling_t, find_coupling
     from metadesign.library.peds import certified_t
     from metadesign.library.store import interpolate_t
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     tu = interpolate_t(lib, W[..., 0], W[..., 1])[0]
     pair, _, _ = find_coupling(lib)
     models = {"LPA": lpa_t(tu), "coupling model": coupling_t(pair, W, tu), "PEDS": t_peds}
-    rms = np.sqrt((np.abs(tu) ** 2).mean((1, 2)))
+    rms = unit_rms(tu)
     rep = {"n_harmonics": int(nG), "per_bias": a.per, "converged_seconds": t_solve, "rows": []}
     for j, b in enumerate(a.biases):
         s = slice(j * a.per, (j + 1) * a.per)

@@ -34,7 +34,7 @@ from ..determinism import single_thread_blas
 from ..optics.propagation import angular_spectrum, cexp, check_asm_sampling, mft
 from .sensor import SensorSpec, quadrant_slices
 
-__all__ = ["CoarsePupil", "coarse_pupil", "pupil_tiles", "quadrant_fields", "quadrant_transform", "sensor_frames",
+__all__ = ["CoarsePupil", "coarse_pupil", "block_centres", "pupil_tiles", "quadrant_fields", "quadrant_transform", "sensor_frames",
            "full_resolution_frames", "asm_reference_intensity", "block_size_for"]
 
 
@@ -131,8 +131,13 @@ def coarse_pupil(transmission_rows: Callable[[int, int], np.ndarray], n_cells: i
         if progress:
             progress(B1 - first, last - first)
     G /= np.float32(block * block)
-    X = centered(n_cells, period)[0] + (np.arange(nb) * block + (block - 1) / 2) * period  # block centres
-    return CoarsePupil(G, X, block, period, wavelength, z, clamped)
+    return CoarsePupil(G, block_centres(n_cells, period, block), block, period, wavelength, z, clamped)
+
+
+def block_centres(n_cells: int, period: float, block: int) -> np.ndarray:
+    """Coordinates (m) of the coarse pupil's block centres, both axes."""
+    nb = int(np.ceil(n_cells / block))
+    return centered(n_cells, period)[0] + (np.arange(nb) * block + (block - 1) / 2) * period
 
 
 @jit.njit

@@ -22,7 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .forward import CoarsePupil, coarse_pupil, pupil_tiles, quadrant_transform
+from ..conventions import centered
+from ..optics.propagation import cexp
+from .forward import CoarsePupil, block_centres, pupil_tiles, quadrant_transform
 from .model import spot_metrics
 from .transmission import Perturbation, perturb_widths
 
@@ -83,60 +85,47 @@ def device_widths_rows(fab, pupil_grid: int, pert: Perturbation = Perturbation()
 def supercell_widths(fab, ids: np.ndarray, pert: Perturbation = Perturbation(),
                      pupil_grid: int | None = None) -> np.ndarray:
     """(n, 2, 2, 2) widths (m; ``[supercell, row, column, (wx, wy)]``) of supercells ``ids`` as made with
-    ``pert``: nominal, biased, rounded; jittered (then ``pupil_grid`` is needed: the pillars of the device
-    :meth:`AsFabricated.pupil` makes on that grid, :func:`device_widths_rows`)."""
+    ``pert`` (nominal, biased, rounded, jittered): the pillars of the device :meth:`AsFabricated.pupil`
+    makes on a grid of ``pupil_grid`` (:func:`device_widths_rows`; needed with jitter, whose draws follow
+    the pupil's row tiles; without it any tiling gives the same widths)."""
+    if pert.jitter and pupil_grid is None:
+        raise ValueError("supercell_widths: a jittered device's widths depend on its pupil grid (tiles)")
     ids = np.asarray(ids, np.int64)
     C2 = fab.n_cells // 2
     I, J = ids // C2, ids % C2
     out = np.full((len(ids), 2, 2, 2), np.nan)
-    if pert.jitter:
-        if pupil_grid is None:
-            raise ValueError("supercell_widths: a jittered device's widths depend on its pupil grid (tiles)")
-        for r0, r1, w, has in device_widths_rows(fab, pupil_grid, pert):
-            sel = np.flatnonzero((2 * I >= r0) & (2 * I + 1 < r1))
-            for r in range(2):
-                for c in range(2):
-                    rows, cols = 2 * I[sel] + r - r0, 2 * J[sel] + c
-                    if not has[rows, cols].all():
-                        raise ValueError("supercell_widths: a supercell without its four pillars")
-                    out[sel, r, c] = w[rows, cols]
-        return out
-    w_at = np.asarray(fab.layout.atom_widths_nm, np.float64) * 1e-9
-    w_at = np.stack(perturb_widths(w_at[:, 0], w_at[:, 1], pert), -1)
-    for r0, r1 in _tiles(fab):
-        sel = np.flatnonzero((2 * I >= r0) & (2 * I < r1))
-        if not len(sel):
-            continue
-        im = np.asarray(fab.layout.index_map[r0:r1])
+    for r0, r1, w, has in device_widths_rows(fab, pupil_grid or fab.n_cells // 2, pert):
+        sel = np.flatnonzero((2 * I >= r0) & (2 * I + 1 < r1))
         for r in range(2):
             for c in range(2):
-                k = im[2 * I[sel] + r - r0, 2 * J[sel] + c]
-                if (k < 0).any():
+                rows, cols = 2 * I[sel] + r - r0, 2 * J[sel] + c
+                if not has[rows, cols].all():
                     raise ValueError("supercell_widths: a supercell without its four pillars")
-                out[sel, r, c] = w_at[k]
+                out[sel, r, c] = w[rows, cols]
     return out
 
 
 def delta_pupil(fab, z: float, pupil_grid: int, ids: np.ndarray, delta: np.ndarray, weight: float) -> CoarsePupil:
     """The coarse pupil of corrections only: ``weight * delta[s]`` (n, 2 pol) complex added to each of the
     four pillars of supercell ``ids[s]`` (so the supercell's ``t``, the mean of its four, moves by that),
-    nothing elsewhere; summed into blocks exactly as :meth:`AsFabricated.pupil` sums the device
-    (:func:`~metadesign.sensing.forward.coarse_pupil`), so it adds to a device's pupil."""
+    nothing elsewhere; each pillar summed into its block with the demodulating chirp and ``tn`` scale, as
+    :func:`~metadesign.sensing.forward.coarse_pupil` sums a device (so it adds to a device's pupil), but
+    touching only the sampled pillars (not a pass over the whole device per replicate)."""
     ids = np.asarray(ids, np.int64)
-    C2 = fab.n_cells // 2
-    I, J = ids // C2, ids % C2
-    d = (np.asarray(delta) * weight).astype(np.complex64)
-
-    def rows(r0, r1):
-        t = np.zeros((r1 - r0, fab.n_cells, 2), np.complex64)
-        sel = np.flatnonzero((2 * I >= r0) & (2 * I + 1 < r1))
-        for r in range(2):
-            for c in range(2):
-                np.add.at(t, (2 * I[sel] + r - r0, 2 * J[sel] + c), d[sel])
-        return t, 0
-
-    return coarse_pupil(rows, fab.n_cells, fab.period, fab.wavelength, z, fab.pupil_block(pupil_grid),
-                        fab.supercell, fab.tn_scale)
+    n, p, B = fab.n_cells, fab.period, fab.pupil_block(pupil_grid)
+    nb = int(np.ceil(n / B))
+    I, J = ids // (n // 2), ids % (n // 2)
+    d = np.asarray(delta, np.complex128) * (weight * fab.tn_scale)
+    x0, k0 = centered(n, p)[0], 2 * np.pi / fab.wavelength
+    G = np.zeros((2, 4, nb, nb), np.complex128)
+    for b in range(2):
+        for a in range(2):
+            row, col = 2 * I + b, 2 * J + a
+            w = d * cexp(k0 * ((x0 + row * p) ** 2 + (x0 + col * p) ** 2) / (2 * z))[:, None]
+            for pol in range(2):
+                np.add.at(G[pol, a + 2 * b], (row // B, col // B), w[:, pol])
+    G /= B * B
+    return CoarsePupil(G.astype(np.complex64), block_centres(n, p, B), B, p, fab.wavelength, z, 0)
 
 
 @dataclass
@@ -169,26 +158,23 @@ class SampledIntensity:
         return cross / comp.astype(np.float64) ** 2 * scale
 
 
-def jackknife_se(full: float, leave_one_out) -> float:
-    """Jackknife standard error from the leave-one-replicate-out values (``full`` unused but for symmetry
-    with the estimate it qualifies)."""
+def jackknife_se(leave_one_out) -> float:
+    """Jackknife standard error of an estimate from its leave-one-replicate-out values."""
     v = np.asarray(leave_one_out, np.float64)
     R = len(v)
     return float(np.sqrt((R - 1) / R * np.sum((v - v.mean()) ** 2)))
 
 
-def sampled_spot_metrics(cp: CoarsePupil, deltas: list, sensor, fab, metrics=None, **kw):
-    """``(rows, leave_one_out)``: :func:`~metadesign.sensing.model.spot_metrics` (or ``metrics``, same
-    signature) of ``cp`` plus the sampled correction, and the same with each replicate left out in turn
-    (for :func:`jackknife_se`)."""
+def sampled_spot_metrics(cp: CoarsePupil, deltas: list, sensor, fab, **kw):
+    """``(rows, leave_one_out)``: :func:`~metadesign.sensing.model.spot_metrics` of ``cp`` plus the sampled
+    correction, and the same with each replicate left out in turn (for :func:`jackknife_se`)."""
     if len(deltas) < 3:
         raise ValueError("the jackknife needs at least three replicates")
-    metrics = metrics or spot_metrics
     si = SampledIntensity(cp, deltas)
-    rows = metrics(cp, sensor, fab, intensity=si, **kw)
+    rows = spot_metrics(cp, sensor, fab, intensity=si, **kw)
     loo = []
     for r in range(len(deltas)):
         si.active = tuple(i for i in range(len(deltas)) if i != r)
-        loo.append(metrics(cp, sensor, fab, intensity=si, **kw))
+        loo.append(spot_metrics(cp, sensor, fab, intensity=si, **kw))
     si.active = tuple(range(len(deltas)))
     return rows, loo

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from ..library.coupling import relative_error
 from ..library.coupling_net import coupling_t
 from ..library.peds import certified_t, find_peds, load_peds
 from ..library.store import interpolate_t
@@ -133,15 +134,14 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
     for i, row in enumerate(rows):
         for k in SPOT_KEYS:
-            row[k + "_se"] = jackknife_se(row[k], [lo[i][k] for lo in loo])
-    rms = np.sqrt(np.mean(np.abs(tu) ** 2, axis=(1, 2)))  # (n, 2 pol) the pillars' rms |t|
-    rel = np.abs(delta) / rms
+            row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
+    rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
     return {
         "label": label,
         "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
         "seconds_solves": t_solved - t0, "channels": rows,
         "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
-        "stderr": {k: jackknife_se(0.0, [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
+        "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
         # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are maxima
         # over noisy points: biased up by O(1 / supercells)); small beside stderr when the sample suffices
         "bias": {k: (replicates - 1) * (float(np.mean([_mean(lo, k) for lo in loo])) - _mean(rows, k))
