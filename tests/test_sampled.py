@@ -2,6 +2,7 @@
 the U-statistic against the exact device, unbiasedness where a naive square is biased, and the CLI."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,10 +11,11 @@ from conftest import run_cli
 from metadesign.conventions import centered
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import run_design
-from metadesign.library.store import interpolate_t
+from metadesign.library.peds import PedsModel, certified_t
+from metadesign.library.store import interpolate_t, load_library
 from metadesign.sensing.forward import CoarsePupil, coarse_pupil, quadrant_fields
 from metadesign.sensing.model import AsFabricated, load_sensing_recipe, spot_metrics
-from metadesign.sensing.transmission import Perturbation
+from metadesign.sensing.transmission import Perturbation, unit_t_as_made
 from metadesign.sensing.sampled import (
     SampledIntensity,
     delta_pupil,
@@ -207,3 +209,43 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo):
                   "-o", str(tmp_path / "bad"))
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--certified" in bad.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
+    """An etch-depth error through coupling-check: the coupled and certified devices take the fab library's
+    unit cells at that height (the LPA case is the fab-study's device), the certified solves at that height
+    (its four-identical-pillars limit is the as-made unit cell, whatever the height); the sweep finds its
+    axis; bad heights are one line and write nothing."""
+    fab, sr, _, out = demo
+    F = load_library(repo / "library" / "paper-fab.npz")
+    pert = Perturbation.from_nm(height_nm=25.0)
+    w = np.full((2, 2, 2, 2), 0.2e-6)
+    w[1] = 0.31e-6
+    tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, F)
+    assert np.abs(tu - interpolate_t(fab.lib, w[..., 0], w[..., 1])[0]).min() > 1e-3  # the height matters
+    etched = replace(fab.lib.stack, height=fab.lib.stack.height + 25e-9)
+    t = certified_t(fab.lib, w, tmp_path / "p", PedsModel((25, 41), (0.4 - 0.2j, 0.9 + 0.1j), fab.lib.identity),
+                    stack=etched, t_unit=tu)
+    np.testing.assert_allclose(t, tu[:, 0, 0], atol=1e-7)  # identical pillars: no coupling at any height
+
+    base = ("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "-j", "1")
+    runs = {}
+    for h, cert in (("0", ()), ("25", ("--certified", "6", "--replicates", "3"))):
+        res = run_cli(*base, *cert, "--height-nm", h, "--fab-library", repo / "library" / "paper-fab.npz", "-o",
+                      str(tmp_path / f"h{h}"), "--json")
+        assert res.returncode == 0, res.stderr
+        runs[h] = json.loads(res.stdout)
+    assert runs["25"]["height_nm"] == pytest.approx(25.0) and "certified" in runs["25"]["cases"]
+    lpa0, lpa25 = (runs[h]["cases"]["lpa"]["mean"]["spot_efficiency"] for h in ("0", "25"))
+    assert lpa25 != pytest.approx(lpa0, rel=1e-4)
+    sw = run_cli("library", "coupling-sweep", str(tmp_path / "h25"), str(tmp_path / "h0"), "-o",
+                 str(tmp_path / "etch.png"), "--json")
+    assert sw.returncode == 0, sw.stderr
+    table = json.loads(sw.stdout)
+    assert table["axis"] == "height_nm" and table["height_nm"] == [0.0, 25.0]
+    assert set(table["cases"]) == {"lpa", "coupled"}  # the certified case only in one
+    for args, msg in ((("--height-nm", "25"), "--fab-library"),
+                      (("--height-nm", "60", "--fab-library", repo / "library" / "paper-fab.npz"), "spans")):
+        bad = run_cli(*base, *args, "-o", str(tmp_path / "bad"))
+        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and msg in bad.stderr, bad.stderr
+        assert not (tmp_path / "bad").exists() and not (tmp_path / "bad.partial").exists()

@@ -15,6 +15,8 @@ _EXPORTS = {
     # the certified supercell surrogate (cheap solves, calibrated; numpy)
     "PedsModel": "peds", "certified_t": "peds", "fit_peds": "peds", "find_peds": "peds", "load_peds": "peds",
     "save_peds": "peds", "low_fidelity_couplings": "peds", "peds_t": "peds",
+    # its differentiable, batched torch twin
+    "peds_t_torch": "peds_torch", "couplings_torch": "peds_torch", "solve_symmetric_t": "peds_torch",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -139,11 +139,14 @@ def find_peds(lib: UnitCellLibrary) -> Path:
 
 def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, model: PedsModel | str | Path | None = None,
                 *, workers: int = 1, scheduler: str | None = None,
-                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                progress: Callable[[int, int], None] | None = None, stack: Stack | None = None,
+                t_unit: np.ndarray | None = None) -> np.ndarray:
     """(n, 2) complex: the certified surrogate's transmissions (x-pol, y-pol) of supercells ``widths``
     (n, 2, 2, 2) m, for ``lib`` (``model``: a :class:`PedsModel`, its file, or None for the one in
     ``library/`` calibrated against ``lib``).  Solves each supercell at the model's levels (chunks under
-    ``partial``: resumable; the caller removes it)."""
+    ``partial``: resumable; the caller removes it).  ``stack``: the pillars' stack if not the library's
+    (an etch-depth error: the low-fidelity solves at that height), with ``t_unit`` (n, 2, 2, 2 pol) the
+    four pillars' unit-cell ``t`` there (the LPA part; default: the library's)."""
     if not isinstance(model, PedsModel):
         model = load_peds(model if model is not None else find_peds(lib), lib)
     elif model.library_sha256 and model.library_sha256 != lib.identity:
@@ -152,7 +155,10 @@ def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, m
     w = np.asarray(widths, float)
     if w.ndim != 4 or w.shape[1:] != (2, 2, 2):
         raise ValidationError(f"certified_t: widths must be (n, 2, 2, 2) metres, got {w.shape}")
-    c, _ = low_fidelity_couplings(w, lib.stack, model.harmonics, partial, workers=workers, scheduler=scheduler,
-                                     progress=progress)
-    tu = interpolate_t(lib, w[..., 0], w[..., 1])[0]
+    st = lib.stack if stack is None else stack
+    if (st.wavelength, st.period) != (lib.stack.wavelength, lib.stack.period):
+        raise ValidationError("certified_t: the stack's wavelength and period must be the library's")
+    c, _ = low_fidelity_couplings(w, st, model.harmonics, partial, workers=workers, scheduler=scheduler,
+                                  progress=progress)
+    tu = interpolate_t(lib, w[..., 0], w[..., 1])[0] if t_unit is None else np.asarray(t_unit)
     return peds_t(model.coef, c, lpa_t(tu))

@@ -31,7 +31,7 @@ from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
 __all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission",
-           "couple_supercells"]
+           "couple_supercells", "unit_t_as_made"]
 
 
 @dataclass(frozen=True)
@@ -300,6 +300,21 @@ def _fab_t(lib: UnitCellLibrary, F: UnitCellLibrary, wx, wy, h, a):
     gx, gy = lib.wx, lib.wy
     out = out | (wx < gx[0] - 1e-12) | (wx > gx[-1] + 1e-12) | (wy < gy[0] - 1e-12) | (wy > gy[-1] + 1e-12)
     return base + tf - tn, out
+
+
+def unit_t_as_made(lib: UnitCellLibrary, wx, wy, pert: Perturbation = Perturbation(),
+                   fab_lib: UnitCellLibrary | None = None) -> np.ndarray:
+    """(..., 2) complex64: the unit-cell ``t`` of pillars of (already perturbed) widths ``wx, wy`` m at the
+    global etch depth and wall angle of ``pert``, as the device's pillars get it (the design's library, plus
+    ``fab_lib``'s change with height and angle).  Across-aperture gradients are per-pillar: not here."""
+    if pert.height_gradient or pert.sidewall_gradient_deg:
+        raise ValueError("unit_t_as_made: global height and wall angle only (gradients vary across the device)")
+    if not pert.has_fab_axes:
+        return interpolate_t(lib, wx, wy)[0]
+    F = fab_lib if fab_lib is not None else lib
+    h0 = float(lib.meta["stack"]["height_m"])
+    return _fab_t(lib, F, np.asarray(wx, np.float64), np.asarray(wy, np.float64), h0 + pert.height,
+                  min(pert.sidewall_deg, 90.0))[0].astype(np.complex64)
 
 
 def _pillar_transmission_fab(im, cols, atom_widths_nm, lib, pert, rng, fab_lib=None, want_widths=False):

@@ -674,9 +674,12 @@ def _cmd_peds(a: argparse.Namespace) -> int:
 def _cmd_coupling_check(a: argparse.Namespace) -> int:
     import json
 
+    import numpy as np
+
     from ..design.store import load_design
     from ..io import atomic_write_text
     from ..library.locate import file_sha256
+    from ..library.store import load_library
     from ..library.supercells import remove_partial
     from ..paths import product as packaged
     from ..sensing.model import AsFabricated, load_sensing_recipe
@@ -696,12 +699,24 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
-              "--peds": a.peds}
+              "--peds": a.peds, "--fab-library": a.fab_library}
     with product(out, "coupling-check", inputs, scratch=(partial,)):
         fab = AsFabricated.from_design(load_design(src))
+        if a.fab_library:
+            fab.fab_lib = load_library(a.fab_library)
+        if a.height_nm:
+            F = fab.fab_lib if fab.fab_lib is not None else fab.lib
+            if F.fab is None:
+                raise ValidationError("--height-nm needs a library with height axes: pass --fab-library (e.g. "
+                                      "library/paper-fab.npz)")
+            hs = (np.asarray(F.fab["heights"]) - fab.lib.stack.height) * 1e9
+            if not hs.min() - 1e-6 <= a.height_nm <= hs.max() + 1e-6:
+                raise ValidationError(f"--height-nm {a.height_nm:g}: the fab library spans {hs.min():+.0f} to "
+                                      f"{hs.max():+.0f} nm")
         fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
         if a.compensated:
             fc = AsFabricated.from_design(load_design(a.compensated))
+            fc.fab_lib = fab.fab_lib
             fabs["compensated"] = fc.with_coupling("supercell", a.coupling_model)
             fabs["compensated_lpa"] = fc
         if a.dataset:
@@ -720,7 +735,8 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
                 "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
                                      certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
-                                                                               seed=a.jitter_seed))
+                                                                               seed=a.jitter_seed,
+                                                                               height_nm=a.height_nm))
         rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
         if cert:
             rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
@@ -751,7 +767,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
 
 
 def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
-    from .coupling_check import plot_sweep, sweep_table
+    from .coupling_check import plot_sweep, sweep_axis, sweep_table
 
     reports, inputs = [], {}
     for i, folder in enumerate(a.reports):
@@ -767,17 +783,19 @@ def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
     designs = {(r.get("design") or {}).get("sha256") for r in reports} - {None}
     if len(designs) > 1:
         raise InputError("the reports are of different designs (their design sha256 differ): one design per sweep")
-    biases = [(r.get("bias_nm") or [0.0])[0] for r in reports]
-    if len(set(biases)) != len(biases):
-        raise InputError(f"the reports' width biases repeat ({', '.join(f'{b:g}' for b in biases)} nm): one report "
-                         "per bias")
+    if len(reports) > 1:
+        try:
+            sweep_axis(reports)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
     out = out_file(a.output, suffixes=(".png",))
     table = sweep_table(reports)
     with product(out, "figure", inputs):
         fig = plot_sweep(table, out)
     table["figure"] = str(fig)
-    lines = [f"wrote {fig}", "  bias nm  " + "  ".join(f"{r['label'][:30]:>30}" for r in table["cases"].values())]
-    for j, b in enumerate(table["bias_nm"]):
+    head = "  bias nm  " if table["axis"] == "bias_nm" else "  etch nm  "
+    lines = [f"wrote {fig}", head + "  ".join(f"{r['label'][:30]:>30}" for r in table["cases"].values())]
+    for j, b in enumerate(table[table["axis"]]):
         cells = []
         for r in table["cases"].values():
             se = r["spot_efficiency_se"][j]
@@ -1038,18 +1056,23 @@ def register(sub, groups: dict) -> None:
     cc.add_argument("--jitter-nm", type=num(0, 20, unit="nm"), default=0.0,
                     help="every device made with this random width error per pillar (nm, sigma; 0)")
     cc.add_argument("--jitter-seed", type=integer(0, 2**63 - 1), default=0, help="seed of the jitter (0)")
+    cc.add_argument("--height-nm", type=num(-100, 100, unit="nm"), default=0.0,
+                    help="every device made with this etch-depth error (pillar height - nominal, nm; needs "
+                    "--fab-library; the certified model solves at that height; 0)")
+    cc.add_argument("--fab-library", help="library with height axes for --height-nm (e.g. library/paper-fab.npz)")
     cc.add_argument("--scheduler", help="Dask scheduler address for the certified solves (default: the local pool)")
     workers_arg(cc)
     cc.add_argument("-o", "--output", help="output folder (default: coupling-check/ beside the design)")
     cc.add_argument("--json", action="store_true", help="print the report as JSON")
     cc.set_defaults(func=_cmd_coupling_check)
     sw = lsub.add_parser(
-        "coupling-sweep", help="fab-tolerance curves from coupling-check reports at several width biases",
+        "coupling-sweep", help="fab-tolerance curves from coupling-check reports at several width biases or etch "
+        "depths",
         description="Reads coupling-check outputs of one design (the same --seed, so the certified points "
-        "share their sample) made with different --bias-nm and draws spot "
-        "efficiency, Strehl, stray light and focal shift against the bias under each device model (LPA, "
-        "coupling model, certified with its error bars); reports of different designs are refused. Writes OUT "
-        "(.png).")
+        "share their sample) made with different --bias-nm (or different --height-nm) and draws spot "
+        "efficiency, Strehl, stray light and focal shift against that perturbation under each device model (LPA, "
+        "coupling model, certified with its error bars); reports of different designs, or differing in both, "
+        "are refused. Writes OUT (.png).")
     sw.add_argument("reports", nargs="+", help="coupling-check output folders (or their coupling-check.json)")
     sw.add_argument("-o", "--output", required=True, help="figure (.png)")
     sw.add_argument("--json", action="store_true", help="print the table as JSON")

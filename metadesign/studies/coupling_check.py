@@ -11,13 +11,13 @@ dataset and a U-Net, the U-Net's NPiB on its test samples re-rendered through ea
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from ..library.coupling import relative_error
 from ..library.coupling_net import coupling_t
 from ..library.peds import certified_t, find_peds, load_peds
-from ..library.store import interpolate_t
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
@@ -29,11 +29,11 @@ from ..sensing.sampled import (
     supercell_widths,
 )
 from ..sensing.sensor import SensorSpec
-from ..sensing.transmission import Perturbation
+from ..sensing.transmission import Perturbation, unit_t_as_made
 from .lpa import pupil_downstream
 
-__all__ = ["CASES", "SPOT_KEYS", "certified_case", "coupling_check", "plot_case_metrics", "plot_coupling_frames",
-           "sweep_table", "plot_sweep"]
+__all__ = ["CASES", "SPOT_KEYS", "SWEEP_AXES", "certified_case", "coupling_check", "plot_case_metrics",
+           "plot_coupling_frames", "sweep_axis", "sweep_table", "plot_sweep"]
 
 SPOT_KEYS = ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm")
 
@@ -54,13 +54,16 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
     "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s}``: each
     coupled case (``coupled``, ``compensated``) also under the certified model, sampled
     (:func:`certified_case`; no frames, no NPiB: a sampled device has no single pupil).  ``pert``: every
-    device made with those widths (bias, jitter: the same pillars in every case and in the sample)."""
-    if pert.has_fab_axes:
-        raise ValueError("coupling_check: width perturbations only (the certified model solves nominal-height "
-                         "pillars)")
+    device made with those widths (bias, jitter: the same pillars in every case and in the sample) and that
+    global etch-depth error (the devices' ``fab_lib`` gives the unit cells' change with height; the certified
+    model solves its supercells at that height)."""
+    if pert.sidewall_deg != 90.0 or pert.height_gradient or pert.sidewall_gradient_deg:
+        raise ValueError("coupling_check: width errors and a global etch depth only (the certified model solves "
+                         "vertical pillars; no sidewall angle, no gradients)")
     pupils, frames = {}, {}
     rep = {"cases": {}, "sensor_distance_m": sensor.distance, "bias_nm": [pert.bias_x * 1e9, pert.bias_y * 1e9],
-           "jitter_nm": pert.jitter * 1e9, "jitter_seed": pert.seed, "corner_nm": pert.corner_radius * 1e9}
+           "jitter_nm": pert.jitter * 1e9, "jitter_seed": pert.seed, "corner_nm": pert.corner_radius * 1e9,
+           "height_nm": round(pert.height * 1e9, 6)}
     for name, fab in fabs.items():
         t0 = time.perf_counter()
         log(f"  {CASES.get(name, name)}: pupil ...")
@@ -101,7 +104,8 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
-    (:mod:`metadesign.sensing.sampled`), with the widths of ``pert`` (``cp`` made with it, on ``grid``).  The case's
+    (:mod:`metadesign.sensing.sampled`), with the widths and etch depth of ``pert`` (``cp`` made with it, on
+    ``grid``; the pillars' unit cells as the device's, the low-fidelity solves at the etched height).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
     rms |t|, as the certification)."""
     t0 = time.perf_counter()
@@ -113,9 +117,10 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     if m < 1 or replicates < 3:
         raise ValueError("certified_case: at least three replicates of one supercell each")
     pick = ids[np.random.default_rng(seed).integers(0, len(ids), m * replicates)]
-    w = supercell_widths(fab, pick, pert, grid)
-    tu = interpolate_t(fab.lib, w[..., 0], w[..., 1])[0]
+    w = supercell_widths(fab, pick, replace(pert, height=0.0), grid)  # an etch depth leaves the widths
+    tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, fab.fab_lib)
     t_pair = coupling_t(fab.coupling, w, tu)
+    stack = replace(fab.lib.stack, height=fab.lib.stack.height + pert.height)
     said = {"pass": 0, "last": -1, "tenths": set()}
 
     def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
@@ -126,7 +131,8 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
             said["tenths"].add(d * 10 // max(n, 1))
             log(f"    certified solves, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
 
-    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress)
+    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress,
+                         stack=stack, t_unit=tu)
     delta = (t_cert - t_pair).astype(np.complex64)
     t_solved = time.perf_counter()
     deltas = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
@@ -210,13 +216,39 @@ def plot_coupling_frames(frames: dict, sensor: SensorSpec, out, labels=CASES):
     return save_figure(fig, out)
 
 
+SWEEP_AXES = {"bias_nm": "width bias (nm)", "height_nm": "etch depth error (nm)"}
+
+
+def _bias(r: dict) -> float:
+    return (r.get("bias_nm") or [0.0])[0]
+
+
+def sweep_axis(reports: list[dict]) -> str:
+    """The one perturbation that varies across coupling-check reports: ``"bias_nm"`` (width bias) or
+    ``"height_nm"`` (etch depth); ValueError when both vary, or neither does, or a value repeats."""
+    values = {"bias_nm": [_bias(r) for r in reports], "height_nm": [r.get("height_nm", 0.0) for r in reports]}
+    varying = [k for k, v in values.items() if len(set(v)) > 1]
+    if len(varying) > 1:
+        raise ValueError("the reports differ in both width bias and etch depth: one perturbation per sweep")
+    if not varying:
+        raise ValueError(f"the reports repeat one device (width bias {values['bias_nm'][0]:g} nm, etch depth "
+                         f"{values['height_nm'][0]:g} nm): one report per value")
+    v = values[varying[0]]
+    if len(set(v)) != len(v):
+        raise ValueError(f"the reports' {SWEEP_AXES[varying[0]].split(' (')[0]}s repeat "
+                         f"({', '.join(f'{x:g}' for x in v)} nm): one report per value")
+    return varying[0]
+
+
 def sweep_table(reports: list[dict]) -> dict:
-    """Coupling-check reports of one design made with different width biases -> per case, per metric, the
-    values (and standard errors) in order of bias: ``{"bias_nm": [...], "cases": {name: {"label", key:
-    [...], key + "_se": [...]}}}`` (cases present in every report)."""
-    reps = sorted(reports, key=lambda r: (r.get("bias_nm") or [0.0])[0])
+    """Coupling-check reports of one design made with different width biases (or etch depths:
+    :func:`sweep_axis`) -> per case, per metric, the values (and standard errors) in order of that axis:
+    ``{"axis": "bias_nm", "bias_nm": [...], "height_nm": [...], "cases": {name: {"label", key: [...],
+    key + "_se": [...]}}}`` (cases present in every report)."""
+    axis = sweep_axis(reports) if len(reports) > 1 else "bias_nm"
+    reps = sorted(reports, key=lambda r: _bias(r) if axis == "bias_nm" else r.get("height_nm", 0.0))
     names = [n for n in reps[0]["cases"] if all(n in r["cases"] for r in reps)]
-    out = {"bias_nm": [(r.get("bias_nm") or [0.0])[0] for r in reps],
+    out = {"axis": axis, "bias_nm": [_bias(r) for r in reps], "height_nm": [r.get("height_nm", 0.0) for r in reps],
            "jitter_nm": [r.get("jitter_nm", 0.0) for r in reps], "cases": {}}
     for n in names:
         row = {"label": reps[0]["cases"][n]["label"]}
@@ -228,11 +260,13 @@ def sweep_table(reports: list[dict]) -> dict:
 
 
 def plot_sweep(table: dict, out):
-    """Spot efficiency, Strehl, stray light and |focal shift| against the width bias, one line per device
-    model; the sampled (certified) ones with +-2 standard-error bars: a fab-tolerance curve per model."""
+    """Spot efficiency, Strehl, stray light and |focal shift| against the width bias (or the etch depth: the
+    table's ``axis``), one line per device model; the sampled (certified) ones with +-2 standard-error bars:
+    a fab-tolerance curve per model."""
     plt = pyplot()
     fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
-    b = np.asarray(table["bias_nm"])
+    axis = table.get("axis", "bias_nm")
+    b = np.asarray(table[axis])
     styles = {"lpa": dict(color="0.5", ls="--", marker="s"), "coupled": dict(color="C0", marker="o"),
               "certified": dict(color="C1", marker="D", lw=2)}
     keys = (("spot_efficiency", "spot efficiency"), ("spot_strehl", "spot Strehl"), ("stray", "stray fraction"),
@@ -244,7 +278,7 @@ def plot_sweep(table: dict, out):
             se = np.asarray(row[k + "_se"]) * scale
             ax.errorbar(b, v, yerr=2 * se if se.any() else None, capsize=3, label=row["label"],
                         **styles.get(n, dict(color=f"C{i + 2}", marker="^")))
-        ax.set_xlabel("width bias (nm)", fontsize=8)
+        ax.set_xlabel(SWEEP_AXES[axis], fontsize=8)
         ax.set_title(title, fontsize=9)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
