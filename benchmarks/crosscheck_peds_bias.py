@@ -2,14 +2,16 @@
 drawn from the paper design with every pillar biased (default -10 and +10 nm, the sweep's ends), or etched
 deeper or shallower (``--heights``, nm: the stack's pillar height moves, the LPA takes the fab library's
 change with height, the low-fidelity and converged solves are made at that height, and the converged
-reference is the label's ``LPA + [t_super(nG 797) - mean t_unit(matched)]`` at that height), solved at
+reference is the label's ``LPA + [t_super(nG 797) - mean t_unit(matched)]`` at that height), or with
+sloped walls (``--sidewalls``, deg: the same, the converged supercells and unit cells tapered), solved at
 the label table's converged truncation (nG 797), against the LPA, the committed coupling model and the PEDS
 surrogate: per case, mean and p90 of ``|t_model - t_converged| / rms|t|`` (the certification's measure) and
 the mean signed residual with its standard error (a systematic offset is what moves a device's focused
 power).  Not run by CI (~5 min on 2 workers):
 
     python benchmarks/crosscheck_peds_bias.py [layouts/paper-5mm] [--per 64] [--biases -10 10] [-j 2] [--json]
-    python benchmarks/crosscheck_peds_bias.py --biases 0 --heights -30 30      (etch depth; ~6 min)"""
+    python benchmarks/crosscheck_peds_bias.py --biases 0 --heights -30 30      (etch depth; ~6 min)
+    python benchmarks/crosscheck_peds_bias.py --biases 0 --sidewalls 88 --per 32   (sidewall; ~10 min)"""
 
 import argparse
 import json
@@ -35,6 +37,12 @@ def main(argv=None) -> int:
     ap.add_argument("--biases", type=float, nargs="+", default=[-10.0, 10.0], help="nm (-10 10)")
     ap.add_argument("--heights", type=float, nargs="+", default=[0.0],
                     help="etch-depth errors, nm (0); non-zero ones need --fab-library")
+    ap.add_argument("--sidewalls", type=float, nargs="+", default=[90.0],
+                    help="sidewall angles, deg (90); the converged reference tapers its pillars in --slices "
+                    "slices, and PEDS is scored twice: its low fidelity vertical (the widths at mid-height) and "
+                    "tapered in --peds-slices slices")
+    ap.add_argument("--slices", type=int, default=8, help="the converged reference's slices (8, as the fab library)")
+    ap.add_argument("--peds-slices", type=int, default=4, help="the tapered low fidelity's slices (4)")
     ap.add_argument("--fab-library", default=str(REPO / "library" / "paper-fab.npz"))
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("-j", "--workers", type=int, default=2)
@@ -58,26 +66,26 @@ def main(argv=None) -> int:
 
     fab = AsFabricated.from_design(load_design(a.design))
     lib = fab.lib
-    F = load_library(a.fab_library) if any(a.heights) else None
+    F = load_library(a.fab_library) if any(a.heights) or any(x != 90 for x in a.sidewalls) else None
     ids = eligible_supercells(fab)
     rng = np.random.default_rng(a.seed)
-    cases = [(b, h) for b in a.biases for h in a.heights]
+    cases = [(b, h, x) for b in a.biases for h in a.heights for x in a.sidewalls]
     W = np.concatenate([supercell_widths(fab, ids[rng.integers(0, len(ids), a.per)], Perturbation.from_nm(b))
-                        for b, _ in cases])
+                        for b, _, _ in cases])
     pair, _, _ = find_coupling(lib)
     rep = {"per_case": a.per, "converged_seconds": 0.0, "rows": []}
     scratch = Path(tempfile.mkdtemp(prefix="crosscheck-peds-bias-"))
     try:
-        for j, (b, h) in enumerate(cases):
+        for j, (b, h, x) in enumerate(cases):
             s = slice(j * a.per, (j + 1) * a.per)
-            pert = Perturbation.from_nm(b, height_nm=h)
+            pert = Perturbation.from_nm(b, height_nm=h, sidewall_deg=x)
             stack = replace(lib.stack, height=lib.stack.height + pert.height)
             tu = unit_t_as_made(lib, W[s, ..., 0], W[s, ..., 1], pert, F)
             t0 = time.perf_counter()
-            if h:  # the label's definition at this height: the LPA as made plus the converged coupling
+            if h or x != 90:  # the label's definition as made: the LPA as made plus the converged coupling
                 ns, nu = matched_unit_harmonics(800, stack)
                 t_s, nG, _, t_u = solve_table(W[s], stack, ns, scratch / f"converged-{j}", workers=a.workers,
-                                              unit_harmonics=nu)
+                                              unit_harmonics=nu, taper=(x, a.slices))
                 t_conv = lpa_t(tu) + t_s - t_u.mean((1, 2))
             else:  # at the library's height its unit cell is the matched one: the raw supercell is the label
                 t_conv, nG, _, _ = solve_table(W[s], stack, 800, scratch / f"converged-{j}", workers=a.workers)
@@ -85,12 +93,16 @@ def main(argv=None) -> int:
             rep["n_harmonics"] = int(nG)
             models = {"LPA": lpa_t(tu), "coupling model": coupling_t(pair, W[s], tu),
                       "PEDS": certified_t(lib, W[s], scratch / "peds", workers=a.workers, stack=stack, t_unit=tu)}
+            if x != 90:  # its low fidelity tapered too
+                models["PEDS, tapered"] = certified_t(lib, W[s], scratch / "peds", workers=a.workers, stack=stack,
+                                                      t_unit=tu, taper=(x, a.peds_slices))
             rms = unit_rms(tu)
             for name, t in models.items():
                 e = relative_error(t, t_conv, tu)
                 r = (t - t_conv) / rms
                 m, se = r.mean(0), r.std(0) / np.sqrt(a.per)
-                rep["rows"].append({"bias_nm": b, "height_nm": h, "model": name, "mean": float(e.mean()),
+                rep["rows"].append({"bias_nm": b, "height_nm": h, "sidewall_deg": x, "model": name,
+                                    "mean": float(e.mean()),
                                     "p90": float(np.percentile(e, 90)),
                                     "mean_residual_abs": [float(v) for v in np.abs(m)],
                                     "mean_residual_se": [float(v) for v in np.abs(se)]})
@@ -102,9 +114,10 @@ def main(argv=None) -> int:
         return 0
     print(f"{len(W)} perturbed design supercells at nG {nG} ({t_solve:.0f} s on {a.workers} workers); "
           "error in units of rms|t| (goal 0.05 / 0.10)")
-    print("  bias nm  etch nm  model            mean    p90    |mean residual| x, y  (standard error)")
+    print("  bias nm  etch nm  wall deg  model            mean    p90    |mean residual| x, y  (standard error)")
     for r in rep["rows"]:
-        print(f"  {r['bias_nm']:+7.1f}  {r['height_nm']:+7.1f}  {r['model']:<15} {r['mean']:.3f}  {r['p90']:.3f}   "
+        print(f"  {r['bias_nm']:+7.1f}  {r['height_nm']:+7.1f}  {r['sidewall_deg']:8.1f}  {r['model']:<15} "
+              f"{r['mean']:.3f}  {r['p90']:.3f}   "
               f"{r['mean_residual_abs'][0]:.3f}, {r['mean_residual_abs'][1]:.3f}  "
               f"({r['mean_residual_se'][0]:.3f}, {r['mean_residual_se'][1]:.3f})")
     return 0

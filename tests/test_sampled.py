@@ -6,14 +6,18 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 from conftest import run_cli
 
 from metadesign.conventions import centered
 from metadesign.design.recipe import load_design_recipe
-from metadesign.design.store import run_design
+from metadesign.design.store import load_design, run_design
 from metadesign.library.peds import PedsModel, certified_t
 from metadesign.library.store import interpolate_t, load_library
-from metadesign.sensing.forward import CoarsePupil, coarse_pupil, quadrant_fields
+from metadesign.reconstruction.dataset import load_device
+from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+from metadesign.sensing.forward import CoarsePupil, coarse_pupil, quadrant_fields, sensor_frames
+from metadesign.studies.lpa import pupil_downstream
 from metadesign.sensing.model import AsFabricated, load_sensing_recipe, spot_metrics
 from metadesign.sensing.transmission import Perturbation, unit_t_as_made
 from metadesign.sensing.sampled import (
@@ -22,6 +26,7 @@ from metadesign.sensing.sampled import (
     device_widths_rows,
     eligible_supercells,
     jackknife_se,
+    sampled_frames,
     sampled_spot_metrics,
     supercell_widths,
 )
@@ -212,10 +217,10 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo):
 
 
 def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
-    """An etch-depth error through coupling-check: the coupled and certified devices take the fab library's
-    unit cells at that height (the LPA case is the fab-study's device), the certified solves at that height
-    (its four-identical-pillars limit is the as-made unit cell, whatever the height); the sweep finds its
-    axis; bad heights are one line and write nothing."""
+    """An etch-depth error (and a sloped wall) through coupling-check: the coupled and certified devices take
+    the fab library's unit cells at that height and angle (the LPA case is the fab-study's device), the
+    certified solves at that height, tapered (its four-identical-pillars limit is the as-made unit cell,
+    whatever the height); the sweep finds its axis; bad values are one line and write nothing."""
     fab, sr, _, out = demo
     F = load_library(repo / "library" / "paper-fab.npz")
     pert = Perturbation.from_nm(height_nm=25.0)
@@ -231,11 +236,12 @@ def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
     base = ("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "-j", "1")
     runs = {}
     for h, cert in (("0", ()), ("25", ("--certified", "6", "--replicates", "3"))):
-        res = run_cli(*base, *cert, "--height-nm", h, "--fab-library", repo / "library" / "paper-fab.npz", "-o",
-                      str(tmp_path / f"h{h}"), "--json")
+        res = run_cli(*base, *cert, "--height-nm", h, "--sidewall-deg", "88", "--fab-library",
+                      repo / "library" / "paper-fab.npz", "-o", str(tmp_path / f"h{h}"), "--json")
         assert res.returncode == 0, res.stderr
         runs[h] = json.loads(res.stdout)
-    assert runs["25"]["height_nm"] == pytest.approx(25.0) and "certified" in runs["25"]["cases"]
+    assert runs["25"]["height_nm"] == pytest.approx(25.0) and runs["25"]["sidewall_deg"] == 88.0
+    assert runs["25"]["cases"]["certified"]["peds"]["taper"] == [88.0, 4]  # its low fidelity tapered
     lpa0, lpa25 = (runs[h]["cases"]["lpa"]["mean"]["spot_efficiency"] for h in ("0", "25"))
     assert lpa25 != pytest.approx(lpa0, rel=1e-4)
     sw = run_cli("library", "coupling-sweep", str(tmp_path / "h25"), str(tmp_path / "h0"), "-o",
@@ -245,7 +251,41 @@ def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
     assert table["axis"] == "height_nm" and table["height_nm"] == [0.0, 25.0]
     assert set(table["cases"]) == {"lpa", "coupled"}  # the certified case only in one
     for args, msg in ((("--height-nm", "25"), "--fab-library"),
-                      (("--height-nm", "60", "--fab-library", repo / "library" / "paper-fab.npz"), "spans")):
+                      (("--height-nm", "60", "--fab-library", repo / "library" / "paper-fab.npz"), "spans"),
+                      (("--sidewall-deg", "85", "--fab-library", repo / "library" / "paper-fab.npz"), "spans")):
         bad = run_cli(*base, *args, "-o", str(tmp_path / "bad"))
         assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and msg in bad.stderr, bad.stderr
         assert not (tmp_path / "bad").exists() and not (tmp_path / "bad.partial").exists()
+
+
+def test_sampled_frames_and_npib_of_exact_replicates(demo_products, tiny_dataset, tmp_path):
+    """Replicates that all carry the whole correction give the corrected device itself: its sensor frames
+    (against :func:`sensor_frames` of the summed pupil) and a U-Net's NPiB on re-rendered test samples
+    (against the same through the summed pupil), with a zero jackknife error bar; a real correction
+    changes the NPiB (the check can fail)."""
+    fab = AsFabricated.from_design(load_design(demo_products["design"]))
+    dev = load_device(tiny_dataset)
+    cp, grid = dev.pupil, dev.pupil.G.shape[-1]
+    ids = eligible_supercells(fab)[::7]
+    D = delta_pupil(fab, cp.z, grid, ids, 3 * _corrections(fab, ids), 7.0)
+    assert D.G.shape == cp.G.shape and np.allclose(D.X, cp.X)
+    exact = _plus(cp, D)
+    e = np.ones((grid, grid), np.complex64) * np.exp(0.3j)
+    frames, loo = sampled_frames(cp, [D, D, D], dev.sensor, e)
+    ref = sensor_frames(exact, dev.sensor, e)
+    np.testing.assert_allclose(frames, ref, rtol=1e-4, atol=1e-6 * ref.max())
+    np.testing.assert_allclose(loo, np.broadcast_to(ref, loo.shape), rtol=1e-4, atol=1e-6 * ref.max())
+    torch.manual_seed(0)
+    net = build_unet(UNetConfig(base=4, depth=3, input_size=16))
+    with torch.no_grad():  # an untrained U-Net's zeroed output layer would ignore its input
+        for prm in net.parameters():
+            if not prm.abs().sum():
+                prm.normal_(0.0, 0.3)
+    model = tmp_path / "m.safetensors"
+    save_model(net, model, {"noise_percent": 0})
+    out = pupil_downstream({"base": cp, "exact": exact}, tiny_dataset, model, fab, samples=4,
+                           sampled={"sampled": ("base", [D, D, D])})
+    s = out["sampled"]
+    assert s["npib_unet"] == pytest.approx(out["exact"]["npib_unet"], abs=1e-5)
+    assert s["npib_unet_se"] < 1e-5 and s["replicates"] == 3
+    assert abs(out["exact"]["npib_unet"] - out["base"]["npib_unet"]) > 1e-5

@@ -66,6 +66,20 @@ def test_supercell_of_identical_pillars_is_the_unit_cell():
     np.testing.assert_allclose(sc.jones, cell.jones, atol=1e-8)
 
 
+def test_tapered_supercell_of_identical_pillars_is_the_tapered_unit_cell():
+    """The same translation symmetry with sloped walls (every slice a supercell of four identical
+    rectangles); and a taper of 90 degrees is the vertical supercell, one of 86 degrees is not."""
+    from metadesign.library.supercells import matched_unit_harmonics
+
+    ns, nu = matched_unit_harmonics(120, ST)
+    cell = solve_tapered(0.32e-6, 0.21e-6, 86.0, 3, ST, SolverSettings(nu))
+    sc = solve_supercell([[(0.32e-6, 0.21e-6)] * 2] * 2, ST, ns, taper=(86.0, 3))
+    np.testing.assert_allclose(sc.jones, cell.jones, atol=1e-8)
+    vertical = solve_supercell(MIXED, ST, 120)
+    np.testing.assert_allclose(solve_supercell(MIXED, ST, 120, taper=(90.0, 3)).jones, vertical.jones, atol=1e-9)
+    assert abs(solve_supercell(MIXED, ST, 120, taper=(86.0, 3)).t_x - vertical.t_x) > 1e-3
+
+
 def test_mirror_symmetric_supercell_sector_solve_equals_the_full_solve():
     a = solve_supercell(MIXED, ST, 120, symmetric=True)
     b = solve_supercell(MIXED, ST, 120, symmetric=False)

@@ -66,17 +66,19 @@ class PedsModel:
 def low_fidelity_couplings(widths: np.ndarray, stack: Stack, harmonics, partial: str | Path, *, workers: int = 1,
                            scheduler: str | None = None, chunk_size: int = 16,
                            progress: Callable[[int, int], None] | None = None,
-                           log: Callable[[str], None] = lambda s: None) -> tuple[np.ndarray, list[int]]:
+                           log: Callable[[str], None] = lambda s: None,
+                           taper: tuple[float, int] | None = None) -> tuple[np.ndarray, list[int]]:
     """``(c (K, n, 2) complex, nG per level)``: the coupling of each supercell
     ``widths`` (n, 2, 2, 2) m at each requested truncation of ``harmonics``, its unit cells at the matched
-    truncation.  Chunks under ``partial/nG-<n>`` (content-keyed: resumable, the same bytes on any worker
-    count; a rerun on the same rows solves nothing)."""
+    truncation (``taper = (sidewall_deg, slices)``: tapered pillars, both).  Chunks under
+    ``partial/nG-<n>`` (content-keyed: resumable, the same bytes on any worker count; a rerun on the same
+    rows solves nothing)."""
     out, nGs = [], []
     for h in harmonics:
         ns, nu = matched_unit_harmonics(int(h), stack)
         t, nG, _, t_unit = solve_table(widths, stack, ns, Path(partial) / f"nG-{ns - 1}", workers=workers,
                                              scheduler=scheduler, chunk_size=chunk_size, unit_harmonics=nu,
-                                             progress=progress, log=log)
+                                             progress=progress, log=log, taper=taper)
         out.append(t - t_unit.mean((1, 2)))
         nGs.append(int(nG))
     return np.stack(out), nGs
@@ -140,13 +142,14 @@ def find_peds(lib: UnitCellLibrary) -> Path:
 def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, model: PedsModel | str | Path | None = None,
                 *, workers: int = 1, scheduler: str | None = None,
                 progress: Callable[[int, int], None] | None = None, stack: Stack | None = None,
-                t_unit: np.ndarray | None = None) -> np.ndarray:
+                t_unit: np.ndarray | None = None, taper: tuple[float, int] | None = None) -> np.ndarray:
     """(n, 2) complex: the certified surrogate's transmissions (x-pol, y-pol) of supercells ``widths``
     (n, 2, 2, 2) m, for ``lib`` (``model``: a :class:`PedsModel`, its file, or None for the one in
     ``library/`` calibrated against ``lib``).  Solves each supercell at the model's levels (chunks under
     ``partial``: resumable; the caller removes it).  ``stack``: the pillars' stack if not the library's
     (an etch-depth error: the low-fidelity solves at that height), with ``t_unit`` (n, 2, 2, 2 pol) the
-    four pillars' unit-cell ``t`` there (the LPA part; default: the library's)."""
+    four pillars' unit-cell ``t`` there (the LPA part; default: the library's); ``taper = (sidewall_deg,
+    slices)``: the low-fidelity solves with sloped walls (the widths at mid-height)."""
     if not isinstance(model, PedsModel):
         model = load_peds(model if model is not None else find_peds(lib), lib)
     elif model.library_sha256 and model.library_sha256 != lib.identity:
@@ -159,6 +162,6 @@ def certified_t(lib: UnitCellLibrary, widths: np.ndarray, partial: str | Path, m
     if (st.wavelength, st.period) != (lib.stack.wavelength, lib.stack.period):
         raise ValidationError("certified_t: the stack's wavelength and period must be the library's")
     c, _ = low_fidelity_couplings(w, st, model.harmonics, partial, workers=workers, scheduler=scheduler,
-                                  progress=progress)
+                                  progress=progress, taper=taper)
     tu = interpolate_t(lib, w[..., 0], w[..., 1])[0] if t_unit is None else np.asarray(t_unit)
     return peds_t(model.coef, c, lpa_t(tu))

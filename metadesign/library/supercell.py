@@ -23,7 +23,7 @@ import numpy as np
 from .rcwa import CellResult, SolverSettings, Stack, Truncation, symmetry_bases, zero_order_result
 
 __all__ = ["Rect", "staircase_permittivity", "solve_layers", "solve_supercell", "solve_tapered",
-           "supercell_rects", "tapered_layers", "patch_rects", "solve_patch"]
+           "supercell_rects", "taper_offsets", "tapered_layers", "patch_rects", "solve_patch"]
 
 
 @dataclass(frozen=True)
@@ -161,12 +161,22 @@ def supercell_rects(widths, period: float):
 
 
 def solve_supercell(widths, stack: Stack = Stack(), n_harmonics: int = 800,
-                    truncation: Truncation = Truncation.CIRCULAR, symmetric: bool = True) -> CellResult:
+                    truncation: Truncation = Truncation.CIRCULAR, symmetric: bool = True,
+                    taper: tuple[float, int] | None = None) -> CellResult:
     """A 2 x 2 supercell (period ``2 p``) of four vertical pillars ``widths[r][c] = (wx, wy)`` (m).
-    ``symmetric=False`` solves the full coupled problem (a check of the sector solve: ~4x slower)."""
+    ``symmetric=False`` solves the full coupled problem (a check of the sector solve: ~4x slower).
+    ``taper = (sidewall_deg, slices)``: the four pillars with sloped walls, ``widths`` at mid-height
+    (:func:`taper_offsets`; the four stay mirror-symmetric, so the sector solve holds)."""
     _check_fit(widths, stack)
-    return solve_layers([(stack.height, supercell_rects(widths, stack.period))], 2 * stack.period, stack,
-                        n_harmonics, truncation, symmetric=symmetric)
+    if taper is None:
+        return solve_layers([(stack.height, supercell_rects(widths, stack.period))], 2 * stack.period, stack,
+                            n_harmonics, truncation, symmetric=symmetric)
+    w = np.asarray(widths, float)
+    layers = []
+    for t, d in taper_offsets(stack.height, *taper):
+        _check_fit(w + d, stack)
+        layers.append((t, supercell_rects(w + d, stack.period)))
+    return solve_layers(layers, 2 * stack.period, stack, n_harmonics, truncation, symmetric=symmetric)
 
 
 def _check_fit(widths, stack: Stack) -> None:
@@ -196,18 +206,19 @@ def solve_patch(widths, stack: Stack = Stack(), n_harmonics: int = 1300,
                         n_harmonics, truncation, symmetric=False)
 
 
-def tapered_layers(wx: float, wy: float, height: float, sidewall_deg: float, slices: int):
-    """A pillar with sloped walls as ``slices`` layers of equal thickness: the width at height ``z`` is
-    ``w + 2 (h/2 - z) / tan(angle)`` (``w`` is the width at mid-height: a 90 degree wall is the vertical
-    pillar, and a taper keeps the pillar's volume); each slice takes the width at its own mid-height."""
+def taper_offsets(height: float, sidewall_deg: float, slices: int) -> list[tuple[float, float]]:
+    """``[(thickness, width offset), ...]`` (bottom first) of a pillar with sloped walls as ``slices`` layers of
+    equal thickness: the width at height ``z`` is ``w + 2 (h/2 - z) / tan(angle)`` (``w`` is the width at
+    mid-height: a 90 degree wall is the vertical pillar, and a taper keeps the pillar's volume); each slice
+    takes the width at its own mid-height."""
     cot = 1.0 / np.tan(np.deg2rad(sidewall_deg))
     t = height / slices
-    out = []
-    for k in range(slices):
-        z = (k + 0.5) * t
-        d = 2 * (height / 2 - z) * cot
-        out.append((t, [Rect(0.0, 0.0, wx + d, wy + d)]))
-    return out
+    return [(t, 2 * (height / 2 - (k + 0.5) * t) * cot) for k in range(int(slices))]
+
+
+def tapered_layers(wx: float, wy: float, height: float, sidewall_deg: float, slices: int):
+    """A centred tapered pillar as layers (:func:`taper_offsets`)."""
+    return [(t, [Rect(0.0, 0.0, wx + d, wy + d)]) for t, d in taper_offsets(height, sidewall_deg, slices)]
 
 
 def solve_tapered(wx: float, wy: float, sidewall_deg: float, slices: int, stack: Stack = Stack(),

@@ -38,7 +38,7 @@ from ..validation import ValidationError
 from .coupling import lpa_t
 from .rcwa import SolverSettings, Stack, solve_cell
 from .store import interpolate_t
-from .supercell import solve_supercell
+from .supercell import solve_supercell, solve_tapered
 
 __all__ = ["SupercellTable", "matched_unit_harmonics", "matched_harmonics", "solve_table", "unit_cells", "load_table", "save_table", "TABLE_FORMAT"]
 
@@ -118,47 +118,53 @@ class SupercellTable:
         return self.labels(lpa_t(tu)), tu
 
 
-def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack, unit_harmonics: int | None = None) -> str:
+def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack, unit_harmonics: int | None = None,
+                taper: tuple[float, int] | None = None) -> str:
     """A chunk's task name: the content key of its rows and of what shapes their solve."""
-    extra = [] if unit_harmonics is None else [unit_harmonics]
+    extra = ([] if unit_harmonics is None else [unit_harmonics]) + ([] if taper is None else ["taper", *taper])
     return "chunk-" + content_key(np.ascontiguousarray(widths, "<f8"), [n_harmonics, stack.wavelength, stack.period,
                                   stack.height, stack.n_pillar, stack.n_substrate, stack.n_superstrate, *extra],
                                   __version__)
 
 
-def unit_cells(widths: np.ndarray, stack: Stack, unit_harmonics: int) -> np.ndarray:
-    """(n, 2, 2, 2 pol) each pillar's unit cell (period ``p``) at ``unit_harmonics`` (requested)."""
+def unit_cells(widths: np.ndarray, stack: Stack, unit_harmonics: int,
+               taper: tuple[float, int] | None = None) -> np.ndarray:
+    """(n, 2, 2, 2 pol) each pillar's unit cell (period ``p``) at ``unit_harmonics`` (requested); ``taper =
+    (sidewall_deg, slices)``: tapered pillars, widths at mid-height."""
     w = np.asarray(widths, float).reshape(-1, 2)
-    out = np.array([solve_cell(wx, wy, stack, SolverSettings(int(unit_harmonics))).jones[[0, 1], [0, 1]]
-                    for wx, wy in w])
+    st = SolverSettings(int(unit_harmonics))
+    out = np.array([(solve_cell(wx, wy, stack, st) if taper is None else solve_tapered(wx, wy, *taper, stack, st))
+                    .jones[[0, 1], [0, 1]] for wx, wy in w])
     return out.reshape(*np.shape(widths)[:-1], 2)
 
 
 def _solve_rows(args) -> tuple[str, dict]:
-    name, widths, stack, n_harmonics, unit_harmonics = args
-    res = [solve_supercell(w, stack, n_harmonics) for w in widths]
+    name, widths, stack, n_harmonics, unit_harmonics, taper = args
+    res = [solve_supercell(w, stack, n_harmonics, taper=taper) for w in widths]
     out = {"t": np.array([r.jones[[0, 1], [0, 1]] for r in res]),
            "n_harmonics": np.array([r.n_harmonics for r in res])}
     if unit_harmonics is not None:
-        out["t_unit"] = unit_cells(widths, stack, unit_harmonics)
+        out["t_unit"] = unit_cells(widths, stack, unit_harmonics, taper)
     return name, out
 
 
 def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str | Path, *, workers: int = 1,
                 scheduler: str | None = None, chunk_size: int = 8, unit_harmonics: int | None = None,
                 progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] = lambda s: None,
-                _stop_after_chunks: int | None = None):
+                taper: tuple[float, int] | None = None, _stop_after_chunks: int | None = None):
     """``t`` (n, 2) of the supercells ``widths`` (n, 2, 2, 2), solved at ``n_harmonics`` (requested), chunks
     kept in the folder ``partial`` (resumable; the caller removes it once the table is saved).  Returns
     ``(t, nG, seconds spent solving, t_unit)``: ``t_unit`` every pillar's unit cell at ``unit_harmonics``
-    (requested; the matched unit cell's, :func:`matched_unit_harmonics`), None without it."""
+    (requested; the matched unit cell's, :func:`matched_unit_harmonics`), None without it.  ``taper =
+    (sidewall_deg, slices)``: every pillar (and unit cell) with sloped walls, the widths at mid-height."""
+    taper = None if taper is None or float(taper[0]) == 90.0 else (float(taper[0]), int(taper[1]))
     widths = np.asarray(widths, float)
     if widths.ndim != 4 or widths.shape[1:] != (2, 2, 2):
         raise ValueError(f"widths must be (n, 2, 2, 2), got {widths.shape}")
     folder = TaskFolder(partial)  # chunks named by their rows' content: a larger table reuses a smaller one's
     chunks = [(k, min(k + chunk_size, len(widths))) for k in range(0, len(widths), chunk_size)]
-    names = [_chunk_name(widths[a:b], n_harmonics, stack, unit_harmonics) for a, b in chunks]
-    jobs = {nm: (nm, widths[a:b], stack, n_harmonics, unit_harmonics) for (a, b), nm in zip(chunks, names)}
+    names = [_chunk_name(widths[a:b], n_harmonics, stack, unit_harmonics, taper) for a, b in chunks]
+    jobs = {nm: (nm, widths[a:b], stack, n_harmonics, unit_harmonics, taper) for (a, b), nm in zip(chunks, names)}
     size = {nm: b - a for (a, b), nm in zip(chunks, names)}
     t0 = time.perf_counter()
     done, _ = run_resumable(_solve_rows, jobs, folder, workers=workers, scheduler=scheduler, dask_key="supercells",

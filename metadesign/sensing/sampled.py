@@ -24,8 +24,10 @@ import numpy as np
 
 from ..conventions import centered
 from ..optics.propagation import cexp
+from ..determinism import single_thread_blas
 from .forward import CoarsePupil, block_centres, pupil_tiles, quadrant_transform
 from .model import spot_metrics
+from .sensor import quadrant_slices
 from .transmission import Perturbation, perturb_widths
 
 __all__ = [
@@ -34,6 +36,7 @@ __all__ = [
     "device_widths_rows",
     "eligible_supercells",
     "jackknife_se",
+    "sampled_frames",
     "sampled_spot_metrics",
     "supercell_widths",
 ]
@@ -152,10 +155,43 @@ class SampledIntensity:
             du = np.stack([quadrant_transform(d, pol, xo, yo, centre, z=z)[0] for d in self.deltas])
             self._cache[key] = (u0.astype(np.complex128), du.astype(np.complex128), comp, scale)
         u0, du, comp, scale = self._cache[key]
-        U = u0[None] + du[list(self.active)]
-        R = len(self.active)
-        cross = (np.abs(U.sum(0)) ** 2 - (np.abs(U) ** 2).sum(0)) / (R * (R - 1))
-        return cross / comp.astype(np.float64) ** 2 * scale
+        return _u_statistic(u0, du, self.active) / comp.astype(np.float64) ** 2 * scale
+
+
+def _u_statistic(u0: np.ndarray, du: np.ndarray, active) -> np.ndarray:
+    """``|u0 + true correction|^2`` estimated without bias from the replicates ``du[active]``: the mean of
+    ``Re conj(U_r) U_s`` over ordered pairs ``r != s`` of ``U_r = u0 + du_r``."""
+    U = u0[None] + du[list(active)]
+    R = len(active)
+    return (np.abs(U.sum(0)) ** 2 - (np.abs(U) ** 2).sum(0)) / (R * (R - 1))
+
+
+def sampled_frames(cp: CoarsePupil, deltas: list, sensor, e_in: np.ndarray | None = None):
+    """``(frames (2, H, W), leave_one_out (R, 2, H, W))`` float32: the sensor frames
+    (:func:`~metadesign.sensing.forward.sensor_frames`, with the received field ``e_in``) of ``cp`` plus the
+    sampled correction, by the U-statistic over the replicate pupils ``deltas``, and the same with each
+    replicate left out (the jackknife of anything computed from the frames, a reconstruction's NPiB
+    included).  Unbiased per pixel; a pixel's estimate can dip below zero where the light is faint."""
+    R = len(deltas)
+    if R < 3:
+        raise ValueError("sampled frames need at least three replicates (the jackknife)")
+    X, Y = sensor.coords()
+    area = sensor.focal_pitch**2
+    frames = np.zeros((2, sensor.height_px, sensor.width_px), np.float32)
+    loo = np.zeros((R, *frames.shape), np.float32)
+    with single_thread_blas():
+        for p in range(2):
+            for k in range(1, 5):
+                r, c = quadrant_slices(sensor, k)
+                centre = sensor.quadrant_centre(k)
+                u0, comp, scale = quadrant_transform(cp, p, X[c], Y[r], centre, e_in)
+                du = np.stack([quadrant_transform(d, p, X[c], Y[r], centre, e_in)[0] for d in deltas])
+                u0, du = u0.astype(np.complex128), du.astype(np.complex128)
+                norm = area * scale / comp.astype(np.float64) ** 2
+                frames[p, r, c] = _u_statistic(u0, du, range(R)) * norm
+                for j in range(R):
+                    loo[j, p, r, c] = _u_statistic(u0, du, [i for i in range(R) if i != j]) * norm
+    return frames, loo
 
 
 def jackknife_se(leave_one_out) -> float:

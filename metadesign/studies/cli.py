@@ -704,15 +704,19 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         fab = AsFabricated.from_design(load_design(src))
         if a.fab_library:
             fab.fab_lib = load_library(a.fab_library)
-        if a.height_nm:
+        if a.height_nm or a.sidewall_deg != 90:
             F = fab.fab_lib if fab.fab_lib is not None else fab.lib
             if F.fab is None:
-                raise ValidationError("--height-nm needs a library with height axes: pass --fab-library (e.g. "
-                                      "library/paper-fab.npz)")
+                raise ValidationError("--height-nm / --sidewall-deg need a library with fab axes: pass --fab-library "
+                                      "(e.g. library/paper-fab.npz)")
             hs = (np.asarray(F.fab["heights"]) - fab.lib.stack.height) * 1e9
             if not hs.min() - 1e-6 <= a.height_nm <= hs.max() + 1e-6:
                 raise ValidationError(f"--height-nm {a.height_nm:g}: the fab library spans {hs.min():+.0f} to "
                                       f"{hs.max():+.0f} nm")
+            ws = np.asarray(F.fab["sidewalls"], float)
+            if not ws.min() - 1e-9 <= a.sidewall_deg <= ws.max() + 1e-9:
+                raise ValidationError(f"--sidewall-deg {a.sidewall_deg:g}: the fab library spans {ws.min():g} to "
+                                      f"{ws.max():g} deg")
         fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
         if a.compensated:
             fc = AsFabricated.from_design(load_design(a.compensated))
@@ -732,11 +736,13 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
             sensor, grid = sr.sensor, sr.pupil_grid
         log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
         cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
-                "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed} if a.certified else None
+                "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed,
+                "taper_slices": a.taper_slices} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
                                      certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
                                                                                seed=a.jitter_seed,
-                                                                               height_nm=a.height_nm))
+                                                                               height_nm=a.height_nm,
+                                                                               sidewall_deg=a.sidewall_deg))
         rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
         if cert:
             rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
@@ -757,7 +763,9 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
             se = c["stderr"]
             lines.append(f"  {'  +- (standard error)':<27} {se['spot_efficiency']:.4f}     "
                          f"{se['spot_strehl']:.3f}        {se['stray']:.4f}   {1e3 * se['focal_shift_mm']:7.1f}"
-                         f"   ({c['sampling']['supercells']} supercells of {c['sampling']['eligible_supercells']:,})")
+                         f"   ({c['sampling']['supercells']} supercells of {c['sampling']['eligible_supercells']:,})"
+                         + (f"   NPiB +- {rep['downstream'][name]['npib_unet_se']:.3f}"
+                            if name in rep.get("downstream", {}) else ""))
     if "downstream" in rep:
         d = rep["downstream"]
         lines.append(f"  NPiB uncorrected {d['npib_none']:.3f}, phase conjugate {d['npib_phase_conjugate']:.3f} "
@@ -793,7 +801,7 @@ def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
     with product(out, "figure", inputs):
         fig = plot_sweep(table, out)
     table["figure"] = str(fig)
-    head = "  bias nm  " if table["axis"] == "bias_nm" else "  etch nm  "
+    head = {"bias_nm": "  bias nm  ", "height_nm": "  etch nm  ", "sidewall_deg": "  wall deg "}[table["axis"]]
     lines = [f"wrote {fig}", head + "  ".join(f"{r['label'][:30]:>30}" for r in table["cases"].values())]
     for j, b in enumerate(table[table["axis"]]):
         cells = []
@@ -1059,7 +1067,14 @@ def register(sub, groups: dict) -> None:
     cc.add_argument("--height-nm", type=num(-100, 100, unit="nm"), default=0.0,
                     help="every device made with this etch-depth error (pillar height - nominal, nm; needs "
                     "--fab-library; the certified model solves at that height; 0)")
-    cc.add_argument("--fab-library", help="library with height axes for --height-nm (e.g. library/paper-fab.npz)")
+    cc.add_argument("--sidewall-deg", type=num(60, 90, unit="deg"), default=90.0,
+                    help="every device made with this wall angle (90 = vertical; needs --fab-library; the certified "
+                    "model's low fidelity tapers its pillars in --taper-slices slices; 90)")
+    cc.add_argument("--taper-slices", type=integer(0, 64), default=4,
+                    help="slices of the certified model's tapered supercells with --sidewall-deg (0: vertical at "
+                    "mid-height widths; 4)")
+    cc.add_argument("--fab-library", help="library with height / sidewall axes for --height-nm / --sidewall-deg "
+                    "(e.g. library/paper-fab.npz)")
     cc.add_argument("--scheduler", help="Dask scheduler address for the certified solves (default: the local pool)")
     workers_arg(cc)
     cc.add_argument("-o", "--output", help="output folder (default: coupling-check/ beside the design)")

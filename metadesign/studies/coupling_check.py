@@ -53,17 +53,19 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
     the report and the flat-wavefront frames per case.  ``certified``: ``{"supercells": n, "replicates": R,
     "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s}``: each
     coupled case (``coupled``, ``compensated``) also under the certified model, sampled
-    (:func:`certified_case`; no frames, no NPiB: a sampled device has no single pupil).  ``pert``: every
+    (:func:`certified_case`; no flat-wavefront frames; with a dataset and a model, the NPiB from the
+    sampled device's frames, with its jackknife error bar).  ``pert``: every
     device made with those widths (bias, jitter: the same pillars in every case and in the sample) and that
-    global etch-depth error (the devices' ``fab_lib`` gives the unit cells' change with height; the certified
-    model solves its supercells at that height)."""
-    if pert.sidewall_deg != 90.0 or pert.height_gradient or pert.sidewall_gradient_deg:
-        raise ValueError("coupling_check: width errors and a global etch depth only (the certified model solves "
-                         "vertical pillars; no sidewall angle, no gradients)")
+    global etch-depth error and wall angle (the devices' ``fab_lib`` gives the unit cells' change with height
+    and angle; the certified model solves its supercells at that height, tapered in ``taper_slices`` slices
+    of the ``certified`` dict, or vertical at mid-height widths with 0)."""
+    if pert.height_gradient or pert.sidewall_gradient_deg:
+        raise ValueError("coupling_check: width errors and a global etch depth and wall angle only (no gradients "
+                         "across the device)")
     pupils, frames = {}, {}
     rep = {"cases": {}, "sensor_distance_m": sensor.distance, "bias_nm": [pert.bias_x * 1e9, pert.bias_y * 1e9],
            "jitter_nm": pert.jitter * 1e9, "jitter_seed": pert.seed, "corner_nm": pert.corner_radius * 1e9,
-           "height_nm": round(pert.height * 1e9, 6)}
+           "height_nm": round(pert.height * 1e9, 6), "sidewall_deg": pert.sidewall_deg}
     for name, fab in fabs.items():
         t0 = time.perf_counter()
         log(f"  {CASES.get(name, name)}: pupil ...")
@@ -78,14 +80,16 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
             "sublattice_mean": {k: _mean(sl, k) for k in ("focusing_efficiency", "strehl", "crosstalk")},
             "power_on_sensor": [float(f.sum()) / (fab.n_cells * fab.period) ** 2 for f in frames[name]],
         }
+    sampled = {}
     if certified:
         for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
             if name in fabs:
                 log(f"  {CASES[cert]}: {certified['supercells']} supercells through the certified model ...")
-                rep["cases"][cert] = certified_case(fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log,
-                                                    pert=pert,
-                                                    partial=f"{certified['partial']}/{name}",
-                                                    **{k: v for k, v in certified.items() if k != "partial"})
+                rep["cases"][cert], deltas = certified_case(
+                    fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log, pert=pert,
+                    partial=f"{certified['partial']}/{name}", return_deltas=True,
+                    **{k: v for k, v in certified.items() if k != "partial"})
+                sampled[cert] = (name, deltas)
     base = rep["cases"].get("lpa", {}).get("mean")
     if base:
         for c in rep["cases"].values():
@@ -93,21 +97,23 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
                                     for k in ("spot_efficiency", "spot_strehl", "stray")}
     if dataset is not None and model is not None:
         any_fab = next(iter(fabs.values()))
-        rep["downstream"] = pupil_downstream(pupils, dataset, model, any_fab, samples, noise_percent, seed, log)
+        rep["downstream"] = pupil_downstream(pupils, dataset, model, any_fab, samples, noise_percent, seed, log,
+                                             sampled=sampled)
     return rep, frames
 
 
 def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 2000, replicates: int = 8,
                    partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
                    label: str = CASES["certified"], pert: Perturbation = Perturbation(),
-                   log=lambda s: None) -> dict:
+                   log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4):
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
     (:mod:`metadesign.sensing.sampled`), with the widths and etch depth of ``pert`` (``cp`` made with it, on
     ``grid``; the pillars' unit cells as the device's, the low-fidelity solves at the etched height).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
-    rms |t|, as the certification)."""
+    rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
+    (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`)."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
@@ -117,7 +123,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     if m < 1 or replicates < 3:
         raise ValueError("certified_case: at least three replicates of one supercell each")
     pick = ids[np.random.default_rng(seed).integers(0, len(ids), m * replicates)]
-    w = supercell_widths(fab, pick, replace(pert, height=0.0), grid)  # an etch depth leaves the widths
+    w = supercell_widths(fab, pick, replace(pert, height=0.0, sidewall_deg=90.0), grid)  # widths at mid-height
     tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, fab.fab_lib)
     t_pair = coupling_t(fab.coupling, w, tu)
     stack = replace(fab.lib.stack, height=fab.lib.stack.height + pert.height)
@@ -131,8 +137,9 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
             said["tenths"].add(d * 10 // max(n, 1))
             log(f"    certified solves, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
 
+    taper = (pert.sidewall_deg, taper_slices) if pert.sidewall_deg != 90.0 and taper_slices else None
     t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress,
-                         stack=stack, t_unit=tu)
+                         stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
     t_solved = time.perf_counter()
     deltas = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
@@ -142,7 +149,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         for k in SPOT_KEYS:
             row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
     rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
-    return {
+    rep = {
         "label": label,
         "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
         "seconds_solves": t_solved - t0, "channels": rows,
@@ -155,11 +162,13 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         "sampling": {"supercells": int(m * replicates), "replicates": int(replicates), "seed": int(seed),
                      "eligible_supercells": len(ids), "distinct_sampled": len(np.unique(pick))},
         "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
+                 "taper": list(taper) if taper else None,
                  "coefficients": [[float(c.real), float(c.imag)] for c in np.atleast_1d(pm.coef)]},
         "correction": {"mean_relative": [float(v) for v in rel.mean(0)],
                        "p90_relative": [float(v) for v in np.percentile(rel, 90, axis=0)],
                        "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},
     }
+    return (rep, deltas) if return_deltas else rep
 
 
 def plot_case_metrics(rep: dict, out):
@@ -216,40 +225,48 @@ def plot_coupling_frames(frames: dict, sensor: SensorSpec, out, labels=CASES):
     return save_figure(fig, out)
 
 
-SWEEP_AXES = {"bias_nm": "width bias (nm)", "height_nm": "etch depth error (nm)"}
+SWEEP_AXES = {"bias_nm": "width bias (nm)", "height_nm": "etch depth error (nm)",
+              "sidewall_deg": "sidewall angle (deg)"}
 
 
 def _bias(r: dict) -> float:
     return (r.get("bias_nm") or [0.0])[0]
 
 
+def _axis_values(reports: list[dict]) -> dict:
+    return {"bias_nm": [_bias(r) for r in reports], "height_nm": [r.get("height_nm", 0.0) for r in reports],
+            "sidewall_deg": [r.get("sidewall_deg", 90.0) for r in reports]}
+
+
 def sweep_axis(reports: list[dict]) -> str:
-    """The one perturbation that varies across coupling-check reports: ``"bias_nm"`` (width bias) or
-    ``"height_nm"`` (etch depth); ValueError when both vary, or neither does, or a value repeats."""
-    values = {"bias_nm": [_bias(r) for r in reports], "height_nm": [r.get("height_nm", 0.0) for r in reports]}
+    """The one perturbation that varies across coupling-check reports (a key of :data:`SWEEP_AXES`: width
+    bias, etch depth or sidewall angle); ValueError when several vary, or none does (a repeated device)."""
+    values = _axis_values(reports)
     varying = [k for k, v in values.items() if len(set(v)) > 1]
     if len(varying) > 1:
-        raise ValueError("the reports differ in both width bias and etch depth: one perturbation per sweep")
+        raise ValueError(f"the reports differ in {' and '.join(SWEEP_AXES[k].split(' (')[0] for k in varying)}: "
+                         "one perturbation per sweep")
     if not varying:
         raise ValueError(f"the reports repeat one device (width bias {values['bias_nm'][0]:g} nm, etch depth "
-                         f"{values['height_nm'][0]:g} nm): one report per value")
+                         f"{values['height_nm'][0]:g} nm, wall {values['sidewall_deg'][0]:g} deg): one report "
+                         "per value")
     v = values[varying[0]]
     if len(set(v)) != len(v):
         raise ValueError(f"the reports' {SWEEP_AXES[varying[0]].split(' (')[0]}s repeat "
-                         f"({', '.join(f'{x:g}' for x in v)} nm): one report per value")
+                         f"({', '.join(f'{x:g}' for x in v)}): one report per value")
     return varying[0]
 
 
 def sweep_table(reports: list[dict]) -> dict:
-    """Coupling-check reports of one design made with different width biases (or etch depths:
-    :func:`sweep_axis`) -> per case, per metric, the values (and standard errors) in order of that axis:
-    ``{"axis": "bias_nm", "bias_nm": [...], "height_nm": [...], "cases": {name: {"label", key: [...],
-    key + "_se": [...]}}}`` (cases present in every report)."""
+    """Coupling-check reports of one design made with different width biases (or etch depths, or wall
+    angles: :func:`sweep_axis`) -> per case, per metric, the values (and standard errors) in order of that
+    axis: ``{"axis": "bias_nm", "bias_nm": [...], "height_nm": [...], "sidewall_deg": [...], "cases": {name:
+    {"label", key: [...], key + "_se": [...]}}}`` (cases present in every report)."""
     axis = sweep_axis(reports) if len(reports) > 1 else "bias_nm"
-    reps = sorted(reports, key=lambda r: _bias(r) if axis == "bias_nm" else r.get("height_nm", 0.0))
+    order = np.argsort(_axis_values(reports)[axis], kind="stable")
+    reps = [reports[i] for i in order]
     names = [n for n in reps[0]["cases"] if all(n in r["cases"] for r in reps)]
-    out = {"axis": axis, "bias_nm": [_bias(r) for r in reps], "height_nm": [r.get("height_nm", 0.0) for r in reps],
-           "jitter_nm": [r.get("jitter_nm", 0.0) for r in reps], "cases": {}}
+    out = {"axis": axis, **_axis_values(reps), "jitter_nm": [r.get("jitter_nm", 0.0) for r in reps], "cases": {}}
     for n in names:
         row = {"label": reps[0]["cases"][n]["label"]}
         for k in SPOT_KEYS:

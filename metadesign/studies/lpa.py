@@ -36,6 +36,7 @@ from ..reconstruction.metrics import npib_rows
 from ..reconstruction.model import check_fits, load_model
 from ..sensing.forward import CoarsePupil, sensor_frames
 from ..sensing.model import channel_metrics
+from ..sensing.sampled import jackknife_se, sampled_frames
 from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import interpolate_t
 from ..sensing.twin import crop_to_pupil
@@ -185,10 +186,13 @@ def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64,
 
 
 def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
-                     seed: int = 0, log=lambda s: None) -> dict:
+                     seed: int = 0, log=lambda s: None, sampled: dict | None = None) -> dict:
     """Channel metrics and the U-Net's NPiB through each of ``pupils`` (name -> coarse pupil on the grid of
     ``dataset``'s device): the test samples are re-rendered from their received fields through each pupil
-    (same path, same noise draws) and corrected through their own screens."""
+    (same path, same noise draws) and corrected through their own screens.  ``sampled``: name -> (a name
+    of ``pupils``, its replicate correction pupils): a device known by sampling
+    (:func:`~metadesign.sensing.sampled.sampled_frames`), its NPiB with the jackknife's standard error and
+    bias estimate over the replicates (the same noise draws in every leave-one-out pass)."""
     import torch
 
     dev = load_device(dataset)
@@ -222,6 +226,25 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
         out[name] = {"npib_unet": float(npib.mean()),
                      "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk",
                                                      "focal_shift_mm")} for r in m]}
+    for name, (base, deltas) in (sampled or {}).items():
+        log(f"  downstream: {name} (sampled, {len(deltas)} replicates) ...")
+        x, xl = [], []
+        for s, e in zip(items, e_in):
+            full, loo = sampled_frames(pupils[base], deltas, sensor, e)
+            noisy = []
+            for f in (full, *loo):
+                t, _ = normalise_psf(psf_tensor(f, sensor))
+                rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],)))
+                noisy.append(apply_noise(t, rng, noise_percent))
+            x.append(noisy[0])
+            xl.append(noisy[1:])
+        with torch.no_grad():
+            npib = float(pib.npib_phase(model(torch.from_numpy(np.stack(x))), scr).mean())
+            loo_means = [float(pib.npib_phase(model(torch.from_numpy(np.stack([v[j] for v in xl]))), scr).mean())
+                         for j in range(len(deltas))]
+        R = len(deltas)
+        out[name] = {"npib_unet": npib, "npib_unet_se": jackknife_se(loo_means),
+                     "npib_unet_bias": (R - 1) * (float(np.mean(loo_means)) - npib), "replicates": R}
     rec = torch.from_numpy(np.stack([s["received"] for s in items]))
     ref = npib_rows(pib, torch.zeros(len(items), a, a), scr, rec)
     out["npib_none"] = float(ref["none"].mean())
