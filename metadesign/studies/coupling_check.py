@@ -51,7 +51,8 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
                    certified: dict | None = None, pert: Perturbation = Perturbation()) -> tuple[dict, dict]:
     """``fabs``: case name -> :class:`~metadesign.sensing.model.AsFabricated` (its coupling set).  Returns
     the report and the flat-wavefront frames per case.  ``certified``: ``{"supercells": n, "replicates": R,
-    "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s}``: each
+    "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s,
+    "taper_slices": k}``: each
     coupled case (``coupled``, ``compensated``) also under the certified model, sampled
     (:func:`certified_case`; no flat-wavefront frames; with a dataset and a model, the NPiB from the
     sampled device's frames, with its jackknife error bar).  ``pert``: every
@@ -109,8 +110,9 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
-    (:mod:`metadesign.sensing.sampled`), with the widths and etch depth of ``pert`` (``cp`` made with it, on
-    ``grid``; the pillars' unit cells as the device's, the low-fidelity solves at the etched height).  The case's
+    (:mod:`metadesign.sensing.sampled`), with the widths, etch depth and wall angle of ``pert`` (``cp`` made
+    with it, on ``grid``; the pillars' unit cells as the device's, the low-fidelity solves at the etched
+    height, with sloped walls in ``taper_slices`` slices (0: vertical, the widths at mid-height)).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
     rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
     (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`)."""
