@@ -198,8 +198,10 @@ def plot_case_metrics(rep: dict, out):
         ax.tick_params(labelsize=7)
         ax.grid(axis="y", alpha=0.3)
     made = [f"bias {(rep.get('bias_nm') or [0.0])[0]:+g} nm" if (rep.get("bias_nm") or [0.0])[0] else "",
-            f"jitter {rep['jitter_nm']:g} nm" if rep.get("jitter_nm") else ""]
-    made = ", ".join(m for m in made if m) or "nominal widths"
+            f"jitter {rep['jitter_nm']:g} nm" if rep.get("jitter_nm") else "",
+            f"etch {rep['height_nm']:+g} nm" if rep.get("height_nm") else "",
+            f"walls {rep['sidewall_deg']:g} deg" if rep.get("sidewall_deg", 90.0) != 90.0 else ""]
+    made = ", ".join(m for m in made if m) or "nominal device"
     fig.suptitle(f"Spot metrics per device model, {made} (mean of 8 channels; sampled cases: +-2 standard errors)",
                  fontsize=10)
     return save_figure(fig, out)
