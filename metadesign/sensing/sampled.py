@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..conventions import centered
-from ..optics.propagation import cexp
 from ..determinism import single_thread_blas
+from ..optics.propagation import cexp
 from .forward import CoarsePupil, block_centres, pupil_tiles, quadrant_transform
 from .model import spot_metrics
 from .sensor import quadrant_slices
