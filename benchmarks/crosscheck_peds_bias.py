@@ -11,7 +11,7 @@ power).  Not run by CI (~5 min on 2 workers):
 
     python benchmarks/crosscheck_peds_bias.py [layouts/paper-5mm] [--per 64] [--biases -10 10] [-j 2] [--json]
     python benchmarks/crosscheck_peds_bias.py --biases 0 --heights -30 30      (etch depth; ~6 min)
-    python benchmarks/crosscheck_peds_bias.py --biases 0 --sidewalls 88 --per 32   (sidewall; ~10 min)"""
+    python benchmarks/crosscheck_peds_bias.py --biases 0 --sidewalls 88   (sidewall, 64 rows; ~17 min)"""
 
 import argparse
 import json
