@@ -21,27 +21,23 @@ os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from _paper_design import design_arguments, paper_device  # noqa: E402
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("design", nargs="?", default=str(REPO / "layouts" / "paper-5mm"))
+    design_arguments(ap)
     ap.add_argument("--supercells", type=int, default=4000)
     ap.add_argument("--replicates", type=int, default=8)
-    ap.add_argument("-j", "--workers", type=int, default=2)
-    ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    if not (Path(a.design) / "design.npz").exists():
-        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+    fab = paper_device(a.design)
+    if fab is None:
         return 2
-    import torch
-
-    torch.set_num_threads(1)
-    from metadesign.design.store import load_design
-    from metadesign.sensing.model import AsFabricated, load_sensing_recipe
+    from metadesign.sensing.model import load_sensing_recipe
     from metadesign.studies.coupling_check import certified_case
 
     sr = load_sensing_recipe(REPO / "sensing" / "paper.toml")
-    fab = AsFabricated.from_design(load_design(a.design)).with_coupling("supercell")
+    fab = fab.with_coupling("supercell")
     t0 = time.perf_counter()
     cp = fab.pupil(sr.sensor.distance, sr.pupil_grid)
     t_pupil = time.perf_counter() - t0

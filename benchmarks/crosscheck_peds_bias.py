@@ -28,11 +28,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
+from _paper_design import design_arguments, paper_device  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("design", nargs="?", default=str(REPO / "layouts" / "paper-5mm"))
+    design_arguments(ap)
     ap.add_argument("--per", type=int, default=64, help="supercells per bias (64)")
     ap.add_argument("--biases", type=float, nargs="+", default=[-10.0, 10.0], help="nm (-10 10)")
     ap.add_argument("--heights", type=float, nargs="+", default=[0.0],
@@ -45,26 +46,18 @@ def main(argv=None) -> int:
     ap.add_argument("--peds-slices", type=int, default=4, help="the tapered low fidelity's slices (4)")
     ap.add_argument("--fab-library", default=str(REPO / "library" / "paper-fab.npz"))
     ap.add_argument("--seed", type=int, default=4242)
-    ap.add_argument("-j", "--workers", type=int, default=2)
-    ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    if not (Path(a.design) / "design.npz").exists():
-        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+    fab = paper_device(a.design)
+    if fab is None:
         return 2
-    import torch
-
-    torch.set_num_threads(1)
-    from metadesign.design.store import load_design
     from metadesign.library.coupling import lpa_t, relative_error, unit_rms
     from metadesign.library.coupling_net import coupling_t, find_coupling
     from metadesign.library.peds import certified_t
     from metadesign.library.store import load_library
     from metadesign.library.supercells import matched_unit_harmonics, solve_table
-    from metadesign.sensing.model import AsFabricated
     from metadesign.sensing.sampled import eligible_supercells, supercell_widths
     from metadesign.sensing.transmission import Perturbation, unit_t_as_made
 
-    fab = AsFabricated.from_design(load_design(a.design))
     lib = fab.lib
     F = load_library(a.fab_library) if any(a.heights) or any(x != 90 for x in a.sidewalls) else None
     ids = eligible_supercells(fab)

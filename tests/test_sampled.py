@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli
+from conftest import run_cli, run_main
 
 from metadesign.conventions import centered
 from metadesign.design.recipe import load_design_recipe
@@ -178,7 +178,7 @@ def test_sampled_intensity_is_unbiased_where_a_square_is_not(demo):
     assert 0.6 < np.mean(se) / u.std() < 1.4
 
 
-def test_coupling_check_certified_cli(demo, tmp_path, repo):
+def test_coupling_check_certified_cli(demo, tmp_path, repo, capsys):
     fab, _, _, out = demo
     res = run_cli("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "--certified", "6",
                   "--replicates", "3", "--jitter-nm", "5", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
@@ -204,20 +204,22 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo):
     other["design"]["sha256"] = "0" * 64  # a report of another design
     other["bias_nm"] = [8.0, 8.0]
     (tmp_path / "other.json").write_text(json.dumps(other))
-    mixed = run_cli("library", "coupling-sweep", str(tmp_path / "cc"), str(tmp_path / "other.json"), "-o",
-                    str(tmp_path / "mixed.png"))
-    assert mixed.returncode == 2 and "different designs" in mixed.stderr and not (tmp_path / "mixed.png").exists()
-    same = run_cli("library", "coupling-sweep", str(tmp_path / "cc"), str(tmp_path / "cc"), "-o",
-                   str(tmp_path / "same.png"))
-    assert same.returncode == 2 and "repeat" in same.stderr and not (tmp_path / "same.png").exists()
-    bad = run_cli("library", "coupling-check", str(out), "--certified", "5", "--replicates", "3",
-                  "-o", str(tmp_path / "bad"))
-    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--certified" in bad.stderr
+    # the refusals in-process (one line, exit 2, nothing written; no interpreter start-up per case)
+    rc, _, err = run_main(["library", "coupling-sweep", tmp_path / "cc", tmp_path / "other.json", "-o",
+                           tmp_path / "mixed.png"], capsys)
+    assert rc == 2 and "different designs" in " ".join(err) and not (tmp_path / "mixed.png").exists()
+    rc, _, err = run_main(["library", "coupling-sweep", tmp_path / "cc", tmp_path / "cc", "-o",
+                           tmp_path / "same.png"], capsys)
+    assert rc == 2 and "repeat" in " ".join(err) and not (tmp_path / "same.png").exists()
+    rc, _, err = run_main(["library", "coupling-check", out, "--certified", "5", "--replicates", "3",
+                           "-o", tmp_path / "bad"], capsys)
+    assert rc == 2 and len(err) == 1 and "--certified" in err[0]
     assert not (tmp_path / "bad").exists()
 
 
-def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
-    """An etch-depth error (and a sloped wall) through coupling-check: the coupled and certified devices take
+def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path, capsys):
+    """An etch-depth error (and a sloped wall) through coupling-check (in-process; the subprocess path is
+    the test above): the coupled and certified devices take
     the fab library's unit cells at that height and angle (the LPA case is the fab-study's device), the
     certified solves at that height, tapered (its four-identical-pillars limit is the as-made unit cell,
     whatever the height); the sweep finds its axis; bad values are one line and write nothing."""
@@ -236,25 +238,25 @@ def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path):
     base = ("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "-j", "1")
     runs = {}
     for h, cert in (("0", ()), ("25", ("--certified", "6", "--replicates", "3"))):
-        res = run_cli(*base, *cert, "--height-nm", h, "--sidewall-deg", "88", "--fab-library",
-                      repo / "library" / "paper-fab.npz", "-o", str(tmp_path / f"h{h}"), "--json")
-        assert res.returncode == 0, res.stderr
-        runs[h] = json.loads(res.stdout)
+        rc, out_json, err = run_main([*base, *cert, "--height-nm", h, "--sidewall-deg", "88", "--fab-library",
+                                      repo / "library" / "paper-fab.npz", "-o", tmp_path / f"h{h}", "--json"], capsys)
+        assert rc == 0, err
+        runs[h] = json.loads(out_json)
     assert runs["25"]["height_nm"] == pytest.approx(25.0) and runs["25"]["sidewall_deg"] == 88.0
     assert runs["25"]["cases"]["certified"]["peds"]["taper"] == [88.0, 4]  # its low fidelity tapered
     lpa0, lpa25 = (runs[h]["cases"]["lpa"]["mean"]["spot_efficiency"] for h in ("0", "25"))
     assert lpa25 != pytest.approx(lpa0, rel=1e-4)
-    sw = run_cli("library", "coupling-sweep", str(tmp_path / "h25"), str(tmp_path / "h0"), "-o",
-                 str(tmp_path / "etch.png"), "--json")
-    assert sw.returncode == 0, sw.stderr
-    table = json.loads(sw.stdout)
+    rc, out_json, err = run_main(["library", "coupling-sweep", tmp_path / "h25", tmp_path / "h0", "-o",
+                                  tmp_path / "etch.png", "--json"], capsys)
+    assert rc == 0, err
+    table = json.loads(out_json)
     assert table["axis"] == "height_nm" and table["height_nm"] == [0.0, 25.0]
     assert set(table["cases"]) == {"lpa", "coupled"}  # the certified case only in one
     for args, msg in ((("--height-nm", "25"), "--fab-library"),
                       (("--height-nm", "60", "--fab-library", repo / "library" / "paper-fab.npz"), "spans"),
                       (("--sidewall-deg", "85", "--fab-library", repo / "library" / "paper-fab.npz"), "spans")):
-        bad = run_cli(*base, *args, "-o", str(tmp_path / "bad"))
-        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and msg in bad.stderr, bad.stderr
+        rc, _, err = run_main([*base, *args, "-o", tmp_path / "bad"], capsys)  # in-process
+        assert rc == 2 and len(err) == 1 and msg in err[0], err
         assert not (tmp_path / "bad").exists() and not (tmp_path / "bad.partial").exists()
 
 

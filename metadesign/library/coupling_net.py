@@ -16,7 +16,7 @@ from ..validation import ValidationError
 from .coupling import CARD_FORMAT, W0, WS, CouplingConfig, coupling_card
 from .store import UnitCellLibrary
 
-__all__ = ["Coupling", "build_coupling", "tu_tensor", "pillar_terms", "coupling_t", "load_coupling", "fit_coupling",
+__all__ = ["Coupling", "bilinear_t", "build_coupling", "tu_tensor", "pillar_terms", "coupling_t", "load_coupling", "fit_coupling",
            "find_coupling", "pair_tables"]
 
 
@@ -43,19 +43,7 @@ class Coupling(nn.Module):
     def unit_t(self, widths):
         """Library ``t`` of each pillar, bilinear as :func:`metadesign.library.store.interpolate_t`:
         (n, 2, 2, 2 pol, 2 re/im); differentiable in the widths."""
-        w = widths.to(torch.float64)
-
-        def frac(v, g):
-            step = g[1] - g[0]
-            f = ((v - g[0]) / step).clamp(0, len(g) - 1)
-            i0 = f.detach().floor().long().clamp(max=len(g) - 2)
-            return i0, (f - i0).to(torch.float32)[..., None, None]
-
-        i, ax = frac(w[..., 0], self.gx)
-        j, ay = frac(w[..., 1], self.gy)
-        T = self.tab
-        return ((1 - ax) * (1 - ay) * T[i, j] + ax * (1 - ay) * T[i + 1, j] + (1 - ax) * ay * T[i, j + 1]
-                + ax * ay * T[i + 1, j + 1])
+        return bilinear_t(self.gx, self.gy, self.tab, widths)
 
     @staticmethod
     def features(widths, tu, pol: int):
@@ -118,6 +106,26 @@ class Coupling(nn.Module):
         if tu is None:
             tu = self.unit_t(widths)
         return tu.mean((1, 2)) + self.delta(widths, tu)
+
+
+def bilinear_t(gx, gy, tab, widths):
+    """``tab`` (nx, ny, ...) on the regular width grids ``gx``, ``gy`` (m, float64) looked up bilinearly at
+    ``widths`` (..., 2) m, clamped to the grid as :func:`metadesign.library.store.interpolate_t`: (..., ...)
+    in ``tab``'s dtype, differentiable in the widths (the weights in ``tab``'s real precision)."""
+    w = widths.to(torch.float64)
+    real = tab.real.dtype if tab.is_complex() else tab.dtype
+    extra = (1,) * (tab.ndim - 2)
+
+    def frac(v, g):
+        f = ((v - g[0]) / (g[1] - g[0])).clamp(0, len(g) - 1)
+        i0 = f.detach().floor().long().clamp(max=len(g) - 2)
+        a = (f - i0).to(real)
+        return i0, a.reshape(*a.shape, *extra)
+
+    i, ax = frac(w[..., 0], gx)
+    j, ay = frac(w[..., 1], gy)
+    return ((1 - ax) * (1 - ay) * tab[i, j] + ax * (1 - ay) * tab[i + 1, j] + (1 - ax) * ay * tab[i, j + 1]
+            + ax * ay * tab[i + 1, j + 1])
 
 
 def build_coupling(cfg: CouplingConfig, lib: UnitCellLibrary):

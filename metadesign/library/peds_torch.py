@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..validation import ValidationError
+from .coupling_net import bilinear_t
 from .peds import PedsModel
 from .rcwa import Stack, Truncation, symmetry_bases
 from .store import UnitCellLibrary
@@ -214,20 +215,9 @@ def couplings_torch(widths: torch.Tensor, stack: Stack, harmonics) -> torch.Tens
 def lpa_torch(lib: UnitCellLibrary, widths: torch.Tensor) -> torch.Tensor:
     """(B, 2) complex128: the mean of the four pillars' library ``t``, bilinear as
     :func:`metadesign.library.store.interpolate_t` (clamped to the grid), in float64."""
-    w = widths.to(torch.float64)
     gx, gy = torch.as_tensor(lib.wx, dtype=torch.float64), torch.as_tensor(lib.wy, dtype=torch.float64)
     tab = torch.as_tensor(np.stack([lib.t_x, lib.t_y], -1), dtype=_C)  # (nx, ny, 2)
-
-    def frac(v, g):
-        f = torch.clamp((v - g[0]) / (g[1] - g[0]), 0, len(g) - 1)
-        i0 = f.detach().floor().long().clamp(max=len(g) - 2)
-        return i0, (f - i0)[..., None]
-
-    i, ax = frac(w[..., 0], gx)
-    j, ay = frac(w[..., 1], gy)
-    t = ((1 - ax) * (1 - ay) * tab[i, j] + ax * (1 - ay) * tab[i + 1, j] + (1 - ax) * ay * tab[i, j + 1]
-         + ax * ay * tab[i + 1, j + 1])
-    return t.mean((1, 2))
+    return bilinear_t(gx, gy, tab, widths).mean((1, 2))
 
 
 def peds_t_torch(model: PedsModel, lib: UnitCellLibrary, widths: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ import numpy as np
 from ..plotting import pyplot, save_figure
 from .sensor import SensorSpec, quadrant_slices
 
-__all__ = ["plot_frames", "plot_fab_study"]
+__all__ = ["case_label", "plot_frames", "plot_fab_study"]
 
 
 def plot_frames(frames: np.ndarray, sensor: SensorSpec, out: str | Path, channels=None, title: str = "",
@@ -61,15 +61,22 @@ def _frame_pair(fig, axes, frames, sensor: SensorSpec, channels, label: str) -> 
         fig.colorbar(im, ax=ax, shrink=0.8, label="intensity / the quadrant's own peak")
 
 
-def _case_label(r: dict) -> str:
-    """A fab-study case in words: "etch bias +10 nm", "jitter 5 nm", "nominal" ..."""
+def case_label(r: dict) -> str:
+    """A perturbation case in words: "etch bias +10 nm", "jitter 5 nm", "etch depth -30 nm", "walls 88 deg",
+    "nominal" ... (``r``: a fab-study row or a report; ``bias_nm`` a number or ``[x, y]``)."""
+    b = r.get("bias_nm") or 0.0
+    b = b[0] if isinstance(b, (list, tuple)) else b
     parts = []
-    if r.get("bias_nm"):
-        parts.append(f"etch bias {r['bias_nm']:+g} nm")
+    if b:
+        parts.append(f"etch bias {b:+g} nm")
     if r.get("jitter_nm"):
         parts.append(f"jitter {r['jitter_nm']:g} nm")
     if r.get("corner_nm"):
         parts.append(f"corner radius {r['corner_nm']:g} nm")
+    if r.get("height_nm"):
+        parts.append(f"etch depth {r['height_nm']:+g} nm")
+    if r.get("sidewall_deg", 90.0) != 90.0:
+        parts.append(f"walls {r['sidewall_deg']:g} deg")
     return ", ".join(parts) or "nominal"
 
 
@@ -78,7 +85,7 @@ def plot_fab_study(rows: list[dict], out: str | Path) -> Path:
     group of markers (the cases are separate devices: no line joins them), in %, um."""
     plt = pyplot()
     cases = sorted({r["case"] for r in rows})
-    labels = {r["case"]: _case_label(r) if "bias_nm" in r else r["label"] for r in rows}
+    labels = {r["case"]: case_label(r) if "bias_nm" in r else r["label"] for r in rows}
     fig, axes = plt.subplots(2, 2, figsize=(12, 8), constrained_layout=True)
     keys = (("focusing_efficiency", "focusing efficiency [% of the incident power]", 100.0),
             ("strehl", "Strehl ratio at best focus", 1.0),

@@ -35,6 +35,7 @@ __all__ = [
     "delta_pupil",
     "device_widths_rows",
     "eligible_supercells",
+    "jackknife_bias",
     "jackknife_se",
     "sampled_frames",
     "sampled_spot_metrics",
@@ -186,12 +187,19 @@ def sampled_frames(cp: CoarsePupil, deltas: list, sensor, e_in: np.ndarray | Non
                 centre = sensor.quadrant_centre(k)
                 u0, comp, scale = quadrant_transform(cp, p, X[c], Y[r], centre, e_in)
                 du = np.stack([quadrant_transform(d, p, X[c], Y[r], centre, e_in)[0] for d in deltas])
-                u0, du = u0.astype(np.complex128), du.astype(np.complex128)
+                U = u0.astype(np.complex128)[None] + du.astype(np.complex128)
                 norm = area * scale / comp.astype(np.float64) ** 2
-                frames[p, r, c] = _u_statistic(u0, du, range(R)) * norm
-                for j in range(R):
-                    loo[j, p, r, c] = _u_statistic(u0, du, [i for i in range(R) if i != j]) * norm
+                S, Q = U.sum(0), (np.abs(U) ** 2).sum(0)  # every subset's U-statistic from these two sums
+                frames[p, r, c] = (np.abs(S) ** 2 - Q) / (R * (R - 1)) * norm
+                loo[:, p, r, c] = (np.abs(S - U) ** 2 - (Q - np.abs(U) ** 2)) / ((R - 1) * (R - 2)) * norm
     return frames, loo
+
+
+def jackknife_bias(estimate: float, leave_one_out) -> float:
+    """The jackknife's estimate of an estimate's bias from its leave-one-replicate-out values (subtract it
+    to correct)."""
+    v = np.asarray(leave_one_out, np.float64)
+    return float((len(v) - 1) * (v.mean() - estimate))
 
 
 def jackknife_se(leave_one_out) -> float:

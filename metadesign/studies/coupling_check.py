@@ -21,9 +21,11 @@ from ..library.peds import certified_t, find_peds, load_peds
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
+from ..sensing.plot import case_label
 from ..sensing.sampled import (
     delta_pupil,
     eligible_supercells,
+    jackknife_bias,
     jackknife_se,
     sampled_spot_metrics,
     supercell_widths,
@@ -36,6 +38,7 @@ __all__ = ["CASES", "SPOT_KEYS", "SWEEP_AXES", "certified_case", "coupling_check
            "plot_coupling_frames", "sweep_axis", "sweep_table", "plot_sweep"]
 
 SPOT_KEYS = ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm")
+SPOT_TITLES = dict(zip(SPOT_KEYS, ("spot efficiency", "spot Strehl", "stray fraction", "|focal shift| (um)")))
 
 CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compensated": "compensated, coupling",
          "compensated_lpa": "compensated, LPA", "certified": "design, certified (PEDS, sampled)",
@@ -159,8 +162,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
         # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are maxima
         # over noisy points: biased up by O(1 / supercells)); small beside stderr when the sample suffices
-        "bias": {k: (replicates - 1) * (float(np.mean([_mean(lo, k) for lo in loo])) - _mean(rows, k))
-                 for k in SPOT_KEYS},
+        "bias": {k: jackknife_bias(_mean(rows, k), [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
         "sampling": {"supercells": int(m * replicates), "replicates": int(replicates), "seed": int(seed),
                      "eligible_supercells": len(ids), "distinct_sampled": len(np.unique(pick))},
         "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
@@ -178,12 +180,10 @@ def plot_case_metrics(rep: dict, out):
     errors (2 sigma bars): what the certified model changes, and how sure the sampling is of it."""
     plt = pyplot()
     names = list(rep["cases"])
-    keys = (("spot_efficiency", "spot efficiency"), ("spot_strehl", "spot Strehl"), ("stray", "stray fraction"),
-            ("focal_shift_mm", "|focal shift| (um)"))
     fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
     colours = {"lpa": "0.6", "compensated_lpa": "0.8", "coupled": "C0", "compensated": "C2", "certified": "C1",
                "compensated_certified": "C3"}
-    for ax, (k, title) in zip(axs, keys):
+    for ax, (k, title) in zip(axs, SPOT_TITLES.items()):
         scale = 1e3 if k == "focal_shift_mm" else 1.0
         for i, n in enumerate(names):
             c = rep["cases"][n]
@@ -197,13 +197,8 @@ def plot_case_metrics(rep: dict, out):
         ax.set_title(title, fontsize=9)
         ax.tick_params(labelsize=7)
         ax.grid(axis="y", alpha=0.3)
-    made = [f"bias {(rep.get('bias_nm') or [0.0])[0]:+g} nm" if (rep.get("bias_nm") or [0.0])[0] else "",
-            f"jitter {rep['jitter_nm']:g} nm" if rep.get("jitter_nm") else "",
-            f"etch {rep['height_nm']:+g} nm" if rep.get("height_nm") else "",
-            f"walls {rep['sidewall_deg']:g} deg" if rep.get("sidewall_deg", 90.0) != 90.0 else ""]
-    made = ", ".join(m for m in made if m) or "nominal device"
-    fig.suptitle(f"Spot metrics per device model, {made} (mean of 8 channels; sampled cases: +-2 standard errors)",
-                 fontsize=10)
+    fig.suptitle(f"Spot metrics per device model, {case_label(rep)} device (mean of 8 channels; sampled cases: "
+                 "+-2 standard errors)", fontsize=10)
     return save_figure(fig, out)
 
 
@@ -290,9 +285,7 @@ def plot_sweep(table: dict, out):
     b = np.asarray(table[axis])
     styles = {"lpa": dict(color="0.5", ls="--", marker="s"), "coupled": dict(color="C0", marker="o"),
               "certified": dict(color="C1", marker="D", lw=2)}
-    keys = (("spot_efficiency", "spot efficiency"), ("spot_strehl", "spot Strehl"), ("stray", "stray fraction"),
-            ("focal_shift_mm", "|focal shift| (um)"))
-    for ax, (k, title) in zip(axs, keys):
+    for ax, (k, title) in zip(axs, SPOT_TITLES.items()):
         scale = 1e3 if k == "focal_shift_mm" else 1.0
         for i, (n, row) in enumerate(table["cases"].items()):
             v = np.abs(row[k]) * scale if k == "focal_shift_mm" else np.asarray(row[k])

@@ -36,7 +36,7 @@ from ..reconstruction.metrics import npib_rows
 from ..reconstruction.model import check_fits, load_model
 from ..sensing.forward import CoarsePupil, sensor_frames
 from ..sensing.model import channel_metrics
-from ..sensing.sampled import jackknife_se, sampled_frames
+from ..sensing.sampled import jackknife_bias, jackknife_se, sampled_frames
 from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import interpolate_t
 from ..sensing.twin import crop_to_pupil
@@ -210,41 +210,34 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
     e_in = [crop_to_pupil(s["received"], ng, dx, d2, c0, N) for s in items]
     scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
     out = {"samples": len(items), "noise_percent": noise_percent}
+
+    def noisy(frames, s):  # the network's input: the same noise draws for a sample whatever its frames
+        t, _ = normalise_psf(psf_tensor(frames, sensor))
+        return apply_noise(t, np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],))),
+                           noise_percent)
+
+    def npib_of(x):
+        with torch.no_grad():
+            return float(pib.npib_phase(model(torch.from_numpy(np.stack(x))), scr).numpy().mean())
+
     for name, p in pupils.items():
         if p.G.shape[-1] != N:
             raise ValueError(f"pupil {name}: grid {p.G.shape[-1]} differs from the dataset's {N}")
         log(f"  downstream: {name} pupil ...")
         m = channel_metrics(p, sensor, fab)
-        x = []
-        for s, e in zip(items, e_in):
-            t, _ = normalise_psf(psf_tensor(sensor_frames(p, sensor, e), sensor))
-            rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],)))
-            x.append(apply_noise(t, rng, noise_percent))
-        with torch.no_grad():
-            phi = model(torch.from_numpy(np.stack(x)))
-            npib = pib.npib_phase(phi, scr).numpy()
-        out[name] = {"npib_unet": float(npib.mean()),
+        out[name] = {"npib_unet": npib_of([noisy(sensor_frames(p, sensor, e), s) for s, e in zip(items, e_in)]),
                      "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk",
                                                      "focal_shift_mm")} for r in m]}
     for name, (base, deltas) in (sampled or {}).items():
         log(f"  downstream: {name} (sampled, {len(deltas)} replicates) ...")
-        x, xl = [], []
+        x = []  # per sample: the full estimate's input, then each leave-one-out's
         for s, e in zip(items, e_in):
             full, loo = sampled_frames(pupils[base], deltas, sensor, e)
-            noisy = []
-            for f in (full, *loo):
-                t, _ = normalise_psf(psf_tensor(f, sensor))
-                rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],)))
-                noisy.append(apply_noise(t, rng, noise_percent))
-            x.append(noisy[0])
-            xl.append(noisy[1:])
-        with torch.no_grad():
-            npib = float(pib.npib_phase(model(torch.from_numpy(np.stack(x))), scr).mean())
-            loo_means = [float(pib.npib_phase(model(torch.from_numpy(np.stack([v[j] for v in xl]))), scr).mean())
-                         for j in range(len(deltas))]
-        R = len(deltas)
+            x.append([noisy(f, s) for f in (full, *loo)])
+        npib = npib_of([v[0] for v in x])
+        loo_means = [npib_of([v[j + 1] for v in x]) for j in range(len(deltas))]
         out[name] = {"npib_unet": npib, "npib_unet_se": jackknife_se(loo_means),
-                     "npib_unet_bias": (R - 1) * (float(np.mean(loo_means)) - npib), "replicates": R}
+                     "npib_unet_bias": jackknife_bias(npib, loo_means), "replicates": len(deltas)}
     rec = torch.from_numpy(np.stack([s["received"] for s in items]))
     ref = npib_rows(pib, torch.zeros(len(items), a, a), scr, rec)
     out["npib_none"] = float(ref["none"].mean())
