@@ -476,3 +476,33 @@ def test_a_patch_repeating_one_supercell_is_that_supercell():
     w2 = np.concatenate([np.concatenate([sc, sc[::-1]], 1), np.concatenate([sc[:, ::-1], sc], 1)], 0)
     _, r2 = _patch_task(("q", w2, st, ns_p, ns_s, nu))
     assert np.abs(r2["t_patch"] - r2["t_super"].mean(0)).max() > 1e-4
+
+
+def test_ring_model_calibrated_at_the_patch_truncation_is_the_patch(tmp_path, capsys):
+    """The neighbour-ring low fidelity solved at the very truncation of the patch study (the same patch and
+    supercell harmonic sets) is the study's ring term: residual zero, coefficient one, held out or not; a
+    cheaper second level gets no weight.  The model file round-trips; a bad option is one line."""
+    import json
+
+    from conftest import REPO, run_main
+
+    from metadesign.library.peds import RING_FORMAT, load_peds, patch_harmonics
+    from metadesign.library.rcwa import Stack
+
+    nb, _ = patch_harmonics(41, Stack())
+    out, model = tmp_path / "patches.json", tmp_path / "ring.json"
+    rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "4", "--harmonics",
+                           str(nb), "--ring-levels", "25", "41", "--ring-model", model, "-o", out, "--json"], capsys)
+    assert rc == 0, err
+    rep = json.loads(out.read_text())
+    assert rep["ring"]["calibrated_held_out_mean_both"] < 1e-8 and max(rep["ring"]["raw_per_level"]["41"]["max"]) < 1e-8
+    assert max(rep["ring"]["raw_per_level"]["25"]["max"]) > 1e-3  # the cheaper level alone is not it
+    assert rep["beyond_2x2_mean_both"] > 1e-3
+    m = load_peds(model, fmt=RING_FORMAT)
+    assert m.harmonics == (25, 41)
+    np.testing.assert_allclose(m.coef, [0.0, 1.0], atol=1e-7)
+    assert m.card["certification"]["ring"]["levels"] == [25, 41]
+    assert not out.with_name(out.name + ".partial").exists()
+    rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--ring-model", tmp_path / "r2.json",
+                           "-o", tmp_path / "p2.json"], capsys)
+    assert rc == 2 and len(err) == 1 and "--ring-levels" in err[0] and not (tmp_path / "p2.json").exists()

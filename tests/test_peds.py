@@ -163,3 +163,26 @@ def test_level_selection_uses_the_fitting_rows_only_and_prefers_the_cheap():
     scrambled[150:] = 99.0
     again = select_levels(c, scrambled, rows, tu, cost=[0.01, 0.05, 0.2])
     assert again == sel
+
+
+def test_neighbour_ring_vanishes_for_a_repeat_and_keeps_the_lattice_symmetries(paper_library, tmp_path):
+    """The ring term of a 4 x 4 patch (its periodic t minus its four supercells' mean, matched truncations):
+    none for a patch repeating one supercell (the same periodic structure); the same for the patch translated
+    by one supercell (the same lattice, the same four supercells); t_x and t_y swapped for the x <-> y mirror
+    image; and not trivially zero for four different supercells."""
+    from metadesign.library.peds import ring_couplings
+
+    st = paper_library.stack
+    rng = np.random.default_rng(5)
+    sc = rng.uniform(0.15e-6, 0.45e-6, size=(2, 2, 2))
+    mixed = rng.uniform(0.15e-6, 0.45e-6, size=(4, 4, 2))
+    patches = np.stack([np.tile(sc, (2, 2, 1)), mixed, np.roll(mixed, 2, axis=1), np.roll(mixed, 2, axis=0),
+                        mixed[:, :, ::-1].transpose(1, 0, 2)])
+    c = ring_couplings(patches, st, [25], tmp_path / "ring")[0]
+    assert np.abs(c[0]).max() < 1e-10
+    assert np.abs(c[1]).min() > 1e-3
+    np.testing.assert_allclose(c[2], c[1], atol=1e-9)
+    np.testing.assert_allclose(c[3], c[1], atol=1e-9)
+    np.testing.assert_allclose(c[4], c[1, ::-1], atol=1e-9)
+    again = ring_couplings(patches[1:2], st, [25], tmp_path / "ring")[0]  # resumed: nothing solved, same bytes
+    assert again.tobytes() == c[1:2].tobytes()

@@ -291,3 +291,30 @@ def test_sampled_frames_and_npib_of_exact_replicates(demo_products, tiny_dataset
     assert s["npib_unet"] == pytest.approx(out["exact"]["npib_unet"], abs=1e-5)
     assert s["npib_unet_se"] < 1e-5 and s["replicates"] == 3
     assert abs(out["exact"]["npib_unet"] - out["base"]["npib_unet"]) > 1e-5
+
+
+def test_certified_case_with_the_neighbour_ring(demo, tmp_path):
+    """The ring on a sub-sample of the certified sample: a ring model of zero weight changes nothing (the
+    sub-sample's weighting path against the plain one); a real one moves the device by its ring terms, on
+    every supercell whose 4 x 4 patch lies inside the device (the demo's square aperture: all but the last
+    row and column)."""
+    from metadesign.studies.coupling_check import certified_case
+
+    fab, sr, cp, _ = demo
+    fc = fab.with_coupling("supercell")
+    cpc = fc.pupil(sr.sensor.distance, sr.pupil_grid)
+    peds = PedsModel((25,), (0.8 + 0.1j,), fab.lib.identity)
+    kw = dict(supercells=12, replicates=3, peds=peds, seed=4)
+    base = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "a", **kw)
+    zero = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "b", ring_supercells=6,
+                          ring=PedsModel((25,), (0j,), fab.lib.identity), **kw)
+    ring = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", ring_supercells=6,
+                          ring=PedsModel((25,), (3.0 + 0j,), fab.lib.identity), **kw)
+    assert base["ring"] is None and zero["ring"]["supercells"] == 6 and "ring" in ring["label"]
+    C2 = fab.n_cells // 2
+    pick = eligible_supercells(fab)[np.random.default_rng(4).integers(0, C2 * C2, 12)]
+    first = pick.reshape(3, 4)[:, :2].ravel()
+    assert ring["ring"]["patches"] == int(((first % C2 < C2 - 1) & (first // C2 < C2 - 1)).sum()) > 0
+    for k in ("spot_efficiency", "spot_strehl"):
+        assert zero["mean"][k] == pytest.approx(base["mean"][k], rel=1e-6)
+        assert abs(ring["mean"][k] - base["mean"][k]) > 1e-6 * abs(base["mean"][k])

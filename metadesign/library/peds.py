@@ -28,19 +28,23 @@ from typing import Callable
 
 import numpy as np
 
+from .. import __version__
 from ..io import atomic_write_text
 from ..paths import repo_root
+from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
 from .coupling import lpa_t
 from .locate import find_fitted
 from .rcwa import Stack
 from .store import UnitCellLibrary, interpolate_t
-from .supercells import matched_unit_harmonics, solve_table
+from .supercell import solve_patch, solve_supercell
+from .supercells import matched_harmonics, matched_unit_harmonics, solve_table
 
-__all__ = ["PEDS_FORMAT", "PedsModel", "low_fidelity_couplings", "fit_peds", "peds_t", "save_peds", "load_peds",
-           "find_peds", "certified_t"]
+__all__ = ["PEDS_FORMAT", "RING_FORMAT", "PedsModel", "low_fidelity_couplings", "fit_peds", "peds_t", "save_peds",
+           "load_peds", "find_peds", "certified_t", "patch_harmonics", "ring_couplings", "ring_t"]
 
 PEDS_FORMAT = "metadesign.peds/1"
+RING_FORMAT = "metadesign.peds-ring/1"
 
 
 @dataclass(frozen=True)
@@ -98,23 +102,81 @@ def peds_t(coef, couplings: np.ndarray, t_lpa: np.ndarray) -> np.ndarray:
     return np.asarray(t_lpa) + np.tensordot(np.asarray(coef, complex), np.asarray(couplings), axes=1)
 
 
-def save_peds(path: str | Path, model: PedsModel) -> Path:
-    """The model as one JSON file (levels, coefficients, library, card)."""
-    rec = {"format": PEDS_FORMAT, "harmonics": list(model.harmonics),
+def patch_harmonics(n_super: int, stack: Stack) -> tuple[int, int]:
+    """Requested harmonic counts ``(4 x 4 patch, 2 x 2 supercell)`` whose sets match, the supercell's being the
+    set a supercell solve at the requested ``n_super`` uses (the PEDS level's): the smallest patch truncation
+    whose even multiples, halved, are that set (a patch repeating one supercell then equals it exactly)."""
+    ns, _ = matched_unit_harmonics(int(n_super), stack)  # ns - 1: the supercell's own nG at this request
+    target = ns - 1
+    for n in range(max(20, 3 * target), 8 * target + 64):
+        nb, nsub = matched_harmonics(n, stack, 4, 2)
+        if nsub - 1 == target:
+            return nb, nsub
+        if nsub - 1 > target:
+            break
+    raise ValidationError(f"no 4 x 4 patch truncation matches a supercell at nG {target}")
+
+
+def _ring_task(args) -> tuple[str, dict]:
+    """One patch at one level: its solve and its four supercells', matched."""
+    name, w, stack, n_patch, n_super = args
+    tp = solve_patch(w, stack, n_patch).jones[[0, 1], [0, 1]]
+    ts = np.array([solve_supercell(w[2 * i:2 * i + 2, 2 * j:2 * j + 2], stack, n_super).jones[[0, 1], [0, 1]]
+                   for i in range(2) for j in range(2)])
+    return name, {"ring": tp - ts.mean(0)}
+
+
+def ring_couplings(patches: np.ndarray, stack: Stack, harmonics, partial: str | Path, *, workers: int = 1,
+                   scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
+                   log: Callable[[str], None] = lambda s: None) -> np.ndarray:
+    """(K, n, 2) complex: the neighbour-ring coupling of 4 x 4 patches ``patches`` (n, 4, 4, 2) m at each
+    requested supercell truncation of ``harmonics``: the periodic patch's ``t`` minus the mean of its four
+    2 x 2 supercells' (each periodic), both at matched truncations (:func:`patch_harmonics`), so a patch
+    repeating one supercell has none.  It is what the patch's mean transmission owes to each supercell
+    seeing other supercells around it rather than copies of itself (issue #34 section 2).  One task per
+    patch and level under ``partial`` (content-keyed: resumable, the same bytes on any worker count)."""
+    w = np.asarray(patches, float)
+    if w.ndim != 4 or w.shape[1:] != (4, 4, 2):
+        raise ValidationError(f"ring_couplings: patches must be (n, 4, 4, 2) metres, got {w.shape}")
+    out = []
+    for h in harmonics:
+        npch, nsup = patch_harmonics(int(h), stack)
+        key = [npch, nsup, stack.wavelength, stack.period, stack.height, stack.n_pillar, stack.n_substrate,
+               stack.n_superstrate]
+        names = [f"ring-{content_key(np.ascontiguousarray(x, '<f8'), key, __version__)}" for x in w]
+        jobs = {nm: (nm, x, stack, npch, nsup) for nm, x in zip(names, w)}
+        done, _ = run_resumable(_ring_task, jobs, TaskFolder(Path(partial) / f"ring-nG-{nsup - 1}"), workers=workers,
+                                scheduler=scheduler, dask_key=f"ring-{nsup - 1}", progress=progress, log=log,
+                                unit="patch")
+        out.append(np.array([done[nm]["ring"] for nm in names]).reshape(len(w), 2))
+    return np.stack(out) if out else np.zeros((0, len(w), 2), complex)
+
+
+def ring_t(model: PedsModel, couplings: np.ndarray) -> np.ndarray:
+    """(n, 2) the neighbour-ring term a ring model adds to a supercell's ``t``: its calibrated couplings."""
+    return np.tensordot(np.asarray(model.coef, complex), np.asarray(couplings), axes=1)
+
+
+def save_peds(path: str | Path, model: PedsModel, fmt: str = PEDS_FORMAT) -> Path:
+    """The model as one JSON file (levels, coefficients, library, card); ``fmt`` :data:`RING_FORMAT` for a
+    neighbour-ring model (the same record: its levels are the supercell truncations of its patches)."""
+    rec = {"format": fmt, "harmonics": list(model.harmonics),
            "coef": [[float(complex(a).real), float(complex(a).imag)] for a in model.coef],
            "library": {"sha256": model.library_sha256}, **model.card}
     atomic_write_text(path, json.dumps(rec, indent=1))
     return Path(path)
 
 
-def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel:
-    """A saved model; with ``lib``, checked to be calibrated against that library."""
+def load_peds(path: str | Path, lib: UnitCellLibrary | None = None, fmt: str = PEDS_FORMAT) -> PedsModel:
+    """A saved model (``fmt``: :data:`RING_FORMAT` for a neighbour-ring model); with ``lib``, checked to be
+    calibrated against that library."""
+    what = "PEDS neighbour-ring model" if fmt == RING_FORMAT else "PEDS supercell model"
     try:
         rec = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
-        raise ValidationError(f"{path}: not a PEDS supercell model ({e})") from None
-    if not isinstance(rec, dict) or rec.get("format") != PEDS_FORMAT:
-        raise ValidationError(f"{path}: not a PEDS supercell model ({PEDS_FORMAT})")
+        raise ValidationError(f"{path}: not a {what} ({e})") from None
+    if not isinstance(rec, dict) or rec.get("format") != fmt:
+        raise ValidationError(f"{path}: not a {what} ({fmt})")
     try:
         sha = str((rec.get("library") or {}).get("sha256", ""))
         harmonics = tuple(int(h) for h in rec["harmonics"])
@@ -130,11 +192,16 @@ def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel
     return PedsModel(harmonics, coef, sha, card)
 
 
-def find_peds(lib: UnitCellLibrary) -> Path:
-    """The PEDS model calibrated against ``lib`` among the JSON files of the products' ``library/`` folder."""
-    found = find_fitted(lib.identity, PEDS_FORMAT, (repo_root() / "library",))
+def find_peds(lib: UnitCellLibrary, fmt: str = PEDS_FORMAT) -> Path:
+    """The PEDS model (``fmt`` :data:`RING_FORMAT`: the neighbour-ring model) calibrated against ``lib`` among
+    the JSON files of the products' ``library/`` folder."""
+    found = find_fitted(lib.identity, fmt, (repo_root() / "library",))
     if found is not None:
         return found[0]
+    if fmt == RING_FORMAT:
+        raise ValidationError(f"no neighbour-ring model calibrated against this library (sha256 "
+                              f"{lib.identity[:12]}) in library/; calibrate one (metadesign library patches "
+                              "DESIGN --ring-levels ... --ring-model OUT.json)")
     raise ValidationError(f"no PEDS supercell model calibrated against this library (sha256 {lib.identity[:12]}) "
                           "in library/; calibrate one (metadesign library peds TABLE)")
 

@@ -451,25 +451,54 @@ def _cmd_patches(a: argparse.Namespace) -> int:
     import numpy as np
 
     from ..design.store import design_library
+    from ..library.peds import RING_FORMAT, PedsModel, save_peds
+    from ..library.supercells import remove_partial
     from .supercells import design_source, patch_study
 
+    ring_levels = sorted(set(a.ring_levels or ()))
+    if a.ring_model and not ring_levels:
+        raise InputError("--ring-model: give the neighbour-ring low fidelity's --ring-levels")
+    if ring_levels and a.patches < 4:
+        raise InputError(f"--ring-levels: calibrating the ring's coefficients needs >= 4 patches, got {a.patches}")
     src = Path(a.design)
     d, _ = design_source(src if src.suffix == ".toml" else Path(design_file(src)), log_to(a.json))
     lib = design_library(d, a.library)
     base = src.parent if src.suffix in (".toml", ".npz") else src
     out = out_file(Path(a.output) if a.output else base / "patches.json", suffixes=(".json",))
     log = log_to(a.json)
-    with product(out, "patches", {"design": src, "--library": a.library}, scratch=(out.with_name(out.name + ".partial"),)):
-        rep = patch_study(d, lib, a.patches, a.seed, a.harmonics, out.with_name(out.name + ".partial"),
+    ring_out = out_file(Path(a.ring_model), suffixes=(".json",)) if a.ring_model else None
+    partial = out.with_name(out.name + ".partial")
+    with product(out, "patches", {"design": src, "--library": a.library},
+                 also=(ring_out,) if ring_out else (), scratch=(partial,)):
+        rep = patch_study(d, lib, a.patches, a.seed, a.harmonics, partial,
                           workers=a.workers, scheduler=a.scheduler,
-                          progress=None if a.json else progress_bar("patches", unit="patch"), log=log)
+                          progress=None if a.json else progress_bar("patches", unit="patch"), log=log,
+                          ring_levels=ring_levels)
+        coef = rep.pop("_ring_coef", None)
         rep = {"format": "metadesign.patches/1", "design": str(src), **rep}
+        if ring_out:
+            card = {"certification": {k: rep[k] for k in ("patches", "seed", "n_harmonics", "beyond_2x2", "ring")},
+                    "patches_report": out.name, "design": str(src)}
+            save_peds(ring_out, PedsModel(tuple(ring_levels), tuple(complex(c) for c in coef), lib.identity, card),
+                      RING_FORMAT)
+            rep["ring_model"] = str(ring_out)
         atomic_write_text(out, json.dumps(rep, indent=1))
+        remove_partial(partial)
     nh = rep["n_harmonics"]
-    emit(rep, a.json, f"wrote {out}: {rep['patches']} 4 x 4 patches (nG {nh['patch']}; supercells {nh['supercell']}, "
-                      f"unit cells {nh['unit']}): beyond the 2 x 2 cell, mean "
-                      f"{rep['beyond_2x2_mean_both']:.4f} (p90 {rep['beyond_2x2_p90_both']:.4f}) of rms|t_i|; the LPA "
-                      f"vs the patch {np.mean(rep['lpa_vs_patch']['mean']):.4f}")
+    lines = [f"wrote {out}: {rep['patches']} 4 x 4 patches (nG {nh['patch']}; supercells {nh['supercell']}, "
+             f"unit cells {nh['unit']}): beyond the 2 x 2 cell, mean "
+             f"{rep['beyond_2x2_mean_both']:.4f} (p90 {rep['beyond_2x2_p90_both']:.4f}) of rms|t_i|; the LPA "
+             f"vs the patch {np.mean(rep['lpa_vs_patch']['mean']):.4f}"]
+    if "ring" in rep:
+        rg = rep["ring"]
+        for h, st in rg["raw_per_level"].items():
+            lines.append(f"  ring low fidelity at supercell nG request {h}, uncalibrated: mean {np.mean(st['mean']):.4f}"
+                         f" (p90 {np.mean(st['p90']):.4f})")
+        lines.append(f"  ring low fidelity calibrated ({len(rg['levels'])} complex coefficients, each patch held out):"
+                     f" mean {rg['calibrated_held_out_mean_both']:.4f} (p90 {rg['calibrated_held_out_p90_both']:.4f});"
+                     f" {rg['seconds_per_patch_core']:.2f} core-s per patch"
+                     + (f"; model {ring_out}" if ring_out else ""))
+    emit(rep, a.json, "\n".join(lines))
     return 0
 
 
@@ -689,6 +718,12 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
 
     if (a.dataset is None) != (a.model is None):
         raise ValidationError("--dataset and --model go together (the NPiB needs both)")
+    if a.ring and not a.certified:
+        raise ValidationError("--ring: the neighbour ring adds to the certified model; give --certified N")
+    if a.ring_model and not a.ring:
+        raise ValidationError("--ring-model: give --ring N (the supercells that get the ring term)")
+    if a.ring and a.ring < a.replicates:
+        raise ValidationError(f"--ring {a.ring}: at least one supercell per replicate (--replicates {a.replicates})")
     if a.certified and a.certified < 2 * a.replicates:
         raise ValidationError(f"--certified {a.certified}: at least two supercells per replicate "
                               f"(--replicates {a.replicates}), so >= {2 * a.replicates}")
@@ -699,7 +734,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
-              "--peds": a.peds, "--fab-library": a.fab_library}
+              "--peds": a.peds, "--fab-library": a.fab_library, "--ring-model": a.ring_model}
     with product(out, "coupling-check", inputs, scratch=(partial,)):
         fab = AsFabricated.from_design(load_design(src))
         if a.fab_library:
@@ -737,7 +772,8 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
         cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
                 "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed,
-                "taper_slices": a.taper_slices} if a.certified else None
+                "taper_slices": a.taper_slices, "ring": (a.ring_model or True) if a.ring else None,
+                "ring_supercells": a.ring} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
                                      certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
                                                                                seed=a.jitter_seed,
@@ -1011,6 +1047,12 @@ def register(sub, groups: dict) -> None:
                     help="requested patch harmonics (1300: the supercells at 325, the unit cells at 81)")
     pa.add_argument("--seed", type=integer(0, 2**63 - 1), default=0)
     pa.add_argument("--library", help="the unit-cell library (default: the design's)")
+    pa.add_argument("--ring-levels", type=integer(20, 2000), nargs="+", metavar="N",
+                    help="the neighbour-ring low fidelity: requested supercell truncations at which each patch and "
+                         "its four supercells are solved again, matched (e.g. 45 97: the PEDS levels' range)")
+    pa.add_argument("--ring-model", metavar="OUT.json",
+                    help="with --ring-levels: write the calibrated neighbour-ring model (the certified model's "
+                         "ring term; found in library/ by its library's sha256)")
     pa.add_argument("-o", "--output", help="report (.json; default: patches.json beside the design)")
     pa.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
     workers_arg(pa)
@@ -1058,6 +1100,11 @@ def register(sub, groups: dict) -> None:
     cc.add_argument("--replicates", type=integer(3, 256), default=8,
                     help="independent replicates of the --certified sample (jackknife error bars; 8)")
     cc.add_argument("--peds", help="certified model (default: the PEDS model calibrated against the library)")
+    cc.add_argument("--ring", type=integer(0, 10_000_000), default=0, metavar="N",
+                    help="with --certified: also the neighbour ring, solved on the first N of the sampled "
+                         "supercells (each with the 4 x 4 patch it opens; 0: none)")
+    cc.add_argument("--ring-model", help="neighbour-ring model (default: the one calibrated against the library, "
+                                         "in library/)")
     cc.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the --certified sample (0)")
     cc.add_argument("--bias-nm", type=num(-50, 50, unit="nm"), default=0.0,
                     help="every device made with this width bias (nm; a fab study under each model; 0)")

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..library.coupling import relative_error
 from ..library.coupling_net import coupling_t
-from ..library.peds import certified_t, find_peds, load_peds
+from ..library.peds import RING_FORMAT, PedsModel, certified_t, find_peds, load_peds, ring_couplings, ring_t
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
@@ -109,7 +109,8 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
 def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 2000, replicates: int = 8,
                    partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
                    label: str = CASES["certified"], pert: Perturbation = Perturbation(),
-                   log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4):
+                   log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4,
+                   ring=None, ring_supercells: int | None = None):
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
@@ -118,11 +119,19 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     height, with sloped walls in ``taper_slices`` slices (0: vertical, the widths at mid-height)).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
     rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
-    (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`)."""
+    (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`).
+
+    ``ring``: also the neighbour ring (a :data:`~metadesign.library.peds.RING_FORMAT` model, its file, or
+    True for the one in ``library/`` calibrated against the device's library): each of the first
+    ``ring_supercells / replicates`` supercells of every replicate (default all) gets the ring term of the
+    4 x 4 patch it opens (itself and its neighbours at +x, +y and +x+y, as made), weighted for its
+    sub-sample, so a replicate still estimates the whole correction without bias; supercells whose patch
+    leaves the device's complete supercells (the aperture's rim) get none.  The ring's solves are vertical
+    (at mid-height widths) at the etched height."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
-    pm = load_peds(peds if peds is not None else find_peds(fab.lib), fab.lib)
+    pm = peds if isinstance(peds, PedsModel) else load_peds(peds if peds is not None else find_peds(fab.lib), fab.lib)
     ids = eligible_supercells(fab)
     m = supercells // replicates
     if m < 1 or replicates < 3:
@@ -146,17 +155,54 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress,
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
+    ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
+    if ring is not None and ring is not False:
+        rm = ring if isinstance(ring, PedsModel) else load_peds(find_peds(fab.lib, RING_FORMAT) if ring is True else ring,
+                                                          fab.lib, RING_FORMAT)
+        k = min(m, (ring_supercells or m * replicates) // replicates)
+        if k < 1:
+            raise ValueError("certified_case: at least one ring supercell per replicate")
+        sub = np.concatenate([np.arange(r * m, r * m + k) for r in range(replicates)])
+        C2 = fab.n_cells // 2
+        J = pick[sub] % C2
+        corners = [pick[sub], pick[sub] + 1, pick[sub] + C2, pick[sub] + C2 + 1]  # (I, J), +x, +y, +x+y
+        whole = (J + 1 < C2) & np.all([np.isin(c, ids) for c in corners[1:]], axis=0)
+        wq = [supercell_widths(fab, c[whole], replace(pert, height=0.0, sidewall_deg=90.0), grid) for c in corners]
+        patches = np.concatenate([np.concatenate([wq[0], wq[1]], 2), np.concatenate([wq[2], wq[3]], 2)], 1)
+        log(f"    neighbour ring: {int(whole.sum())} patches of {len(sub)} supercells ...")
+        t_r = time.perf_counter()
+        c = ring_couplings(patches, stack, rm.harmonics, f"{partial}/ring", workers=workers, scheduler=scheduler)
+        rterm = np.zeros((len(sub), 2), np.complex128)
+        rterm[whole] = ring_t(rm, c)
+        ring_rows = [np.arange(r * k, (r + 1) * k) for r in range(replicates)]
+        rel_r = np.abs(rterm) / np.sqrt((np.abs(tu[sub]) ** 2).mean((1, 2)))
+        ring_rep = {"supercells": int(len(sub)), "patches": int(whole.sum()), "harmonics": list(rm.harmonics),
+                    "coefficients": [[float(a.real), float(a.imag)] for a in np.atleast_1d(rm.coef)],
+                    "seconds": time.perf_counter() - t_r, "mean_relative": [float(v) for v in rel_r.mean(0)],
+                    "p90_relative": [float(v) for v in np.percentile(rel_r, 90, axis=0)],
+                    "mean_complex": [[float(v.real), float(v.imag)] for v in rterm.mean(0)]}
+        ring_ids, ring_delta, ring_weight = pick[sub], rterm.astype(np.complex64), len(ids) / k
     t_solved = time.perf_counter()
-    deltas = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
-              for r in range(replicates)]
+    deltas = []
+    for r in range(replicates):
+        i_r, d_r = pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m]
+        if ring_rep is None:
+            deltas.append(delta_pupil(fab, cp.z, grid, i_r, d_r, len(ids) / m))
+        else:  # the ring's sub-sample, weighted for its own size
+            i_r = np.concatenate([i_r, ring_ids[ring_rows[r]]])
+            d_r = np.concatenate([d_r.astype(np.complex128) * (len(ids) / m),
+                                  ring_delta[ring_rows[r]].astype(np.complex128) * ring_weight])
+            deltas.append(delta_pupil(fab, cp.z, grid, i_r, d_r, 1.0))
     rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
     for i, row in enumerate(rows):
         for k in SPOT_KEYS:
             row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
     rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
+    if ring_rep is not None:
+        label = label.replace("PEDS", "PEDS + ring")
     rep = {
         "label": label,
-        "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
+        "coupling": "certified (PEDS + neighbour ring), sampled" if ring_rep else "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
         "seconds_solves": t_solved - t0, "channels": rows,
         "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
         "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
@@ -168,6 +214,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
                  "taper": list(taper) if taper else None,
                  "coefficients": [[float(c.real), float(c.imag)] for c in np.atleast_1d(pm.coef)]},
+        "ring": ring_rep,
         "correction": {"mean_relative": [float(v) for v in rel.mean(0)],
                        "p90_relative": [float(v) for v in np.percentile(rel, 90, axis=0)],
                        "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},

@@ -31,7 +31,7 @@ from ..design.store import Design, design_file, load_design, run_design
 from ..library.coupling import CouplingConfig, lpa_t, relative_error
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
-from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
+from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t, ring_couplings
 from ..library.store import interpolate_t, load_library
 from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
@@ -283,14 +283,21 @@ def _patch_task(args) -> tuple[str, dict]:
 
 
 def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, partial: Path, *, workers: int = 1,
-                scheduler: str | None = None, progress=None, log=lambda s: None) -> dict:
+                scheduler: str | None = None, progress=None, log=lambda s: None, ring_levels=()) -> dict:
     """Beyond the periodic 2 x 2 cell (issue #34 section 2): ``patches`` 4 x 4 patches cut from ``design``
     (aligned to its supercells, all sixteen pillars present, drawn with ``seed``), each solved as a
     periodic 4 x 4 cell (2.8 um at the paper's pitch: each supercell sees other supercells around it, as
     in the device) at ``n_harmonics`` (requested), against the mean of its four 2 x 2 supercells solved
     periodically at the matched truncation (the 2 x 2 picture every coupling model here assumes), beside
     the LPA at the unit cells' matched truncation.  Errors in units of the sixteen pillars' rms ``|t|``.
-    Resumable: one task per patch under ``partial`` (content-keyed)."""
+    Resumable: one task per patch under ``partial`` (content-keyed).
+
+    ``ring_levels``: requested supercell truncations of a neighbour-ring low fidelity
+    (:func:`~metadesign.library.peds.ring_couplings`: each patch and its four supercells solved again at
+    matched low truncations): the report's ``ring`` section gives how far each level's ring term and their
+    calibrated combination (one complex coefficient per level, both polarisations; fitted leaving each patch
+    out in turn, so every patch's figure is held out) fall from the patch solve's, and the coefficients
+    fitted on all patches (``_ring_coef``; the ring model's)."""
     stack = lib.stack
     ns_patch, ns_super = matched_harmonics(n_harmonics, stack, 4, 2)
     _, nu = matched_unit_harmonics(ns_super, stack)
@@ -321,6 +328,8 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     lpa = tu.mean((1, 2))
     two = tsc.mean(1)
     beyond = np.abs(tp - two) / rms
+    ring = _ring_section(ws, tp - two, rms, stack, ring_levels, partial, workers, scheduler, progress, log) \
+        if ring_levels else {}
     return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[names[0]]["n_harmonics"][0]),
                                                               "supercell": ns_super - 1, "unit": nu - 1},
             "beyond_2x2": _stats(beyond), "beyond_2x2_mean_both": float(beyond.mean()),
@@ -328,7 +337,32 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
             "lpa_vs_patch": _stats(np.abs(tp - lpa) / rms), "two_by_two_vs_lpa": _stats(np.abs(two - lpa) / rms),
             "cross_polarisation_max": float(np.array([done[nm]["cross"] for nm in names]).max()),
             "solve_seconds": seconds, "workers": workers,
-            "metric": "|t| differences over the sixteen pillars' rms |t| (matched unit cells), per polarisation"}
+            "metric": "|t| differences over the sixteen pillars' rms |t| (matched unit cells), per polarisation",
+            **ring}
+
+
+def _ring_section(ws, target, rms, stack, levels, partial, workers, scheduler, progress, log) -> dict:
+    """The neighbour-ring low fidelity at ``levels`` against the patches' own ring terms ``target`` (n, 2)."""
+    t0 = time.perf_counter()
+    c = ring_couplings(ws, stack, levels, Path(partial), workers=workers, scheduler=scheduler, progress=progress,
+                       log=log)
+    seconds = time.perf_counter() - t0
+    n = len(ws)
+    raw = {str(h): _stats(np.abs(target - c[k]) / rms) for k, h in enumerate(levels)}
+    held = np.zeros_like(target)
+    for i in range(n):  # leave one patch out: every residual is a held-out one
+        keep = np.arange(n) != i
+        held[i] = np.tensordot(fit_peds(c[:, keep], target[keep]), c[:, i], axes=1)
+    e_held = np.abs(target - held) / rms
+    coef = fit_peds(c, target)
+    return {"ring": {"levels": [int(h) for h in levels], "raw_per_level": raw, "calibrated_held_out": _stats(e_held),
+                     "calibrated_held_out_mean_both": float(e_held.mean()),
+                     "calibrated_held_out_p90_both": float(np.percentile(e_held, 90)),
+                     "coefficients": [[float(a.real), float(a.imag)] for a in coef],
+                     "seconds": seconds, "seconds_per_patch_core": seconds * max(1, workers) / max(1, n),
+                     "metric": "|ring term (patch - mean of its 2 x 2 supercells), low fidelity calibrated - "
+                               "the patch solve's| over the sixteen pillars' rms |t|"},
+            "_ring_coef": coef}
 
 
 def _stats(e: np.ndarray) -> dict:
