@@ -282,6 +282,39 @@ def _patch_task(args) -> tuple[str, dict]:
                   "t_super": sc, "t_unit": units, "n_harmonics": np.array([res.n_harmonics])}
 
 
+def design_patches(design: Design, patches: int, seed: int) -> np.ndarray:
+    """(patches, 4, 4, 2) widths (m) of 4 x 4 patches cut from ``design``, aligned to its supercells, all
+    sixteen pillars present, drawn with ``seed`` (the same patches for the same seed, whatever the count
+    asked: the first ``k`` of a larger draw are the draw of ``k``)."""
+    aw = np.stack([design.atoms.wx, design.atoms.wy], 1)
+    im = design.index_map
+    rng = np.random.default_rng(seed)
+    H, W = im.shape[0] // 4, im.shape[1] // 4
+    ws = []
+    while len(ws) < patches:
+        I, J = int(rng.integers(H)), int(rng.integers(W))
+        blk = im[4 * I:4 * I + 4, 4 * J:4 * J + 4].astype(np.int64)
+        if (blk < len(aw)).all():
+            ws.append(aw[blk])
+    return np.array(ws)
+
+
+def solve_patches(ws: np.ndarray, stack, n_harmonics: int, partial: Path, *, workers: int = 1,
+                  scheduler: str | None = None, progress=None, log=lambda s: None) -> tuple[list, int, int]:
+    """Each patch of ``ws`` solved periodically at ``n_harmonics`` (requested) with its four supercells and
+    sixteen unit cells at the matched truncations (:func:`_patch_task`): ``(results in order, supercell
+    request, unit request)``.  One task per patch under ``partial`` (content-keyed: resumable)."""
+    ns_patch, ns_super = matched_harmonics(n_harmonics, stack, 4, 2)
+    _, nu = matched_unit_harmonics(ns_super, stack)
+    names = ["patch-" + content_key(np.ascontiguousarray(w, "<f8"), [ns_patch, ns_super, nu, stack.wavelength,
+                                    stack.period, stack.height, stack.n_pillar, stack.n_substrate,
+                                    stack.n_superstrate], __version__) for w in ws]
+    jobs = {nm: (nm, w, stack, ns_patch, ns_super, nu) for nm, w in zip(names, ws)}
+    done, _ = run_resumable(_patch_task, jobs, TaskFolder(partial), workers=workers, scheduler=scheduler,
+                            dask_key="patches", progress=progress, log=log, unit="patch")
+    return [done[nm] for nm in names], ns_super, nu
+
+
 def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, partial: Path, *, workers: int = 1,
                 scheduler: str | None = None, progress=None, log=lambda s: None, ring_levels=()) -> dict:
     """Beyond the periodic 2 x 2 cell (issue #34 section 2): ``patches`` 4 x 4 patches cut from ``design``
@@ -299,43 +332,26 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     out in turn, so every patch's figure is held out) fall from the patch solve's, and the coefficients
     fitted on all patches (``_ring_coef``; the ring model's)."""
     stack = lib.stack
-    ns_patch, ns_super = matched_harmonics(n_harmonics, stack, 4, 2)
-    _, nu = matched_unit_harmonics(ns_super, stack)
-    aw = np.stack([design.atoms.wx, design.atoms.wy], 1)
-    im = design.index_map
-    rng = np.random.default_rng(seed)
-    H, W = im.shape[0] // 4, im.shape[1] // 4
-    ws = []
-    while len(ws) < patches:
-        I, J = int(rng.integers(H)), int(rng.integers(W))
-        blk = im[4 * I:4 * I + 4, 4 * J:4 * J + 4].astype(np.int64)
-        if (blk < len(aw)).all():
-            ws.append(aw[blk])
-    ws = np.array(ws)
-    folder = TaskFolder(partial)
-    names = ["patch-" + content_key(np.ascontiguousarray(w, "<f8"), [ns_patch, ns_super, nu, stack.wavelength,
-                                    stack.period, stack.height, stack.n_pillar, stack.n_substrate,
-                                    stack.n_superstrate], __version__) for w in ws]
-    jobs = {nm: (nm, w, stack, ns_patch, ns_super, nu) for nm, w in zip(names, ws)}
+    ws = design_patches(design, patches, seed)
     t0 = time.perf_counter()
-    done, _ = run_resumable(_patch_task, jobs, folder, workers=workers, scheduler=scheduler, dask_key="patches",
-                            progress=progress, log=log, unit="patch")
+    done, ns_super, nu = solve_patches(ws, stack, n_harmonics, partial, workers=workers, scheduler=scheduler,
+                                       progress=progress, log=log)
     seconds = time.perf_counter() - t0
-    tp = np.array([done[nm]["t_patch"] for nm in names])  # (n, 2)
-    tsc = np.array([done[nm]["t_super"] for nm in names])  # (n, 4, 2)
-    tu = np.array([done[nm]["t_unit"] for nm in names])  # (n, 4, 4, 2)
+    tp = np.array([r["t_patch"] for r in done])  # (n, 2)
+    tsc = np.array([r["t_super"] for r in done])  # (n, 4, 2)
+    tu = np.array([r["t_unit"] for r in done])  # (n, 4, 4, 2)
     rms = np.sqrt((np.abs(tu) ** 2).mean((1, 2)))  # (n, 2)
     lpa = tu.mean((1, 2))
     two = tsc.mean(1)
     beyond = np.abs(tp - two) / rms
     ring = _ring_section(ws, tp - two, rms, stack, ring_levels, partial, workers, scheduler, progress, log) \
         if ring_levels else {}
-    return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[names[0]]["n_harmonics"][0]),
+    return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[0]["n_harmonics"][0]),
                                                               "supercell": ns_super - 1, "unit": nu - 1},
             "beyond_2x2": _stats(beyond), "beyond_2x2_mean_both": float(beyond.mean()),
             "beyond_2x2_p90_both": float(np.percentile(beyond, 90)),
             "lpa_vs_patch": _stats(np.abs(tp - lpa) / rms), "two_by_two_vs_lpa": _stats(np.abs(two - lpa) / rms),
-            "cross_polarisation_max": float(np.array([done[nm]["cross"] for nm in names]).max()),
+            "cross_polarisation_max": float(np.array([r["cross"] for r in done]).max()),
             "solve_seconds": seconds, "workers": workers,
             "metric": "|t| differences over the sixteen pillars' rms |t| (matched unit cells), per polarisation",
             **ring}
