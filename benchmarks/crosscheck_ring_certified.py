@@ -1,0 +1,105 @@
+"""The certified surrogate with its neighbour ring, against the best truth a patch has (#34): each 4 x 4
+patch of the patch study (the same draw) as its four supercells solved at convergence (nG 797, the
+label table's truncation, the library's own) plus the ring term of the patch solve (nG 1289, its
+supercells matched); the model is the PEDS surrogate on the four supercells plus the ring model's term,
+its coefficients fitted with that patch left out (every figure held out).  Beside it the PEDS surrogate
+alone (no ring) and the LPA, in units of the sixteen pillars' rms |t|, per polarisation.
+
+    python benchmarks/crosscheck_ring_certified.py [layouts/paper-5mm] [--patches 32] [--harmonics 1300]
+        [--ring-levels 45 97] [--partial DIR] [-j 2] [--json]
+
+``--partial``: the patch study's solves (OUT.partial of `library patches`, kept) are reused from there;
+the converged supercells are added to it (resumable)."""
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from _paper_design import design_arguments  # noqa: E402
+
+
+def _stats(e):
+    import numpy as np
+
+    return {"mean": e.mean(0).tolist(), "p90": np.percentile(e, 90, axis=0).tolist(), "max": e.max(0).tolist(),
+            "mean_both": float(e.mean()), "p90_both": float(np.percentile(e, 90))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    design_arguments(ap)
+    ap.add_argument("--patches", type=int, default=32)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--harmonics", type=int, default=1300, help="the patch study's (requested)")
+    ap.add_argument("--ring-levels", type=int, nargs="+", default=[45, 97])
+    ap.add_argument("--converged", type=int, default=800, help="the supercells' converged truncation (requested)")
+    ap.add_argument("--partial", help="folder of the solves (default: a temporary one)")
+    a = ap.parse_args(argv)
+    if not (Path(a.design) / "design.npz").exists():
+        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+        return 2
+    import numpy as np
+
+    from metadesign.design.store import design_library, load_design
+    from metadesign.library.coupling import lpa_t
+    from metadesign.library.peds import certified_t, fit_peds, ring_couplings
+    from metadesign.library.store import interpolate_t
+    from metadesign.library.supercells import solve_table
+    from metadesign.studies.supercells import design_patches, solve_patches
+
+    d = load_design(a.design)
+    lib = design_library(d, None)
+    st = lib.stack
+    ws = design_patches(d, a.patches, a.seed)
+    partial = Path(a.partial) if a.partial else Path(tempfile.mkdtemp(prefix="ring-certified-"))
+    t0 = time.perf_counter()
+    done, _, _ = solve_patches(ws, st, a.harmonics, partial, workers=a.workers)
+    tp = np.array([r["t_patch"] for r in done])
+    ring_hi = tp - np.array([r["t_super"] for r in done]).mean(1)  # (n, 2)
+    c = ring_couplings(ws, st, a.ring_levels, partial, workers=a.workers)
+    n = len(ws)
+    held = np.zeros_like(ring_hi)
+    for i in range(n):
+        keep = np.arange(n) != i
+        held[i] = np.tensordot(fit_peds(c[:, keep], ring_hi[keep]), c[:, i], axes=1)
+    quads = np.array([w[2 * i:2 * i + 2, 2 * j:2 * j + 2] for w in ws for i in range(2) for j in range(2)])
+    t_conv, nG_conv, _, _ = solve_table(quads, st, a.converged, partial / f"converged-{a.converged}",
+                                        workers=a.workers, chunk_size=4)
+    t_peds = certified_t(lib, quads, partial / "peds", workers=a.workers)
+    tu = interpolate_t(lib, quads[..., 0], quads[..., 1])[0]  # (4n, 2, 2, 2)
+    rms = np.sqrt((np.abs(tu.reshape(n, 16, 2)) ** 2).mean(1))  # the sixteen pillars' (n, 2)
+    truth = t_conv.reshape(n, 4, 2).mean(1) + ring_hi
+    peds = t_peds.reshape(n, 4, 2).mean(1)
+    lpa = lpa_t(tu).reshape(n, 4, 2).mean(1)
+    rep = {"patches": n, "seed": a.seed, "ring_levels": a.ring_levels, "converged_nG": int(nG_conv),
+           "seconds": time.perf_counter() - t0, "workers": a.workers,
+           "peds_plus_ring": _stats(np.abs(peds + held - truth) / rms),
+           "peds_alone": _stats(np.abs(peds - truth) / rms),
+           "lpa": _stats(np.abs(lpa - truth) / rms),
+           "ring_term_alone_residual": _stats(np.abs(held - ring_hi) / rms),
+           "per_supercell_peds_vs_converged": _stats(np.abs(t_peds - t_conv) /
+                                                     np.sqrt((np.abs(tu) ** 2).mean((1, 2))))}
+    if a.json:
+        print(json.dumps(rep, indent=2))
+        return 0
+    print(f"{n} patches of {a.design} (seed {a.seed}); truth: four supercells at nG {nG_conv} + the patch's ring term; "
+          f"{rep['seconds']:.0f} s on {a.workers} workers")
+    print("  of rms|t_i|                mean x / y          p90 x / y")
+    for k, name in (("peds_plus_ring", "PEDS + ring (held out)"), ("peds_alone", "PEDS alone"), ("lpa", "LPA"),
+                    ("ring_term_alone_residual", "ring term residual"),
+                    ("per_supercell_peds_vs_converged", "PEDS per supercell")):
+        s = rep[k]
+        print(f"  {name:<26s} {s['mean'][0]:.4f} / {s['mean'][1]:.4f}     {s['p90'][0]:.4f} / {s['p90'][1]:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
