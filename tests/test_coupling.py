@@ -478,31 +478,30 @@ def test_a_patch_repeating_one_supercell_is_that_supercell():
     assert np.abs(r2["t_patch"] - r2["t_super"].mean(0)).max() > 1e-4
 
 
-def test_ring_model_calibrated_at_the_patch_truncation_is_the_patch(tmp_path, capsys):
+def test_ring_low_fidelity_at_the_patch_truncation_is_the_patch(tmp_path, capsys):
     """The neighbour-ring low fidelity solved at the very truncation of the patch study (the same patch and
-    supercell harmonic sets) is the study's ring term: residual zero, coefficient one, held out or not; a
-    cheaper second level gets no weight.  The model file round-trips; a bad option is one line."""
+    supercell harmonic sets) is the study's ring term: residual zero, coefficients (0, 1), held out or not;
+    the cheaper level alone is not.  The overlapping windows are reported too; a bad option is one line."""
     import json
 
     from conftest import REPO, run_main
 
-    from metadesign.library.peds import RING_FORMAT, load_peds, patch_harmonics
+    from metadesign.library.peds import patch_harmonics
     from metadesign.library.rcwa import Stack
 
     nb, _ = patch_harmonics(25, Stack())
-    out, model = tmp_path / "patches.json", tmp_path / "ring.json"
+    out = tmp_path / "patches.json"
     rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "4", "--harmonics",
-                           str(nb), "--ring-levels", "20", "25", "--ring-model", model, "-o", out, "--json"], capsys)
+                           str(nb), "--ring-levels", "20", "25", "--windows", "-o", out, "--json"], capsys)
     assert rc == 0, err
     rep = json.loads(out.read_text())
     assert rep["ring"]["calibrated_held_out_mean_both"] < 1e-8 and max(rep["ring"]["raw_per_level"]["25"]["max"]) < 1e-8
     assert max(rep["ring"]["raw_per_level"]["20"]["max"]) > 1e-3  # the cheaper level alone is not it
+    np.testing.assert_allclose([complex(*c) for c in rep["ring"]["coefficients"]], [0.0, 1.0], atol=1e-7)
     assert rep["beyond_2x2_mean_both"] > 1e-3
-    m = load_peds(model, fmt=RING_FORMAT)
-    assert m.harmonics == (20, 25)
-    np.testing.assert_allclose(m.coef, [0.0, 1.0], atol=1e-7)
-    assert m.card["certification"]["ring"]["levels"] == [20, 25]
+    for k in ("windows_exact", "windows_peds"):
+        assert np.isfinite(rep[k]["mean_both"]) and rep[k]["p90_both"] >= 0
     assert not out.with_name(out.name + ".partial").exists()
-    rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--ring-model", tmp_path / "r2.json",
+    rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "2", "--ring-levels", "20",
                            "-o", tmp_path / "p2.json"], capsys)
     assert rc == 2 and len(err) == 1 and "--ring-levels" in err[0] and not (tmp_path / "p2.json").exists()

@@ -186,3 +186,31 @@ def test_neighbour_ring_vanishes_for_a_repeat_and_keeps_the_lattice_symmetries(p
     np.testing.assert_allclose(c[4], c[1, ::-1], atol=1e-9)
     again = ring_couplings(patches[1:2], st, [25], tmp_path / "ring")[0]  # resumed: nothing solved, same bytes
     assert again.tobytes() == c[1:2].tobytes()
+
+
+def test_overlapping_windows_of_a_patch_and_of_a_device_agree():
+    """The patch study's ring (the mean of a periodic patch's sixteen 2 x 2 windows minus its four
+    supercells') equals the device path's (each supercell's three straddling windows, window_ring) averaged
+    over the patch's four supercells, their neighbourhoods wrapped round the period; any response ``t`` of
+    a window will do, and the supercells are the four aligned windows."""
+    from metadesign.library.peds import neighbour_windows, patch_windows, window_ring
+
+    rng = np.random.default_rng(11)
+    w = rng.uniform(0.1, 0.5, size=(3, 4, 4, 2))
+    a = rng.normal(size=8) + 1j * rng.normal(size=8)
+
+    def t(win):  # (..., 2, 2, 2) -> (..., 2): some nonlinear response of a window
+        f = win.reshape(*win.shape[:-3], 8)
+        return np.stack([np.exp(1j * f @ a.real) * f[..., 0], np.tanh(f @ a.imag) + f[..., 3] ** 2], -1)
+
+    pw = patch_windows(w)
+    np.testing.assert_array_equal(pw[:, 10], w[:, 2:4, 2:4])  # window (2, 2): a supercell
+    np.testing.assert_array_equal(pw[:, 3], w[:, [0, 1]][:, :, [3, 0]])  # window (0, 3) wraps round
+    tw = t(pw)
+    patch_ring = tw.mean(1) - tw[:, [0, 2, 8, 10]].mean(1)
+    device = []
+    for i in (0, 2):
+        for j in (0, 2):
+            nb = np.roll(w, (-i, -j), axis=(1, 2))[:, :3, :3]
+            device.append(window_ring(t(neighbour_windows(nb)), t(w[:, i:i + 2, j:j + 2])))
+    np.testing.assert_allclose(np.mean(device, 0), patch_ring, atol=1e-12)

@@ -40,11 +40,11 @@ from .store import UnitCellLibrary, interpolate_t
 from .supercell import solve_patch, solve_supercell
 from .supercells import matched_harmonics, matched_unit_harmonics, solve_table
 
-__all__ = ["PEDS_FORMAT", "RING_FORMAT", "PedsModel", "low_fidelity_couplings", "fit_peds", "peds_t", "save_peds",
-           "load_peds", "find_peds", "certified_t", "patch_harmonics", "ring_couplings", "ring_t"]
+__all__ = ["PEDS_FORMAT", "PedsModel", "low_fidelity_couplings", "fit_peds", "peds_t", "save_peds", "load_peds",
+           "find_peds", "certified_t", "patch_harmonics", "ring_couplings", "patch_windows", "neighbour_windows",
+           "window_ring"]
 
 PEDS_FORMAT = "metadesign.peds/1"
-RING_FORMAT = "metadesign.peds-ring/1"
 
 
 @dataclass(frozen=True)
@@ -152,31 +152,52 @@ def ring_couplings(patches: np.ndarray, stack: Stack, harmonics, partial: str | 
     return np.stack(out) if out else np.zeros((0, len(w), 2), complex)
 
 
-def ring_t(model: PedsModel, couplings: np.ndarray) -> np.ndarray:
-    """(n, 2) the neighbour-ring term a ring model adds to a supercell's ``t``: its calibrated couplings."""
-    return np.tensordot(np.asarray(model.coef, complex), np.asarray(couplings), axes=1)
+def patch_windows(patches: np.ndarray) -> np.ndarray:
+    """(n, 16, 2, 2, 2): every 2 x 2 window of periodic 4 x 4 patches (n, 4, 4, 2), the one starting at
+    pillar row ``a``, column ``b`` at index ``4 a + b`` (wrapping round the patch's period); the four at even
+    ``a`` and ``b`` are its supercells."""
+    w = np.asarray(patches)
+    rows = [[a, (a + 1) % 4] for a in range(4)]
+    return np.stack([w[:, r][:, :, c] for r in rows for c in rows], 1)
 
 
-def save_peds(path: str | Path, model: PedsModel, fmt: str = PEDS_FORMAT) -> Path:
-    """The model as one JSON file (levels, coefficients, library, card); ``fmt`` :data:`RING_FORMAT` for a
-    neighbour-ring model (the same record: its levels are the supercell truncations of its patches)."""
-    rec = {"format": fmt, "harmonics": list(model.harmonics),
+def neighbour_windows(nbhd: np.ndarray) -> np.ndarray:
+    """(n, 3, 2, 2, 2): the three 2 x 2 windows that straddle a supercell's edges towards +x, +y and +x+y,
+    from its 3 x 3 pillar neighbourhood ``nbhd`` (n, 3, 3, 2) (the supercell at rows and columns 0-1):
+    the windows starting at pillar (0, 1), (1, 0) and (1, 1)."""
+    w = np.asarray(nbhd)
+    return np.stack([w[:, 0:2, 1:3], w[:, 1:3, 0:2], w[:, 1:3, 1:3]], 1)
+
+
+def window_ring(t_windows: np.ndarray, t_self: np.ndarray) -> np.ndarray:
+    """(n, 2) the neighbour-ring term of supercells under overlapping windows: the mean of the supercell's
+    own ``t_self`` (n, 2) and its three straddling windows' ``t_windows`` (n, 3, 2) (each a 2 x 2 cell
+    solved periodically: :func:`neighbour_windows`), minus its own.  Summed over a device (or a periodic
+    patch) it makes the device's transmission the mean over every 2 x 2 window of its pillars, so each
+    pillar sees its actual neighbours on all four sides rather than copies of its own supercell: the
+    overlapping-patch idea (WO2023218712; Zhelyeznyakov et al., Communications Engineering 2023) at the
+    scale of the 2 x 2 model, with no new fitted parameter."""
+    tw = np.asarray(t_windows)
+    return (tw.sum(1) + np.asarray(t_self)) / 4 - np.asarray(t_self)
+
+
+def save_peds(path: str | Path, model: PedsModel) -> Path:
+    """The model as one JSON file (levels, coefficients, library, card)."""
+    rec = {"format": PEDS_FORMAT, "harmonics": list(model.harmonics),
            "coef": [[float(complex(a).real), float(complex(a).imag)] for a in model.coef],
            "library": {"sha256": model.library_sha256}, **model.card}
     atomic_write_text(path, json.dumps(rec, indent=1))
     return Path(path)
 
 
-def load_peds(path: str | Path, lib: UnitCellLibrary | None = None, fmt: str = PEDS_FORMAT) -> PedsModel:
-    """A saved model (``fmt``: :data:`RING_FORMAT` for a neighbour-ring model); with ``lib``, checked to be
-    calibrated against that library."""
-    what = "PEDS neighbour-ring model" if fmt == RING_FORMAT else "PEDS supercell model"
+def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel:
+    """A saved model; with ``lib``, checked to be calibrated against that library."""
     try:
         rec = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
-        raise ValidationError(f"{path}: not a {what} ({e})") from None
-    if not isinstance(rec, dict) or rec.get("format") != fmt:
-        raise ValidationError(f"{path}: not a {what} ({fmt})")
+        raise ValidationError(f"{path}: not a PEDS supercell model ({e})") from None
+    if not isinstance(rec, dict) or rec.get("format") != PEDS_FORMAT:
+        raise ValidationError(f"{path}: not a PEDS supercell model ({PEDS_FORMAT})")
     try:
         sha = str((rec.get("library") or {}).get("sha256", ""))
         harmonics = tuple(int(h) for h in rec["harmonics"])
@@ -192,16 +213,11 @@ def load_peds(path: str | Path, lib: UnitCellLibrary | None = None, fmt: str = P
     return PedsModel(harmonics, coef, sha, card)
 
 
-def find_peds(lib: UnitCellLibrary, fmt: str = PEDS_FORMAT) -> Path:
-    """The PEDS model (``fmt`` :data:`RING_FORMAT`: the neighbour-ring model) calibrated against ``lib`` among
-    the JSON files of the products' ``library/`` folder."""
-    found = find_fitted(lib.identity, fmt, (repo_root() / "library",))
+def find_peds(lib: UnitCellLibrary) -> Path:
+    """The PEDS model calibrated against ``lib`` among the JSON files of the products' ``library/`` folder."""
+    found = find_fitted(lib.identity, PEDS_FORMAT, (repo_root() / "library",))
     if found is not None:
         return found[0]
-    if fmt == RING_FORMAT:
-        raise ValidationError(f"no neighbour-ring model calibrated against this library (sha256 "
-                              f"{lib.identity[:12]}) in library/; calibrate one (metadesign library patches "
-                              "DESIGN --ring-levels ... --ring-model OUT.json)")
     raise ValidationError(f"no PEDS supercell model calibrated against this library (sha256 {lib.identity[:12]}) "
                           "in library/; calibrate one (metadesign library peds TABLE)")
 

@@ -451,13 +451,10 @@ def _cmd_patches(a: argparse.Namespace) -> int:
     import numpy as np
 
     from ..design.store import design_library
-    from ..library.peds import RING_FORMAT, PedsModel, save_peds
     from ..library.supercells import remove_partial
     from .supercells import design_source, patch_study
 
     ring_levels = sorted(set(a.ring_levels or ()))
-    if a.ring_model and not ring_levels:
-        raise InputError("--ring-model: give the neighbour-ring low fidelity's --ring-levels")
     if ring_levels and a.patches < 4:
         raise InputError(f"--ring-levels: calibrating the ring's coefficients needs >= 4 patches, got {a.patches}")
     src = Path(a.design)
@@ -466,22 +463,13 @@ def _cmd_patches(a: argparse.Namespace) -> int:
     base = src.parent if src.suffix in (".toml", ".npz") else src
     out = out_file(Path(a.output) if a.output else base / "patches.json", suffixes=(".json",))
     log = log_to(a.json)
-    ring_out = out_file(Path(a.ring_model), suffixes=(".json",)) if a.ring_model else None
     partial = out.with_name(out.name + ".partial")
-    with product(out, "patches", {"design": src, "--library": a.library},
-                 also=(ring_out,) if ring_out else (), scratch=(partial,)):
+    with product(out, "patches", {"design": src, "--library": a.library, "--peds": a.peds}, scratch=(partial,)):
         rep = patch_study(d, lib, a.patches, a.seed, a.harmonics, partial,
                           workers=a.workers, scheduler=a.scheduler,
                           progress=None if a.json else progress_bar("patches", unit="patch"), log=log,
-                          ring_levels=ring_levels)
-        coef = rep.pop("_ring_coef", None)
+                          ring_levels=ring_levels, windows=a.windows, peds=a.peds)
         rep = {"format": "metadesign.patches/1", "design": str(src), **rep}
-        if ring_out:
-            card = {"certification": {k: rep[k] for k in ("patches", "seed", "n_harmonics", "beyond_2x2", "ring")},
-                    "patches_report": out.name, "design": str(src)}
-            save_peds(ring_out, PedsModel(tuple(ring_levels), tuple(complex(c) for c in coef), lib.identity, card),
-                      RING_FORMAT)
-            rep["ring_model"] = str(ring_out)
         atomic_write_text(out, json.dumps(rep, indent=1))
         remove_partial(partial)
     nh = rep["n_harmonics"]
@@ -496,8 +484,13 @@ def _cmd_patches(a: argparse.Namespace) -> int:
                          f" (p90 {np.mean(st['p90']):.4f})")
         lines.append(f"  ring low fidelity calibrated ({len(rg['levels'])} complex coefficients, each patch held out):"
                      f" mean {rg['calibrated_held_out_mean_both']:.4f} (p90 {rg['calibrated_held_out_p90_both']:.4f});"
-                     f" {rg['seconds_per_patch_core']:.2f} core-s per patch"
-                     + (f"; model {ring_out}" if ring_out else ""))
+                     f" {rg['seconds_per_patch_core']:.2f} core-s per patch")
+    for k, what in (("windows_exact", "solved at the patch's supercell truncation"),
+                    ("windows_peds", "under the certified (PEDS) model")):
+        if k in rep:
+            st = rep[k]
+            lines.append(f"  overlapping windows, {what}: the ring left {st['mean_both']:.4f} mean "
+                         f"(p90 {st['p90_both']:.4f})")
     emit(rep, a.json, "\n".join(lines))
     return 0
 
@@ -720,8 +713,6 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         raise ValidationError("--dataset and --model go together (the NPiB needs both)")
     if a.ring and not a.certified:
         raise ValidationError("--ring: the neighbour ring adds to the certified model; give --certified N")
-    if a.ring_model and not a.ring:
-        raise ValidationError("--ring-model: give --ring N (the supercells that get the ring term)")
     if a.ring and a.ring < a.replicates:
         raise ValidationError(f"--ring {a.ring}: at least one supercell per replicate (--replicates {a.replicates})")
     if a.certified and a.certified < 2 * a.replicates:
@@ -734,7 +725,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
     inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
-              "--peds": a.peds, "--fab-library": a.fab_library, "--ring-model": a.ring_model}
+              "--peds": a.peds, "--fab-library": a.fab_library}
     with product(out, "coupling-check", inputs, scratch=(partial,)):
         fab = AsFabricated.from_design(load_design(src))
         if a.fab_library:
@@ -772,8 +763,7 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
         cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
                 "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed,
-                "taper_slices": a.taper_slices, "ring": (a.ring_model or True) if a.ring else None,
-                "ring_supercells": a.ring} if a.certified else None
+                "taper_slices": a.taper_slices, "ring_supercells": a.ring} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
                                      certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
                                                                                seed=a.jitter_seed,
@@ -1050,9 +1040,11 @@ def register(sub, groups: dict) -> None:
     pa.add_argument("--ring-levels", type=integer(20, 2000), nargs="+", metavar="N",
                     help="the neighbour-ring low fidelity: requested supercell truncations at which each patch and "
                          "its four supercells are solved again, matched (e.g. 45 97: the PEDS levels' range)")
-    pa.add_argument("--ring-model", metavar="OUT.json",
-                    help="with --ring-levels: write the calibrated neighbour-ring model (the certified model's "
-                         "ring term; found in library/ by its library's sha256)")
+    pa.add_argument("--windows", action="store_true",
+                    help="also the overlapping-window ring: each patch as the mean of its sixteen 2 x 2 windows, "
+                         "solved at the supercells' matched truncation and under the certified (PEDS) model")
+    pa.add_argument("--peds", help="with --windows: the certified model (default: the PEDS model calibrated "
+                                   "against the library)")
     pa.add_argument("-o", "--output", help="report (.json; default: patches.json beside the design)")
     pa.add_argument("--scheduler", help="Dask scheduler address (default: the local pool)")
     workers_arg(pa)
@@ -1101,10 +1093,9 @@ def register(sub, groups: dict) -> None:
                     help="independent replicates of the --certified sample (jackknife error bars; 8)")
     cc.add_argument("--peds", help="certified model (default: the PEDS model calibrated against the library)")
     cc.add_argument("--ring", type=integer(0, 10_000_000), default=0, metavar="N",
-                    help="with --certified: also the neighbour ring, solved on the first N of the sampled "
-                         "supercells (each with the 4 x 4 patch it opens; 0: none)")
-    cc.add_argument("--ring-model", help="neighbour-ring model (default: the one calibrated against the library, "
-                                         "in library/)")
+                    help="with --certified: also the neighbour ring on the first N of the sampled supercells, by "
+                         "overlapping windows (the certified model on each one's three 2 x 2 windows straddling "
+                         "towards its neighbours; 0: none)")
     cc.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the --certified sample (0)")
     cc.add_argument("--bias-nm", type=num(-50, 50, unit="nm"), default=0.0,
                     help="every device made with this width bias (nm; a fab study under each model; 0)")

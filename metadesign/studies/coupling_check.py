@@ -17,7 +17,7 @@ import numpy as np
 
 from ..library.coupling import relative_error
 from ..library.coupling_net import coupling_t
-from ..library.peds import RING_FORMAT, PedsModel, certified_t, find_peds, load_peds, ring_couplings, ring_t
+from ..library.peds import PedsModel, certified_t, find_peds, load_peds, neighbour_windows, window_ring
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
@@ -110,7 +110,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                    partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
                    label: str = CASES["certified"], pert: Perturbation = Perturbation(),
                    log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4,
-                   ring=None, ring_supercells: int | None = None):
+                   ring_supercells: int = 0):
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
@@ -121,13 +121,13 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
     (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`).
 
-    ``ring``: also the neighbour ring (a :data:`~metadesign.library.peds.RING_FORMAT` model, its file, or
-    True for the one in ``library/`` calibrated against the device's library): each of the first
-    ``ring_supercells / replicates`` supercells of every replicate (default all) gets the ring term of the
-    4 x 4 patch it opens (itself and its neighbours at +x, +y and +x+y, as made), weighted for its
-    sub-sample, so a replicate still estimates the whole correction without bias; supercells whose patch
-    leaves the device's complete supercells (the aperture's rim) get none.  The ring's solves are vertical
-    (at mid-height widths) at the etched height."""
+    ``ring_supercells``: also the neighbour ring, by overlapping windows
+    (:func:`~metadesign.library.peds.window_ring`): each of the first ``ring_supercells / replicates``
+    supercells of every replicate gets its ring term from the certified model on its three windows that
+    straddle towards +x, +y and +x+y (with its neighbours as made; solved like the supercells: at the etched
+    height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
+    without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
+    none."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
@@ -156,32 +156,33 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
     ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
-    if ring is not None and ring is not False:
-        rm = ring if isinstance(ring, PedsModel) else load_peds(find_peds(fab.lib, RING_FORMAT) if ring is True else ring,
-                                                          fab.lib, RING_FORMAT)
-        k = min(m, (ring_supercells or m * replicates) // replicates)
+    if ring_supercells:
+        k = min(m, ring_supercells // replicates)
         if k < 1:
             raise ValueError("certified_case: at least one ring supercell per replicate")
         sub = np.concatenate([np.arange(r * m, r * m + k) for r in range(replicates)])
         C2 = fab.n_cells // 2
-        J = pick[sub] % C2
-        corners = [pick[sub], pick[sub] + 1, pick[sub] + C2, pick[sub] + C2 + 1]  # (I, J), +x, +y, +x+y
-        whole = (J + 1 < C2) & np.all([np.isin(c, ids) for c in corners[1:]], axis=0)
-        wq = [supercell_widths(fab, c[whole], replace(pert, height=0.0, sidewall_deg=90.0), grid) for c in corners]
-        patches = np.concatenate([np.concatenate([wq[0], wq[1]], 2), np.concatenate([wq[2], wq[3]], 2)], 1)
-        log(f"    neighbour ring: {int(whole.sum())} patches of {len(sub)} supercells ...")
+        s_ids = pick[sub]
+        corners = [s_ids + 1, s_ids + C2, s_ids + C2 + 1]  # the neighbours at +x, +y, +x+y
+        whole = (s_ids % C2 + 1 < C2) & np.all([np.isin(c, ids) for c in corners], axis=0)
+        wq = [w[sub][whole]] + [supercell_widths(fab, c[whole], replace(pert, height=0.0, sidewall_deg=90.0), grid)
+                                for c in corners]
+        nbhd = np.concatenate([np.concatenate([wq[0], wq[1]], 2), np.concatenate([wq[2], wq[3]], 2)], 1)[:, :3, :3]
+        win = neighbour_windows(nbhd).reshape(-1, 2, 2, 2)
+        log(f"    neighbour ring: {len(win)} straddling windows of {int(whole.sum())} supercells ...")
         t_r = time.perf_counter()
-        c = ring_couplings(patches, stack, rm.harmonics, f"{partial}/ring", workers=workers, scheduler=scheduler)
+        tu_w = unit_t_as_made(fab.lib, win[..., 0], win[..., 1], pert, fab.fab_lib)
+        t_win = certified_t(fab.lib, win, f"{partial}/ring", pm, workers=workers, scheduler=scheduler,
+                            stack=stack, t_unit=tu_w, taper=taper).reshape(-1, 3, 2)
         rterm = np.zeros((len(sub), 2), np.complex128)
-        rterm[whole] = ring_t(rm, c)
+        rterm[whole] = window_ring(t_win, t_cert[sub][whole])
         ring_rows = [np.arange(r * k, (r + 1) * k) for r in range(replicates)]
         rel_r = np.abs(rterm) / np.sqrt((np.abs(tu[sub]) ** 2).mean((1, 2)))
-        ring_rep = {"supercells": int(len(sub)), "patches": int(whole.sum()), "harmonics": list(rm.harmonics),
-                    "coefficients": [[float(a.real), float(a.imag)] for a in np.atleast_1d(rm.coef)],
+        ring_rep = {"supercells": int(len(sub)), "with_neighbours": int(whole.sum()), "windows": int(len(win)),
                     "seconds": time.perf_counter() - t_r, "mean_relative": [float(v) for v in rel_r.mean(0)],
                     "p90_relative": [float(v) for v in np.percentile(rel_r, 90, axis=0)],
                     "mean_complex": [[float(v.real), float(v.imag)] for v in rterm.mean(0)]}
-        ring_ids, ring_delta, ring_weight = pick[sub], rterm.astype(np.complex64), len(ids) / k
+        ring_ids, ring_delta, ring_weight = s_ids, rterm.astype(np.complex64), len(ids) / k
     t_solved = time.perf_counter()
     deltas = []
     for r in range(replicates):
@@ -199,10 +200,10 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
             row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
     rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
     if ring_rep is not None:
-        label = label.replace("PEDS", "PEDS + ring")
+        label = label.replace("PEDS", "PEDS, overlapping windows")
     rep = {
         "label": label,
-        "coupling": "certified (PEDS + neighbour ring), sampled" if ring_rep else "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
+        "coupling": "certified (PEDS on overlapping windows), sampled" if ring_rep else "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
         "seconds_solves": t_solved - t0, "channels": rows,
         "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
         "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},

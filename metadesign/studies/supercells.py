@@ -31,7 +31,7 @@ from ..design.store import Design, design_file, load_design, run_design
 from ..library.coupling import CouplingConfig, lpa_t, relative_error
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.locate import file_sha256
-from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t, ring_couplings
+from ..library.peds import PedsModel, certified_t, fit_peds, low_fidelity_couplings, patch_windows, peds_t, ring_couplings
 from ..library.store import interpolate_t, load_library
 from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
@@ -316,7 +316,8 @@ def solve_patches(ws: np.ndarray, stack, n_harmonics: int, partial: Path, *, wor
 
 
 def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, partial: Path, *, workers: int = 1,
-                scheduler: str | None = None, progress=None, log=lambda s: None, ring_levels=()) -> dict:
+                scheduler: str | None = None, progress=None, log=lambda s: None, ring_levels=(), windows: bool = False,
+                peds=None) -> dict:
     """Beyond the periodic 2 x 2 cell (issue #34 section 2): ``patches`` 4 x 4 patches cut from ``design``
     (aligned to its supercells, all sixteen pillars present, drawn with ``seed``), each solved as a
     periodic 4 x 4 cell (2.8 um at the paper's pitch: each supercell sees other supercells around it, as
@@ -330,7 +331,13 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     matched low truncations): the report's ``ring`` section gives how far each level's ring term and their
     calibrated combination (one complex coefficient per level, both polarisations; fitted leaving each patch
     out in turn, so every patch's figure is held out) fall from the patch solve's, and the coefficients
-    fitted on all patches (``_ring_coef``; the ring model's)."""
+    fitted on all patches.
+
+    ``windows``: the overlapping-window ring (:func:`~metadesign.library.peds.window_ring`): each patch as the
+    mean of its sixteen 2 x 2 windows (:func:`~metadesign.library.peds.patch_windows`), the twelve that
+    straddle its supercells solved at the supercells' matched truncation (``windows_exact``: the idea
+    itself) and all sixteen under the certified model ``peds`` (default: the library's; ``windows_peds``:
+    what the device path uses); each how far its ring term falls from the patch solve's."""
     stack = lib.stack
     ws = design_patches(design, patches, seed)
     t0 = time.perf_counter()
@@ -346,6 +353,9 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     beyond = np.abs(tp - two) / rms
     ring = _ring_section(ws, tp - two, rms, stack, ring_levels, partial, workers, scheduler, progress, log) \
         if ring_levels else {}
+    if windows:
+        ring.update(_window_section(ws, tsc, tp - two, rms, lib, ns_super, partial, peds, workers, scheduler,
+                                    progress, log))
     return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[0]["n_harmonics"][0]),
                                                               "supercell": ns_super - 1, "unit": nu - 1},
             "beyond_2x2": _stats(beyond), "beyond_2x2_mean_both": float(beyond.mean()),
@@ -377,8 +387,34 @@ def _ring_section(ws, target, rms, stack, levels, partial, workers, scheduler, p
                      "coefficients": [[float(a.real), float(a.imag)] for a in coef],
                      "seconds": seconds, "seconds_per_patch_core": seconds * max(1, workers) / max(1, n),
                      "metric": "|ring term (patch - mean of its 2 x 2 supercells), low fidelity calibrated - "
-                               "the patch solve's| over the sixteen pillars' rms |t|"},
-            "_ring_coef": coef}
+                               "the patch solve's| over the sixteen pillars' rms |t|"}}
+
+
+ALIGNED = [0, 2, 8, 10]  # the supercells among a patch's sixteen windows (patch_windows), in _patch_task's order
+
+
+def _window_section(ws, tsc, target, rms, lib, ns_super, partial, peds, workers, scheduler, progress, log) -> dict:
+    """The overlapping-window ring of each patch against its patch solve's ``target`` (n, 2)."""
+    n = len(ws)
+    win = patch_windows(ws)  # (n, 16, 2, 2, 2)
+    odd = [k for k in range(16) if k not in ALIGNED]
+    t0 = time.perf_counter()
+    t_odd, _, _, _ = solve_table(win[:, odd].reshape(-1, 2, 2, 2), lib.stack, ns_super, Path(partial) / "windows",
+                                 workers=workers, scheduler=scheduler, chunk_size=4, progress=progress, log=log)
+    exact = (np.asarray(tsc).sum(1) + t_odd.reshape(n, len(odd), 2).sum(1)) / 16 - np.asarray(tsc).mean(1)
+    t_exact = time.perf_counter() - t0
+    t_p = certified_t(lib, win.reshape(-1, 2, 2, 2), Path(partial) / "peds-windows", peds, workers=workers,
+                      scheduler=scheduler, progress=progress).reshape(n, 16, 2)
+    ring_p = t_p.mean(1) - t_p[:, ALIGNED].mean(1)
+
+    def stats(ring):
+        e = np.abs(target - ring) / rms
+        return {**_stats(e), "mean_both": float(e.mean()), "p90_both": float(np.percentile(e, 90))}
+
+    return {"windows_exact": {**stats(exact), "seconds": t_exact, "supercell_n_harmonics": ns_super - 1},
+            "windows_peds": {**stats(ring_p), "seconds": time.perf_counter() - t0 - t_exact},
+            "windows_metric": "|ring term by overlapping windows (mean of the patch's sixteen 2 x 2 windows - mean "
+                              "of its four supercells) - the patch solve's| over the sixteen pillars' rms |t|"}
 
 
 def _stats(e: np.ndarray) -> dict:
