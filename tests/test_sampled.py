@@ -181,10 +181,11 @@ def test_sampled_intensity_is_unbiased_where_a_square_is_not(demo):
 def test_coupling_check_certified_cli(demo, tmp_path, repo, capsys):
     fab, _, _, out = demo
     res = run_cli("library", "coupling-check", str(out), "--sensor", repo / "sensing" / "demo.toml", "--certified", "6",
-                  "--replicates", "3", "--jitter-nm", "5", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
+                  "--replicates", "3", "--jitter-nm", "5", "--ring", "3", "-j", "1", "-o", str(tmp_path / "cc"), "--json")
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)
     c = rep["cases"]["certified"]
+    assert rep["cases"]["certified_ring"]["ring"]["supercells"] == 3  # the ring on the same jittered sample
     assert c["sampling"]["supercells"] == 6 and c["sampling"]["eligible_supercells"] == (fab.n_cells // 2) ** 2
     assert rep["jitter_nm"] == pytest.approx(5.0)
     assert set(c["stderr"]) == {"spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"}
@@ -214,6 +215,8 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo, capsys):
     rc, _, err = run_main(["library", "coupling-check", out, "--certified", "5", "--replicates", "3",
                            "-o", tmp_path / "bad"], capsys)
     assert rc == 2 and len(err) == 1 and "--certified" in err[0]
+    rc, _, err = run_main(["library", "coupling-check", out, "--ring", "8", "-o", tmp_path / "bad"], capsys)
+    assert rc == 2 and len(err) == 1 and "--ring" in err[0]
     assert not (tmp_path / "bad").exists()
 
 
@@ -306,8 +309,12 @@ def test_certified_case_with_the_neighbour_ring(demo, tmp_path):
     peds = PedsModel((25,), (0.8 + 0.1j,), fab.lib.identity)
     kw = dict(supercells=12, replicates=3, peds=peds, seed=4)
     base = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "a", **kw)
-    ring = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", ring_supercells=6, **kw)
-    assert base["ring"] is None and ring["ring"]["supercells"] == 6 and "windows" in ring["label"]
+    both = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", ring_supercells=6, **kw)
+    ring = both.pop("with_ring")
+    assert base["ring"] is None and "with_ring" not in base and ring["ring"]["supercells"] == 6
+    assert "windows" in ring["label"] and "windows" not in both["label"]
+    for k in ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"):  # the plain case: the same sample
+        assert both["mean"][k] == base["mean"][k] and both["stderr"][k] == base["stderr"][k]
     C2 = fab.n_cells // 2
     pick = eligible_supercells(fab)[np.random.default_rng(4).integers(0, C2 * C2, 12)]
     first = pick.reshape(3, 4)[:, :2].ravel()

@@ -776,18 +776,19 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         rep["design"] = {"path": str(src), "sha256": file_sha256(design_file(src))}  # coupling-sweep matches it
         atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
         remove_partial(partial)
+    wl = max(27, *(len(c["label"]) for c in rep["cases"].values()))
     lines = [f"wrote {out}/coupling-check.json and coupling-frames.png",
-             "  case                        spot eff.  spot Strehl  stray    |focal shift| um"
+             f"  {'case':<{wl}} spot eff.  spot Strehl  stray    |focal shift| um"
              + ("   U-Net NPiB" if "downstream" in rep else "")]
     for name, c in rep["cases"].items():
         mm = c["mean"]
         npib = rep.get("downstream", {}).get(name, {}).get("npib_unet")
-        lines.append(f"  {c['label']:<27} {mm['spot_efficiency']:.4f}     {mm['spot_strehl']:.3f}        "
+        lines.append(f"  {c['label']:<{wl}} {mm['spot_efficiency']:.4f}     {mm['spot_strehl']:.3f}        "
                      f"{mm['stray']:.4f}   {1e3 * mm['focal_shift_mm']:7.1f}"
                      + (f"          {npib:.3f}" if npib is not None else ""))
         if "stderr" in c:
             se = c["stderr"]
-            lines.append(f"  {'  +- (standard error)':<27} {se['spot_efficiency']:.4f}     "
+            lines.append(f"  {'  +- (standard error)':<{wl}} {se['spot_efficiency']:.4f}     "
                          f"{se['spot_strehl']:.3f}        {se['stray']:.4f}   {1e3 * se['focal_shift_mm']:7.1f}"
                          f"   ({c['sampling']['supercells']} supercells of {c['sampling']['eligible_supercells']:,})"
                          + (f"   NPiB +- {rep['downstream'][name]['npib_unet_se']:.3f}"

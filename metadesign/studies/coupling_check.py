@@ -42,7 +42,9 @@ SPOT_TITLES = dict(zip(SPOT_KEYS, ("spot efficiency", "spot Strehl", "stray frac
 
 CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compensated": "compensated, coupling",
          "compensated_lpa": "compensated, LPA", "certified": "design, certified (PEDS, sampled)",
-         "compensated_certified": "compensated, certified (PEDS, sampled)"}
+         "compensated_certified": "compensated, certified (PEDS, sampled)",
+         "certified_ring": "design, certified (PEDS, overlapping windows, sampled)",
+         "compensated_certified_ring": "compensated, certified (PEDS, overlapping windows, sampled)"}
 
 
 def _mean(rows, key):
@@ -89,11 +91,14 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
         for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
             if name in fabs:
                 log(f"  {CASES[cert]}: {certified['supercells']} supercells through the certified model ...")
-                rep["cases"][cert], deltas = certified_case(
+                rep["cases"][cert], deltas, ring = certified_case(
                     fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log, pert=pert,
                     partial=f"{certified['partial']}/{name}", return_deltas=True,
                     **{k: v for k, v in certified.items() if k != "partial"})
                 sampled[cert] = (name, deltas)
+                if ring is not None:
+                    rep["cases"][cert + "_ring"] = rep["cases"][cert].pop("with_ring")
+                    sampled[cert + "_ring"] = (name, ring)
     base = rep["cases"].get("lpa", {}).get("mean")
     if base:
         for c in rep["cases"].values():
@@ -119,7 +124,8 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     height, with sloped walls in ``taper_slices`` slices (0: vertical, the widths at mid-height)).  The case's
     metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
     rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
-    (``(report, deltas)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`).
+    (``(report, deltas, deltas with the ring or None)``: the sampled device's frames,
+    :func:`~metadesign.sensing.sampled.sampled_frames`).
 
     ``ring_supercells``: also the neighbour ring, by overlapping windows
     (:func:`~metadesign.library.peds.window_ring`): each of the first ``ring_supercells / replicates``
@@ -127,7 +133,8 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     straddle towards +x, +y and +x+y (with its neighbours as made; solved like the supercells: at the etched
     height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
     without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
-    none."""
+    none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
+    matched sample)."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
@@ -141,18 +148,21 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, fab.fab_lib)
     t_pair = coupling_t(fab.coupling, w, tu)
     stack = replace(fab.lib.stack, height=fab.lib.stack.height + pert.height)
-    said = {"pass": 0, "last": -1, "tenths": set()}
+    def progress_lines(what):
+        said = {"pass": 0, "last": -1, "tenths": set()}
 
-    def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
-        if d < said["last"]:
-            said["pass"], said["tenths"] = said["pass"] + 1, set()
-        said["last"] = d
-        if d * 10 // max(n, 1) not in said["tenths"]:
-            said["tenths"].add(d * 10 // max(n, 1))
-            log(f"    certified solves, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
+        def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
+            if d < said["last"]:
+                said["pass"], said["tenths"] = said["pass"] + 1, set()
+            said["last"] = d
+            if d * 10 // max(n, 1) not in said["tenths"]:
+                said["tenths"].add(d * 10 // max(n, 1))
+                log(f"    {what}, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
+        return progress
 
     taper = (pert.sidewall_deg, taper_slices) if pert.sidewall_deg != 90.0 and taper_slices else None
-    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler, progress=progress,
+    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler,
+                         progress=progress_lines("certified solves"),
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
     ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
@@ -173,7 +183,8 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         t_r = time.perf_counter()
         tu_w = unit_t_as_made(fab.lib, win[..., 0], win[..., 1], pert, fab.fab_lib)
         t_win = certified_t(fab.lib, win, f"{partial}/ring", pm, workers=workers, scheduler=scheduler,
-                            stack=stack, t_unit=tu_w, taper=taper).reshape(-1, 3, 2)
+                            progress=progress_lines("ring windows"), stack=stack, t_unit=tu_w,
+                            taper=taper).reshape(-1, 3, 2)
         rterm = np.zeros((len(sub), 2), np.complex128)
         rterm[whole] = window_ring(t_win, t_cert[sub][whole])
         ring_rows = [np.arange(r * k, (r + 1) * k) for r in range(replicates)]
@@ -184,43 +195,52 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                     "mean_complex": [[float(v.real), float(v.imag)] for v in rterm.mean(0)]}
         ring_ids, ring_delta, ring_weight = s_ids, rterm.astype(np.complex64), len(ids) / k
     t_solved = time.perf_counter()
-    deltas = []
-    for r in range(replicates):
-        i_r, d_r = pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m]
-        if ring_rep is None:
-            deltas.append(delta_pupil(fab, cp.z, grid, i_r, d_r, len(ids) / m))
-        else:  # the ring's sub-sample, weighted for its own size
-            i_r = np.concatenate([i_r, ring_ids[ring_rows[r]]])
-            d_r = np.concatenate([d_r.astype(np.complex128) * (len(ids) / m),
-                                  ring_delta[ring_rows[r]].astype(np.complex128) * ring_weight])
-            deltas.append(delta_pupil(fab, cp.z, grid, i_r, d_r, 1.0))
-    rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
-    for i, row in enumerate(rows):
-        for k in SPOT_KEYS:
-            row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
+    plain = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
+             for r in range(replicates)]
+    deltas = plain
+    if ring_rep is not None:  # the ring's sub-sample, weighted for its own size, on top of the same replicates
+        deltas = [_plus_pupil(d, delta_pupil(fab, cp.z, grid, ring_ids[ring_rows[r]], ring_delta[ring_rows[r]],
+                                             ring_weight)) for r, d in enumerate(plain)]
     rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
-    if ring_rep is not None:
-        label = label.replace("PEDS", "PEDS, overlapping windows")
     rep = {
         "label": label,
-        "coupling": "certified (PEDS on overlapping windows), sampled" if ring_rep else "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
-        "seconds_solves": t_solved - t0, "channels": rows,
-        "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
-        "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
-        # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are maxima
-        # over noisy points: biased up by O(1 / supercells)); small beside stderr when the sample suffices
-        "bias": {k: jackknife_bias(_mean(rows, k), [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
+        "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
+        "seconds_solves": t_solved - t0, **_sampled_metrics(cp, plain, sensor, fab),
         "sampling": {"supercells": int(m * replicates), "replicates": int(replicates), "seed": int(seed),
                      "eligible_supercells": len(ids), "distinct_sampled": len(np.unique(pick))},
         "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
                  "taper": list(taper) if taper else None,
                  "coefficients": [[float(c.real), float(c.imag)] for c in np.atleast_1d(pm.coef)]},
-        "ring": ring_rep,
+        "ring": None,
         "correction": {"mean_relative": [float(v) for v in rel.mean(0)],
                        "p90_relative": [float(v) for v in np.percentile(rel, 90, axis=0)],
                        "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},
     }
-    return (rep, deltas) if return_deltas else rep
+    if ring_rep is not None:  # the same sample with the ring added: the ring's effect on matched replicates
+        rep["with_ring"] = {**{k: v for k, v in rep.items() if k not in ("with_ring",)},
+                            "label": label.replace("(PEDS", "(PEDS, overlapping windows"),
+                            "coupling": "certified (PEDS on overlapping windows), sampled", "ring": ring_rep,
+                            "seconds": time.perf_counter() - t0, **_sampled_metrics(cp, deltas, sensor, fab)}
+    return (rep, plain, deltas if ring_rep is not None else None) if return_deltas else rep
+
+
+def _plus_pupil(a, b):
+    """Two coarse pupils of the same grid, summed."""
+    return replace(a, G=a.G + b.G)
+
+
+def _sampled_metrics(cp, deltas, sensor, fab) -> dict:
+    """The spot metrics of ``cp`` plus the sampled replicate corrections ``deltas``, per channel with their
+    jackknife errors, their means, standard errors and jackknife bias estimates."""
+    rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
+    for i, row in enumerate(rows):
+        for k in SPOT_KEYS:
+            row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
+    return {"channels": rows, "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
+            "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
+            # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are
+            # maxima over noisy points: biased up by O(1 / supercells)); small beside stderr when it suffices
+            "bias": {k: jackknife_bias(_mean(rows, k), [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS}}
 
 
 def plot_case_metrics(rep: dict, out):
@@ -230,7 +250,7 @@ def plot_case_metrics(rep: dict, out):
     names = list(rep["cases"])
     fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
     colours = {"lpa": "0.6", "compensated_lpa": "0.8", "coupled": "C0", "compensated": "C2", "certified": "C1",
-               "compensated_certified": "C3"}
+               "compensated_certified": "C3", "certified_ring": "C4", "compensated_certified_ring": "C5"}
     for ax, (k, title) in zip(axs, SPOT_TITLES.items()):
         scale = 1e3 if k == "focal_shift_mm" else 1.0
         for i, n in enumerate(names):
