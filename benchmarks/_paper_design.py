@@ -26,3 +26,26 @@ def paper_device(design):
     from metadesign.sensing.model import AsFabricated
 
     return AsFabricated.from_design(load_design(design))
+
+
+def patch_arguments(ap, patches: int) -> None:
+    """The patch draw of `library patches` (count, seed) and a folder to keep the solves in."""
+    ap.add_argument("--patches", type=int, default=patches)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--partial", help="folder of the solves (resumable; default: a temporary one)")
+
+
+def paper_patches(a):
+    """``(library, patches (n, 4, 4, 2), partial folder)`` of the design folder ``a.design`` drawn as `library
+    patches` draws them (``a.patches``, ``a.seed``), or None after one line on stderr without a design."""
+    import tempfile
+
+    if not (Path(a.design) / "design.npz").exists():
+        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+        return None
+    from metadesign.design.store import design_library, load_design
+    from metadesign.studies.supercells import design_patches
+
+    d = load_design(a.design)
+    partial = Path(a.partial) if a.partial else Path(tempfile.mkdtemp(prefix="patches-"))
+    return design_library(d, None), design_patches(d, a.patches, a.seed), partial

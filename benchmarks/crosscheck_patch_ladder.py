@@ -14,7 +14,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,29 +21,23 @@ os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _paper_design import design_arguments  # noqa: E402
+from _paper_design import design_arguments, paper_patches, patch_arguments  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     design_arguments(ap)
-    ap.add_argument("--patches", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    patch_arguments(ap, 2)
     ap.add_argument("--harmonics", type=int, nargs="+", default=[1300, 1800])
-    ap.add_argument("--partial", help="folder for the solves (default: a temporary one)")
     a = ap.parse_args(argv)
-    if not (Path(a.design) / "design.npz").exists():
-        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+    got = paper_patches(a)
+    if got is None:
         return 2
     import numpy as np
 
-    from metadesign.design.store import design_library, load_design
-    from metadesign.studies.supercells import design_patches, solve_patches
+    from metadesign.studies.supercells import solve_patches
 
-    d = load_design(a.design)
-    lib = design_library(d, None)
-    ws = design_patches(d, a.patches, a.seed)
-    partial = Path(a.partial) if a.partial else Path(tempfile.mkdtemp(prefix="patch-ladder-"))
+    lib, ws, partial = got
     levels = []
     for h in sorted(a.harmonics):
         t0 = time.perf_counter()

@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,7 +24,7 @@ os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _paper_design import design_arguments  # noqa: E402
+from _paper_design import design_arguments, paper_patches, patch_arguments  # noqa: E402
 
 
 def _stats(e):
@@ -38,30 +37,24 @@ def _stats(e):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     design_arguments(ap)
-    ap.add_argument("--patches", type=int, default=32)
-    ap.add_argument("--seed", type=int, default=0)
+    patch_arguments(ap, 32)
     ap.add_argument("--harmonics", type=int, default=1300, help="the patch study's (requested)")
     ap.add_argument("--ring-levels", type=int, nargs="+", default=[45, 97])
     ap.add_argument("--converged", type=int, default=800, help="the supercells' converged truncation (requested)")
-    ap.add_argument("--partial", help="folder of the solves (default: a temporary one)")
     a = ap.parse_args(argv)
-    if not (Path(a.design) / "design.npz").exists():
-        print(f"{a.design}: no design.npz (make it: metadesign design layouts/paper-5mm.toml)", file=sys.stderr)
+    got = paper_patches(a)
+    if got is None:
         return 2
     import numpy as np
 
-    from metadesign.design.store import design_library, load_design
     from metadesign.library.coupling import lpa_t
     from metadesign.library.peds import certified_t, fit_peds, patch_windows, ring_couplings
     from metadesign.library.store import interpolate_t
     from metadesign.library.supercells import solve_table
-    from metadesign.studies.supercells import design_patches, solve_patches
+    from metadesign.studies.supercells import solve_patches
 
-    d = load_design(a.design)
-    lib = design_library(d, None)
+    lib, ws, partial = got
     st = lib.stack
-    ws = design_patches(d, a.patches, a.seed)
-    partial = Path(a.partial) if a.partial else Path(tempfile.mkdtemp(prefix="ring-certified-"))
     t0 = time.perf_counter()
     done, _, _ = solve_patches(ws, st, a.harmonics, partial, workers=a.workers)
     tp = np.array([r["t_patch"] for r in done])
