@@ -501,7 +501,8 @@ def test_ring_low_fidelity_at_the_patch_truncation_is_the_patch(tmp_path, capsys
     assert rep["beyond_2x2_mean_both"] > 1e-3
     for k in ("windows_exact", "windows_peds"):
         assert np.isfinite(rep[k]["mean_both"]) and rep[k]["p90_both"] >= 0
-    assert not out.with_name(out.name + ".partial").exists()
+        assert np.mean(rep["per_patch"][k]) == pytest.approx(rep[k]["mean_both"])  # the figure's data
+    assert (tmp_path / rep["figure"]).exists() and not out.with_name(out.name + ".partial").exists()
     rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "2", "--ring-levels", "20",
                            "-o", tmp_path / "p2.json"], capsys)
     assert rc == 2 and len(err) == 1 and "--ring-levels" in err[0] and not (tmp_path / "p2.json").exists()

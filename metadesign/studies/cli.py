@@ -452,7 +452,7 @@ def _cmd_patches(a: argparse.Namespace) -> int:
 
     from ..design.store import design_library
     from ..library.supercells import remove_partial
-    from .supercells import design_source, patch_study
+    from .supercells import design_source, patch_study, plot_patches
 
     ring_levels = sorted(set(a.ring_levels or ()))
     if ring_levels and a.patches < 4:
@@ -464,12 +464,15 @@ def _cmd_patches(a: argparse.Namespace) -> int:
     out = out_file(Path(a.output) if a.output else base / "patches.json", suffixes=(".json",))
     log = log_to(a.json)
     partial = out.with_name(out.name + ".partial")
-    with product(out, "patches", {"design": src, "--library": a.library, "--peds": a.peds}, scratch=(partial,)):
+    with product(out, "patches", {"design": src, "--library": a.library, "--peds": a.peds},
+                 also=(out.with_suffix(".png"),) if ring_levels or a.windows else (), scratch=(partial,)):
         rep = patch_study(d, lib, a.patches, a.seed, a.harmonics, partial,
                           workers=a.workers, scheduler=a.scheduler,
                           progress=None if a.json else progress_bar("patches", unit="patch"), log=log,
                           ring_levels=ring_levels, windows=a.windows, peds=a.peds)
         rep = {"format": "metadesign.patches/1", "design": str(src), **rep}
+        if ring_levels or a.windows:
+            rep["figure"] = plot_patches(rep, out.with_suffix(".png")).name
         atomic_write_text(out, json.dumps(rep, indent=1))
         remove_partial(partial)
     nh = rep["n_harmonics"]

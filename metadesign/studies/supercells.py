@@ -49,7 +49,8 @@ from ..outputs import Need, temporary
 
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder",
            "patch_study", "design_source", "SOURCES", "certify_coupling",
-           "plot_coupling", "certify_peds", "plot_peds", "select_levels"]
+           "plot_coupling", "certify_peds", "plot_peds", "select_levels", "design_patches", "solve_patches",
+           "plot_patches"]
 
 SOURCES = ("design", "extra_design", "atom_tuples", "jittered_atoms")
 
@@ -353,9 +354,13 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     beyond = np.abs(tp - two) / rms
     ring = _ring_section(ws, tp - two, rms, stack, ring_levels, partial, workers, scheduler, progress, log) \
         if ring_levels else {}
+    per_patch = {"beyond_2x2": beyond.tolist(), **ring.pop("per_patch", {})}
     if windows:
         ring.update(_window_section(ws, tsc, tp - two, rms, lib, ns_super, partial, peds, workers, scheduler,
                                     progress, log))
+        per_patch.update(ring.pop("per_patch"))
+    if ring:
+        ring["per_patch"] = per_patch
     return {"patches": patches, "seed": seed, "n_harmonics": {"patch": int(done[0]["n_harmonics"][0]),
                                                               "supercell": ns_super - 1, "unit": nu - 1},
             "beyond_2x2": _stats(beyond), "beyond_2x2_mean_both": float(beyond.mean()),
@@ -381,7 +386,8 @@ def _ring_section(ws, target, rms, stack, levels, partial, workers, scheduler, p
         held[i] = np.tensordot(fit_peds(c[:, keep], target[keep]), c[:, i], axes=1)
     e_held = np.abs(target - held) / rms
     coef = fit_peds(c, target)
-    return {"ring": {"levels": [int(h) for h in levels], "raw_per_level": raw, "calibrated_held_out": _stats(e_held),
+    return {"per_patch": {"ring_low_fidelity": e_held.tolist()},
+            "ring": {"levels": [int(h) for h in levels], "raw_per_level": raw, "calibrated_held_out": _stats(e_held),
                      "calibrated_held_out_mean_both": float(e_held.mean()),
                      "calibrated_held_out_p90_both": float(np.percentile(e_held, 90)),
                      "coefficients": [[float(a.real), float(a.imag)] for a in coef],
@@ -411,10 +417,61 @@ def _window_section(ws, tsc, target, rms, lib, ns_super, partial, peds, workers,
         e = np.abs(target - ring) / rms
         return {**_stats(e), "mean_both": float(e.mean()), "p90_both": float(np.percentile(e, 90))}
 
-    return {"windows_exact": {**stats(exact), "seconds": t_exact, "supercell_n_harmonics": ns_super - 1},
+    def rel(z):  # (n, 2) complex -> [[re, im] per polarisation] per patch, in units of the pillars' rms |t|
+        return np.stack([(z / rms).real, (z / rms).imag], -1).tolist()
+
+    return {"per_patch": {"windows_exact": (np.abs(target - exact) / rms).tolist(),
+                          "windows_peds": (np.abs(target - ring_p) / rms).tolist(),
+                          "ring_term": rel(target), "ring_windows_peds": rel(ring_p)},
+            "windows_exact": {**stats(exact), "seconds": t_exact, "supercell_n_harmonics": ns_super - 1},
             "windows_peds": {**stats(ring_p), "seconds": time.perf_counter() - t0 - t_exact},
             "windows_metric": "|ring term by overlapping windows (mean of the patch's sixteen 2 x 2 windows - mean "
                               "of its four supercells) - the patch solve's| over the sixteen pillars' rms |t|"}
+
+
+PATCH_MODELS = {"beyond_2x2": ("every 2 x 2 model (no ring)", "C3"),
+                "ring_low_fidelity": ("patch low fidelity, calibrated (held out)", "C2"),
+                "windows_exact": ("overlapping windows, exact solves", "C0"),
+                "windows_peds": ("overlapping windows, PEDS", "C1")}
+
+
+def plot_patches(rep: dict, out: Path) -> Path:
+    """The patch study at a glance: the distribution of what each way of seeing the neighbour ring leaves of
+    it (per patch and polarisation, in units of the pillars' rms |t|; the goal's mean and p90 as lines),
+    and the patch solve's ring term against the overlapping windows' under PEDS (real and imaginary parts)."""
+    plt = pyplot()
+    pp = rep.get("per_patch", {})
+    two = "ring_term" in pp
+    fig, axs = plt.subplots(1, 2 if two else 1, figsize=(11 if two else 6, 4.2), constrained_layout=True,
+                            squeeze=False)
+    ax = axs[0, 0]
+    top = 0.0
+    for k, (name, colour) in PATCH_MODELS.items():
+        if k in pp:
+            e = np.sort(np.ravel(pp[k]))
+            top = max(top, e.max())
+            ax.step(e, np.arange(1, len(e) + 1) / len(e), where="post", color=colour,
+                    label=f"{name}: {e.mean():.3f} / {np.percentile(e, 90):.3f}")
+    ax.axvline(0.05, color="0.5", ls=":", lw=1)
+    ax.axvline(0.10, color="0.5", ls="--", lw=1)
+    ax.axhline(0.9, color="0.8", lw=0.8)
+    ax.annotate("goal: mean 0.05, p90 0.10", (0.10, 0.05), fontsize=8, color="0.4", ha="left")
+    ax.set(xlabel="|ring term left| / rms|t_i| (per patch and polarisation)", ylabel="fraction of patches",
+           xlim=(0, 1.05 * top), ylim=(0, 1.02), title=f"{rep['patches']} patches: what each model leaves of the ring (mean / p90)")
+    ax.legend(fontsize=7, loc="lower right")
+    if two:
+        ax = axs[0, 1]
+        t, m = np.asarray(pp["ring_term"]), np.asarray(pp["ring_windows_peds"])  # (n, 2 pol, 2 re/im)
+        for pol, marker in ((0, "o"), (1, "s")):
+            for part, colour in ((0, "C0"), (1, "C1")):
+                ax.plot(t[:, pol, part], m[:, pol, part], marker, ms=4, color=colour, alpha=0.7,
+                        label=f"{'xy'[pol]}-pol, {('real', 'imaginary')[part]} part")
+        lim = 1.1 * max(np.abs(t).max(), np.abs(m).max())
+        ax.plot([-lim, lim], [-lim, lim], color="0.5", lw=0.8)
+        ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xlabel="ring term, patch solve (/ rms|t_i|)",
+               ylabel="ring term, overlapping windows under PEDS", title="the ring, solved and modelled")
+        ax.legend(fontsize=7)
+    return save_figure(fig, out)
 
 
 def _stats(e: np.ndarray) -> dict:
