@@ -322,3 +322,5 @@ def test_certified_case_with_the_neighbour_ring(demo, tmp_path):
     assert ring["ring"]["with_neighbours"] == inner > 0 and ring["ring"]["windows"] == 3 * inner
     for k in ("spot_efficiency", "spot_strehl"):
         assert abs(ring["mean"][k] - base["mean"][k]) > 1e-6 * abs(base["mean"][k])
+        eff = ring["ring"]["effect"][k]
+        assert eff["mean"] == pytest.approx(ring["mean"][k] - base["mean"][k]) and eff["stderr"] > 0

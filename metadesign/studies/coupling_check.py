@@ -134,7 +134,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
     without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
     none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
-    matched sample)."""
+    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``)."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
@@ -217,10 +217,15 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                        "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},
     }
     if ring_rep is not None:  # the same sample with the ring added: the ring's effect on matched replicates
-        rep["with_ring"] = {**{k: v for k, v in rep.items() if k not in ("with_ring",)},
+        ring_case = _sampled_metrics(cp, deltas, sensor, fab)
+        a, b = ring_case.pop("_loo"), rep["_loo"]
+        ring_rep["effect"] = {k: {"mean": ring_case["mean"][k] - rep["mean"][k],
+                                  "stderr": jackknife_se(np.subtract(a[k], b[k]))} for k in SPOT_KEYS}
+        rep["with_ring"] = {**{k: v for k, v in rep.items() if k not in ("with_ring", "_loo")},
                             "label": label.replace("(PEDS", "(PEDS, overlapping windows"),
                             "coupling": "certified (PEDS on overlapping windows), sampled", "ring": ring_rep,
-                            "seconds": time.perf_counter() - t0, **_sampled_metrics(cp, deltas, sensor, fab)}
+                            "seconds": time.perf_counter() - t0, **ring_case}
+    rep.pop("_loo")
     return (rep, plain, deltas if ring_rep is not None else None) if return_deltas else rep
 
 
@@ -236,8 +241,9 @@ def _sampled_metrics(cp, deltas, sensor, fab) -> dict:
     for i, row in enumerate(rows):
         for k in SPOT_KEYS:
             row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
-    return {"channels": rows, "mean": {k: _mean(rows, k) for k in SPOT_KEYS},
-            "stderr": {k: jackknife_se([_mean(lo, k) for lo in loo]) for k in SPOT_KEYS},
+    means = {k: [_mean(lo, k) for lo in loo] for k in SPOT_KEYS}
+    return {"channels": rows, "mean": {k: _mean(rows, k) for k in SPOT_KEYS}, "_loo": means,
+            "stderr": {k: jackknife_se(means[k]) for k in SPOT_KEYS},
             # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are
             # maxima over noisy points: biased up by O(1 / supercells)); small beside stderr when it suffices
             "bias": {k: jackknife_bias(_mean(rows, k), [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS}}
