@@ -486,13 +486,16 @@ def test_ring_low_fidelity_at_the_patch_truncation_is_the_patch(tmp_path, capsys
 
     from conftest import REPO, run_main
 
-    from metadesign.library.peds import patch_harmonics
+    from metadesign.library.peds import PedsModel, patch_harmonics, save_peds
     from metadesign.library.rcwa import Stack
+    from metadesign.library.store import load_library
 
     nb, _ = patch_harmonics(25, Stack())
-    out = tmp_path / "patches.json"
+    out, peds = tmp_path / "patches.json", tmp_path / "tiny-peds.json"  # a cheap surrogate for the windows
+    save_peds(peds, PedsModel((20,), (0.9 + 0.1j,), load_library(REPO / "library" / "paper.npz").identity))
     rc, _, err = run_main(["library", "patches", REPO / "layouts" / "demo.toml", "--patches", "4", "--harmonics",
-                           str(nb), "--ring-levels", "20", "25", "--windows", "-o", out, "--json"], capsys)
+                           str(nb), "--ring-levels", "20", "25", "--windows", "--peds", peds, "-o", out, "--json"],
+                          capsys)
     assert rc == 0, err
     rep = json.loads(out.read_text())
     assert rep["ring"]["calibrated_held_out_mean_both"] < 1e-8 and max(rep["ring"]["raw_per_level"]["25"]["max"]) < 1e-8
