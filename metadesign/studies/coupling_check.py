@@ -175,8 +175,10 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
         s_ids = pick[sub]
         corners = [s_ids + 1, s_ids + C2, s_ids + C2 + 1]  # the neighbours at +x, +y, +x+y
         whole = (s_ids % C2 + 1 < C2) & np.all([np.isin(c, ids) for c in corners], axis=0)
-        wq = [w[sub][whole]] + [supercell_widths(fab, c[whole], replace(pert, height=0.0, sidewall_deg=90.0), grid)
-                                for c in corners]
+        nw = int(whole.sum())  # the three neighbours' widths in one pass over the device's rows
+        wn = supercell_widths(fab, np.concatenate([c[whole] for c in corners]),
+                              replace(pert, height=0.0, sidewall_deg=90.0), grid)
+        wq = [w[sub][whole]] + [wn[i * nw:(i + 1) * nw] for i in range(3)]
         nbhd = np.concatenate([np.concatenate([wq[0], wq[1]], 2), np.concatenate([wq[2], wq[3]], 2)], 1)[:, :3, :3]
         win = neighbour_windows(nbhd).reshape(-1, 2, 2, 2)
         log(f"    neighbour ring: {len(win)} straddling windows of {int(whole.sum())} supercells ...")
