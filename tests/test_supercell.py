@@ -157,3 +157,50 @@ def test_smatrix_columns_are_grcwas_recursion():
     s11, s21 = smatrix_11_21(qs, phis, kps, thick, a)
     np.testing.assert_allclose(s11, S11 @ a, rtol=1e-10, atol=1e-10 * np.abs(S11 @ a).max())
     np.testing.assert_allclose(s21, S21 @ a, rtol=1e-10, atol=1e-10 * np.abs(S21 @ a).max())
+
+
+def test_lattice_and_half_spaces_are_grcwas():
+    """The solve's own harmonic set and uniform half-spaces (``_Cell``: the diagonal ``kp`` and grcwa's
+    branch of ``q``) against grcwa's ``Init_Setup`` of the same stack, circular and rectangular truncation."""
+    import grcwa
+
+    from metadesign.library.rcwa import Truncation
+    from metadesign.library.supercell import _Cell
+
+    for trunc, method in ((Truncation.CIRCULAR, 0), (Truncation.RECTANGULAR, 1)):
+        obj = grcwa.obj(90, [1.0, 0.0], [0.0, 1.0], 1.4 / 1.55, 0.0, 0.0, verbose=0)
+        obj.Add_LayerUniform(0.0, 1.444 ** 2)
+        obj.Add_LayerGrid(0.8, 1, 1)
+        obj.Add_LayerUniform(0.0, 1.0)
+        obj.Init_Setup(Gmethod=method)
+        cell = _Cell(90, 1.4 / 1.55, trunc, [0.0, 0.8, 0.0], (1.444 ** 2, 1.0))
+        assert cell.nG == obj.nG and np.array_equal(cell.G, obj.G)
+        np.testing.assert_allclose(cell.kx, obj.kx, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(cell.ky, obj.ky, rtol=0, atol=1e-12)
+        assert cell.omega == pytest.approx(obj.omega, rel=1e-15)
+        for i in (0, -1):
+            np.testing.assert_allclose(cell.q_list[i], obj.q_list[i], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(cell.kp_list[i], obj.kp_list[i], rtol=1e-12, atol=1e-12)
+
+
+def test_sector_change_of_basis_by_gathers_is_the_dense_product():
+    """``U^T m U`` by gathers over each orbit's harmonics equals the dense product, complex and real."""
+    from metadesign.library.rcwa import Truncation, symmetry_bases
+    from metadesign.library.supercell import _Cell, _sector_projector
+
+    G = _Cell(60, 0.9, Truncation.CIRCULAR, [0.0, 0.0], (1.0, 1.0)).G
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(2 * len(G),) * 2) + 1j * rng.normal(size=(2 * len(G),) * 2)
+    for U in symmetry_bases(G):
+        np.testing.assert_allclose(_sector_projector(U, False)(m), U.T @ m @ U, atol=1e-12)
+        np.testing.assert_allclose(_sector_projector(U, True)(m.real), U.T @ m.real @ U, atol=1e-12)
+    with pytest.raises(ValueError, match="not mirror-symmetric"):  # a complex matrix in a real sector solve
+        _sector_projector(symmetry_bases(G)[0], True)(m)
+
+
+def test_sector_solve_refuses_a_structure_without_the_mirror_symmetry():
+    off = [(ST.height, [Rect(0.1e-6, 0.0, 0.3e-6, 0.2e-6)])]  # off centre: no mirror line through x = 0
+    with pytest.raises(ValueError, match="not mirror-symmetric"):
+        solve_layers(off, ST.period, ST, 30, symmetric=True)
+    res = solve_layers(off, ST.period, ST, 30, symmetric=False)  # the full solve takes it
+    assert np.isfinite(res.jones).all()

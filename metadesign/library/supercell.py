@@ -100,31 +100,34 @@ def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 20
     period ``L``.  ``symmetric``: every layer is mirror-symmetric in x and y about the cell centre (solve
     the two symmetry sectors separately, as the library does).  ``laurent``: Laurent's rule for every
     component (a check against grcwa's grid-FFT rule only: it converges far too slowly here)."""
-    import grcwa
-    from grcwa import rcwa as _g
-
     eps_sub, eps_sup, eps_p = stack.n_substrate**2, stack.n_superstrate**2, stack.n_pillar**2
-    obj = grcwa.obj(int(n_harmonics), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
-    obj.Add_LayerUniform(0.0, eps_sub)
-    for t, _ in layers:
-        obj.Add_LayerGrid(t / L, 1, 1)  # placeholders: eigensystems set below
-    obj.Add_LayerUniform(0.0, eps_sup)
-    obj.Init_Setup(Gmethod=0 if truncation is Truncation.CIRCULAR else 1)
-    G = np.asarray(obj.G)
-    if tuple(G[0]) != (0, 0):
-        raise RuntimeError("grcwa harmonic ordering changed: G[0] is not the 0th order")
-    nG = int(obj.nG)
+    obj = _Cell(int(n_harmonics), L / stack.wavelength, truncation, [0.0] + [t / L for t, _ in layers] + [0.0],
+                (eps_sub, eps_sup))
+    G, nG = obj.G, obj.nG
     kx, ky, omega = obj.kx, obj.ky, obj.omega
-    kkT = np.block([[np.diag(kx * kx), np.diag(kx * ky)], [np.diag(ky * kx), np.diag(ky * ky)]])
+    # each layer's eigenproblem M = [[eyy, 0], [0, exx]] kp - k k^T, with kp = omega^2 - Jk ezz^-1 Jk^T
+    # (grcwa's MakeKPMatrix; Jk = [-diag(ky); diag(kx)]) built by blocks: diagonal scalings, no dense products
+    # with the zero blocks.  Mirror symmetry in x and y (``symmetric``) makes every convolution matrix real
+    # (the structure is even), so the sectors' eigenproblems are solved in real arithmetic.
+    real = bool(symmetric)
     ops = []
     for _, rects in layers:
         exx, eyy, ezz = staircase_permittivity(G, L, rects, eps_p, eps_sup)
         if laurent:
             exx = eyy = ezz
-        zero = np.zeros_like(exx)
-        kp = _g.MakeKPMatrix(omega, 1, np.linalg.inv(ezz), kx, ky)
-        ops.append((np.block([[eyy, zero], [zero, exx]]) @ kp - kkT, kp))
-    kp_uni = [obj.kp_list[0], obj.kp_list[-1]]
+        if real:
+            exx, eyy, ezz = (_real_part(e) for e in (exx, eyy, ezz))
+        ei = np.linalg.inv(ezz)
+        kp = np.block([[-(ky[:, None] * ei * ky[None, :]), ky[:, None] * ei * kx[None, :]],
+                       [kx[:, None] * ei * ky[None, :], -(kx[:, None] * ei * kx[None, :])]])
+        kp[np.diag_indices(2 * nG)] += omega ** 2
+        M = np.block([[eyy @ kp[:nG, :nG], eyy @ kp[:nG, nG:]], [exx @ kp[nG:, :nG], exx @ kp[nG:, nG:]]])
+        M[:nG, :nG] -= np.diag(kx * kx)
+        M[:nG, nG:] -= np.diag(kx * ky)
+        M[nG:, :nG] -= np.diag(ky * kx)
+        M[nG:, nG:] -= np.diag(ky * ky)
+        ops.append((M, kp))
+    kp_uni = [_real_part(k) if real else k for k in (obj.kp_list[0], obj.kp_list[-1])]
     q_uni = [obj.q_list[0], obj.q_list[-1]]
     a0 = np.zeros((2 * nG, 2), dtype=complex)
     a0[nG, 0] = 1.0  # x-pol: Hy > 0
@@ -137,13 +140,12 @@ def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 20
                 return m
             qs, a_in = [q_uni[0]], a
         else:
-            def tr(m):
-                return U.T @ m @ U
+            tr = _sector_projector(U, real)
             qs, a_in = [(U * U).T @ q_uni[0]], U.T @ a
         phis, kps = [np.eye(len(qs[0]))], [tr(kp_uni[0])]
         for M, kp in ops:
             lam, phi = np.linalg.eig(tr(M))
-            q = np.sqrt(lam)
+            q = np.sqrt(lam.astype(complex))
             qs.append(np.where(np.imag(q) < 0.0, -q, q))
             phis.append(phi)
             kps.append(tr(kp))
@@ -160,6 +162,65 @@ def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 20
     else:
         aN, b0 = propagate(None, a0)
     return zero_order_result(obj, a0, aN, b0, stack, sum(t for t, _ in layers))
+
+
+class _Cell:
+    """The harmonic set and the two uniform half-spaces of a stack (the part of grcwa's ``obj`` the solve
+    uses: ``G``, ``nG``, ``kx``, ``ky``, ``omega``, ``q_list``/``kp_list`` of the substrate and superstrate,
+    ``thickness_list``), normal incidence, lengths in periods.  grcwa's own lattice and truncation
+    (``Lattice_getG``: the same ``G`` in the same order); the uniform layers' ``q`` (grcwa's branch) and
+    ``kp`` from their diagonal form instead of grcwa's dense products."""
+
+    def __init__(self, n_harmonics: int, freq: float, truncation: Truncation, thickness: list[float],
+                 eps_uniform: tuple[float, float]):
+        from grcwa import rcwa as _g
+
+        lk1, lk2 = _g.Lattice_Reciprocate([1.0, 0.0], [0.0, 1.0])
+        G, nG = _g.Lattice_getG(int(n_harmonics), lk1, lk2, method=0 if truncation is Truncation.CIRCULAR else 1)
+        self.G, self.nG = np.asarray(G), int(nG)
+        if tuple(self.G[0]) != (0, 0):
+            raise RuntimeError("grcwa harmonic ordering changed: G[0] is not the 0th order")
+        self.kx, self.ky = _g.Lattice_SetKs(self.G, 0.0, 0.0, lk1, lk2)
+        self.omega = 2 * np.pi * freq
+        self.thickness_list = thickness
+        kx, ky, w2 = self.kx, self.ky, self.omega ** 2
+        self.q_list, self.kp_list = [], []
+        for eps in eps_uniform:
+            q = np.sqrt(eps * w2 - kx ** 2 - ky ** 2 + 0j)
+            q = np.where(np.imag(q) < 0.0, -q, q)
+            self.q_list.append(np.concatenate((q, q)))
+            kp = np.block([[np.diag(w2 - ky * ky / eps), np.diag(kx * ky / eps)],
+                           [np.diag(kx * ky / eps), np.diag(w2 - kx * kx / eps)]]).astype(complex)
+            self.kp_list.append(kp)
+
+
+def _real_part(m: np.ndarray) -> np.ndarray:
+    """The real part of a convolution matrix of an even structure (its imaginary part is rounding)."""
+    re, im = m.real, m.imag
+    scale = max(float(re.max()), -float(re.min()), float(im.max()), -float(im.min())) or 1.0
+    if max(float(im.max()), -float(im.min())) > 1e-9 * scale:
+        raise ValueError("symmetric solve of a structure that is not mirror-symmetric about the cell centre")
+    return np.ascontiguousarray(m.real)
+
+
+def _sector_projector(U: np.ndarray, real: bool):
+    """``m -> U^T m U`` for a symmetry basis ``U`` (2 nG x k, each column an orbit of <= 4 harmonics) as
+    gathers: O(k nG) per matrix, not a dense product (``real``: the matrix's real part)."""
+    k = U.shape[1]
+    nz = [np.flatnonzero(U[:, j]) for j in range(k)]
+    width = max(len(r) for r in nz)
+    idx = np.zeros((k, width), np.int64)
+    wts = np.zeros((k, width))
+    for j, r in enumerate(nz):
+        idx[j, :len(r)], wts[j, :len(r)] = r, U[r, j]
+
+    def tr(m):
+        m = np.asarray(m)
+        if real and np.iscomplexobj(m):
+            m = _real_part(m)
+        rows = np.einsum("kw,kwn->kn", wts, m[idx])  # U^T m
+        return np.einsum("kw,nkw->nk", wts, rows[:, idx])  # (U^T m) U
+    return tr
 
 
 def _is_eye(m: np.ndarray) -> bool:

@@ -22,6 +22,7 @@ table is the same bytes whatever the worker count or scheduler (each row depends
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import time
@@ -130,12 +131,21 @@ def _chunk_name(widths: np.ndarray, n_harmonics: int, stack: Stack, unit_harmoni
 def unit_cells(widths: np.ndarray, stack: Stack, unit_harmonics: int,
                taper: tuple[float, int] | None = None) -> np.ndarray:
     """(n, 2, 2, 2 pol) each pillar's unit cell (period ``p``) at ``unit_harmonics`` (requested); ``taper =
-    (sidewall_deg, slices)``: tapered pillars, widths at mid-height."""
+    (sidewall_deg, slices)``: tapered pillars, widths at mid-height.  A pillar solved before in this process
+    is not solved again (a design's pillars are a few hundred atoms)."""
     w = np.asarray(widths, float).reshape(-1, 2)
-    st = SolverSettings(int(unit_harmonics))
-    out = np.array([(solve_cell(wx, wy, stack, st) if taper is None else solve_tapered(wx, wy, *taper, stack, st))
-                    .jones[[0, 1], [0, 1]] for wx, wy in w])
+    tp = None if taper is None else (float(taper[0]), int(taper[1]))
+    out = np.array([_unit_t(float(wx), float(wy), stack, int(unit_harmonics), tp) for wx, wy in w])
     return out.reshape(*np.shape(widths)[:-1], 2)
+
+
+@functools.lru_cache(maxsize=8192)
+def _unit_t(wx: float, wy: float, stack: Stack, unit_harmonics: int, taper: tuple[float, int] | None) -> np.ndarray:
+    st = SolverSettings(unit_harmonics)
+    res = solve_cell(wx, wy, stack, st) if taper is None else solve_tapered(wx, wy, *taper, stack, st)
+    t = res.jones[[0, 1], [0, 1]]
+    t.flags.writeable = False
+    return t
 
 
 def _solve_rows(args) -> tuple[str, dict]:
