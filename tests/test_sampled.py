@@ -71,6 +71,24 @@ def test_supercells_and_their_widths(demo):
                 assert np.allclose(w[s, r, c], fab.layout.atom_widths_nm[k] * 1e-9)
 
 
+def test_sampled_supercells_are_the_designs_atoms_targets_and_widths(demo):
+    """Atoms and targets read supercell by supercell equal the design's whole rows (``supercell_targets``),
+    and the atoms' widths are the device's (``supercell_widths``)."""
+    from metadesign.design.compensate import _blocks, sampled_supercells, supercell_targets
+
+    fab, _, _, out = demo
+    d = load_design(out)
+    n, C2 = d.spec.n_cells - d.spec.n_cells % 2, d.spec.n_cells // 2
+    ids = eligible_supercells(fab)
+    ids = ids[np.random.default_rng(0).choice(len(ids), 40, replace=False)]
+    a, S = sampled_supercells(d, ids)
+    flat = (ids // C2) * (n // 2) + ids % C2
+    np.testing.assert_array_equal(a, _blocks(d.atom_indices()[:n].astype(np.int64))[flat])
+    np.testing.assert_allclose(S, supercell_targets(d, 0, n)[flat], atol=2e-6)
+    aw = np.stack([d.atoms.wx, d.atoms.wy], 1)
+    np.testing.assert_allclose(aw[a], supercell_widths(fab, ids), rtol=0, atol=1e-15)
+
+
 def test_a_jittered_device_is_one_device(demo):
     """The replayed widths of a jittered device (bias 3 nm, jitter 5 nm) rebuild, through the library alone,
     the pupil the forward model makes of it: the sample's supercells are the device's own pillars."""
@@ -324,3 +342,46 @@ def test_certified_case_with_the_neighbour_ring(demo, tmp_path):
         assert abs(ring["mean"][k] - base["mean"][k]) > 1e-6 * abs(base["mean"][k])
         eff = ring["ring"]["effect"][k]
         assert eff["mean"] == pytest.approx(ring["mean"][k] - base["mean"][k]) and eff["stderr"] > 0
+
+
+def test_certified_case_with_its_atoms_reoptimised(demo, tmp_path):
+    """The sampled supercells' atoms re-chosen under the certified model: the plain case is the same
+    sample's; every supercell's cost towards its target falls or stays; (K - 1) solves per supercell and
+    position; the effect is the difference of the two cases; a design that is not the device's, or a
+    perturbed device, is refused."""
+    from metadesign.studies.coupling_check import certified_case
+
+    fab, sr, cp, out = demo
+    d = load_design(out)
+    fc = fab.with_coupling("supercell")
+    cpc = fc.pupil(sr.sensor.distance, sr.pupil_grid)
+    peds = PedsModel((25,), (0.8 + 0.1j,), fab.lib.identity)
+    kw = dict(supercells=12, replicates=3, peds=peds, seed=4)
+    base = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "a", **kw)
+    both = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "b", reoptimise=(d, 3, 1), **kw)
+    reo = both.pop("reoptimised")
+    for k in ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"):
+        assert both["mean"][k] == base["mean"][k] and both["stderr"][k] == base["stderr"][k]
+        eff = reo["reoptimise"]["effect"][k]
+        assert eff["mean"] == pytest.approx(reo["mean"][k] - base["mean"][k]) and eff["stderr"] >= 0
+    r = reo["reoptimise"]
+    assert r["solves"] == 12 * 4 * 2 and r["neighbours"] == 3 and 0 < r["pillars_changed_fraction"] <= 1
+    assert sum(v * v for v in r["residual_rms_after"]) < sum(v * v for v in r["residual_rms_before"])
+    assert abs(reo["mean"]["spot_strehl"] - base["mean"]["spot_strehl"]) > 0
+    other = replace(d, index_map=np.roll(d.index_map, 1, axis=1))
+    with pytest.raises(ValueError, match="not the device's"):
+        certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", reoptimise=(other, 3, 1), **kw)
+    with pytest.raises(ValueError, match="nominal device"):
+        certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "d", reoptimise=(d, 3, 1),
+                       pert=Perturbation.from_nm(5.0), **kw)
+
+
+@pytest.mark.parametrize("extra, says", [(["--reoptimise", "3"], "give --certified"),
+                                         (["--certified", "6", "--replicates", "3", "--reoptimise", "1"], "at least 2"),
+                                         (["--certified", "6", "--replicates", "3", "--reoptimise", "3",
+                                           "--jitter-nm", "5"], "nominal device")])
+def test_reoptimise_needs_a_certified_nominal_sample(demo, tmp_path, repo, capsys, extra, says):
+    _, _, _, out = demo
+    rc, _, err = run_main(["library", "coupling-check", out, "--sensor", repo / "sensing" / "demo.toml",
+                           "-o", tmp_path / "cc", *extra], capsys)
+    assert rc == 2 and len(err) == 1 and says in err[0] and not (tmp_path / "cc").exists()

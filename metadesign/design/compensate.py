@@ -23,10 +23,10 @@ import numpy as np
 
 from ..library.coupling import tuple_t
 from ..library.coupling_net import pair_tables
-from .phase import design_phase_rows, wrap
+from .phase import design_phase, design_phase_rows, wrap
 from .store import Design
 
-__all__ = ["atom_neighbours", "compensate_design", "supercell_targets"]
+__all__ = ["atom_neighbours", "compensate_design", "supercell_targets", "sampled_supercells", "descend_under"]
 
 
 def atom_neighbours(phase: np.ndarray, k: int) -> np.ndarray:
@@ -84,6 +84,51 @@ def _descend(a: np.ndarray, S: np.ndarray, tab: np.ndarray, ta: np.ndarray, nbr:
             rows = np.arange(len(a))
             a[:, r, c] = cand[rows, j]
             t = new[rows, j]
+    return t
+
+
+def sampled_supercells(d: Design, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(atoms (n, 2, 2) int, targets (n, 2) complex)`` of the design's supercells ``ids`` (flat ``I * (n //
+    2) + J``: rows ``2I, 2I+1``, columns ``2J, 2J+1``): their atom indices and :func:`supercell_targets`
+    (``mean_i exp(i phi_i,p)``, the design's offsets included), read supercell by supercell (a sample of a
+    device of any size)."""
+    ids = np.asarray(ids, np.int64)
+    C2 = d.spec.n_cells // 2
+    I, J = ids // C2, ids % C2
+    im = d.atom_indices()
+    a = np.stack([im[2 * I + r, 2 * J + c] for r in (0, 1) for c in (0, 1)], 1).reshape(-1, 2, 2).astype(np.int64)
+    S = np.zeros((len(ids), 2), np.complex128)
+    for k, (i, j) in enumerate(zip(I, J)):
+        for p in (0, 1):
+            ph = design_phase(d.spec, p, np.array([2 * i, 2 * i + 1]), np.array([2 * j, 2 * j + 1]), d.offsets[p])
+            S[k, p] = (np.cos(ph) + 1j * np.sin(ph)).mean()
+    return a, S
+
+
+def descend_under(a: np.ndarray, S: np.ndarray, nbr: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray],
+                  sweeps: int = 1, t: np.ndarray | None = None,
+                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """:func:`_descend`'s coordinate descent of atom 4-tuples ``a`` (n, 2, 2; in place) towards ``S`` (n, 2)
+    under any supercell model: ``evaluate(tuples (m, 2, 2) int) -> t (m, 2)`` scores every candidate tuple
+    whole (a model without pair tables: the certified one).  Each position in turn tries its atom's
+    neighbours ``nbr`` (itself first, so the cost never rises); ties go to the earlier candidate, as in
+    :func:`_descend`.  ``t``: the tuples' current ``t`` if known.  Returns the final ``t``."""
+    n, K = len(a), nbr.shape[1]
+    t = evaluate(a) if t is None else np.asarray(t)
+    rows, step = np.arange(n), 0
+    for _ in range(sweeps):
+        for r, c in _POS:
+            cand = nbr[a[:, r, c]]  # (n, K), the current atom first
+            trial = np.repeat(a[:, None], K - 1, 1)
+            trial[:, :, r, c] = cand[:, 1:]
+            tt = np.asarray(evaluate(trial.reshape(-1, 2, 2))).reshape(n, K - 1, 2)
+            new = np.concatenate([t[:, None, :], tt], 1)
+            j = np.argmin((np.abs(new - S[:, None, :]) ** 2).sum(-1), axis=1)
+            a[:, r, c] = cand[rows, j]
+            t = new[rows, j]
+            step += 1
+            if progress:
+                progress(step, 4 * sweeps)
     return t
 
 

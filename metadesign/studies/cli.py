@@ -718,6 +718,13 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         raise ValidationError("--ring: the neighbour ring adds to the certified model; give --certified N")
     if a.ring and a.ring < a.replicates:
         raise ValidationError(f"--ring {a.ring}: at least one supercell per replicate (--replicates {a.replicates})")
+    if a.reoptimise and not a.certified:
+        raise ValidationError("--reoptimise: re-chooses the sampled supercells' atoms; give --certified N")
+    if a.reoptimise == 1:
+        raise ValidationError("--reoptimise 1: K counts the atom itself, so at least 2 (0: none)")
+    if a.reoptimise and (a.bias_nm or a.jitter_nm or a.height_nm or a.sidewall_deg != 90):
+        raise ValidationError("--reoptimise: the atoms are re-chosen for the nominal device (no --bias-nm, "
+                              "--jitter-nm, --height-nm or --sidewall-deg)")
     if a.certified and a.certified < 2 * a.replicates:
         raise ValidationError(f"--certified {a.certified}: at least two supercells per replicate "
                               f"(--replicates {a.replicates}), so >= {2 * a.replicates}")
@@ -730,7 +737,8 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
               "--peds": a.peds, "--fab-library": a.fab_library}
     with product(out, "coupling-check", inputs, scratch=(partial,)):
-        fab = AsFabricated.from_design(load_design(src))
+        designs = {"coupled": load_design(src)}
+        fab = AsFabricated.from_design(designs["coupled"])
         if a.fab_library:
             fab.fab_lib = load_library(a.fab_library)
         if a.height_nm or a.sidewall_deg != 90:
@@ -748,7 +756,8 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
                                       f"{ws.max():g} deg")
         fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
         if a.compensated:
-            fc = AsFabricated.from_design(load_design(a.compensated))
+            designs["compensated"] = load_design(a.compensated)
+            fc = AsFabricated.from_design(designs["compensated"])
             fc.fab_lib = fab.fab_lib
             fabs["compensated"] = fc.with_coupling("supercell", a.coupling_model)
             fabs["compensated_lpa"] = fc
@@ -766,12 +775,14 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
         log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
         cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
                 "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed,
-                "taper_slices": a.taper_slices, "ring_supercells": a.ring} if a.certified else None
+                "taper_slices": a.taper_slices, "ring_supercells": a.ring,
+                "reoptimise": (a.reoptimise, a.reoptimise_sweeps) if a.reoptimise else None} if a.certified else None
         rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
                                      certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
                                                                                seed=a.jitter_seed,
                                                                                height_nm=a.height_nm,
-                                                                               sidewall_deg=a.sidewall_deg))
+                                                                               sidewall_deg=a.sidewall_deg),
+                                     designs=designs)
         rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
         if cert:
             rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
@@ -1100,6 +1111,13 @@ def register(sub, groups: dict) -> None:
                     help="with --certified: also the neighbour ring on the first N of the sampled supercells, by "
                          "overlapping windows (the certified model on each one's three 2 x 2 windows straddling "
                          "towards its neighbours; 0: none)")
+    cc.add_argument("--reoptimise", type=integer(0, 256), default=0, metavar="K",
+                    help="with --certified, nominal widths: also each sampled supercell's atoms re-chosen under the "
+                         "certified model (each position tries its atom's K nearest atoms in phase, as the "
+                         "compensating discretizer does under the pair model): the device re-optimised under the "
+                         "certified model, estimated from the same sample without making it (0: none)")
+    cc.add_argument("--reoptimise-sweeps", type=integer(1, 8), default=1,
+                    help="sweeps over the four positions of --reoptimise (1)")
     cc.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="seed of the --certified sample (0)")
     cc.add_argument("--bias-nm", type=num(-50, 50, unit="nm"), default=0.0,
                     help="every device made with this width bias (nm; a fab study under each model; 0)")

@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..design.compensate import atom_neighbours, descend_under, sampled_supercells
 from ..library.coupling import relative_error
 from ..library.coupling_net import coupling_t
 from ..library.peds import PedsModel, certified_t, find_peds, load_peds, neighbour_windows, window_ring
@@ -44,7 +45,9 @@ CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compens
          "compensated_lpa": "compensated, LPA", "certified": "design, certified (PEDS, sampled)",
          "compensated_certified": "compensated, certified (PEDS, sampled)",
          "certified_ring": "design, certified (PEDS, overlapping windows, sampled)",
-         "compensated_certified_ring": "compensated, certified (PEDS, overlapping windows, sampled)"}
+         "compensated_certified_ring": "compensated, certified (PEDS, overlapping windows, sampled)",
+         "certified_reoptimised": "design, atoms re-chosen under the certified model (sampled)",
+         "compensated_certified_reoptimised": "compensated, atoms re-chosen under the certified model (sampled)"}
 
 
 def _mean(rows, key):
@@ -53,7 +56,8 @@ def _mean(rows, key):
 
 def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, model=None, samples: int = 64,
                    noise_percent: float = 5.0, seed: int = 0, log=lambda s: None,
-                   certified: dict | None = None, pert: Perturbation = Perturbation()) -> tuple[dict, dict]:
+                   certified: dict | None = None, pert: Perturbation = Perturbation(),
+                   designs: dict | None = None) -> tuple[dict, dict]:
     """``fabs``: case name -> :class:`~metadesign.sensing.model.AsFabricated` (its coupling set).  Returns
     the report and the flat-wavefront frames per case.  ``certified``: ``{"supercells": n, "replicates": R,
     "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s,
@@ -64,7 +68,10 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
     device made with those widths (bias, jitter: the same pillars in every case and in the sample) and that
     global etch-depth error and wall angle (the devices' ``fab_lib`` gives the unit cells' change with height
     and angle; the certified model solves its supercells at that height, tapered in ``taper_slices`` slices
-    of the ``certified`` dict, or vertical at mid-height widths with 0)."""
+    of the ``certified`` dict, or vertical at mid-height widths with 0).  ``certified["reoptimise"] = (K,
+    sweeps)`` with ``designs`` (case name -> its :class:`~metadesign.design.store.Design`): each certified case
+    also with its sampled supercells' atoms re-chosen under the certified model (``reoptimise`` of
+    :func:`certified_case`)."""
     if pert.height_gradient or pert.sidewall_gradient_deg:
         raise ValueError("coupling_check: width errors and a global etch depth and wall angle only (no gradients "
                          "across the device)")
@@ -91,10 +98,15 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
         for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
             if name in fabs:
                 log(f"  {CASES[cert]}: {certified['supercells']} supercells through the certified model ...")
+                reo = certified.get("reoptimise")
                 rep["cases"][cert], deltas, ring = certified_case(
                     fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log, pert=pert,
                     partial=f"{certified['partial']}/{name}", return_deltas=True,
-                    **{k: v for k, v in certified.items() if k != "partial"})
+                    reoptimise=(designs[name], *reo) if reo else None,
+                    **{k: v for k, v in certified.items() if k not in ("partial", "reoptimise")})
+                if reo:
+                    rep["cases"][cert + "_reoptimised"] = {**rep["cases"][cert].pop("reoptimised"),
+                                                           "label": CASES[cert + "_reoptimised"]}
                 sampled[cert] = (name, deltas)
                 if ring is not None:
                     rep["cases"][cert + "_ring"] = rep["cases"][cert].pop("with_ring")
@@ -115,7 +127,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                    partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
                    label: str = CASES["certified"], pert: Perturbation = Perturbation(),
                    log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4,
-                   ring_supercells: int = 0):
+                   ring_supercells: int = 0, reoptimise: tuple | None = None):
     """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
     the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
     uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
@@ -134,7 +146,18 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
     without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
     none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
-    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``)."""
+    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``).
+
+    ``reoptimise = (design, K, sweeps)`` (``design`` the device's own, nominal widths only): the sampled
+    supercells' atoms re-chosen under the certified model, as the compensating discretizer chooses them
+    under the pair model (:func:`~metadesign.design.compensate.descend_under`: each position tries its
+    atom's ``K`` nearest atoms in phase, ``sweeps`` times, towards ``gamma_p mean_i exp(i phi_i,p)`` with
+    ``gamma_p`` fitted to the sample's starting atoms under the certified model).  A supercell's choice
+    depends only on its own atoms and target, so the sample's re-chosen supercells are those of the device
+    re-optimised whole, and the same replicates estimate that device without bias (its correction
+    ``t_reoptimised - t_coupled`` on the coupled pupil ``cp`` of the starting design) without making it:
+    the report's ``reoptimised`` (its effect against the starting design on matched replicates in
+    ``reoptimised["reoptimise"]["effect"]``)."""
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
@@ -165,6 +188,13 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                          progress=progress_lines("certified solves"),
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
+    reo_rep = None
+    if reoptimise is not None:
+        if pert != Perturbation():
+            raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or "
+                             "wall error)")
+        reo_rep, t_reo = _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, f"{partial}/reoptimise",
+                                            workers, scheduler, progress_lines("re-optimising"), log)
     ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
     if ring_supercells:
         k = min(m, ring_supercells // replicates)
@@ -227,8 +257,49 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                             "label": label.replace("(PEDS", "(PEDS, overlapping windows"),
                             "coupling": "certified (PEDS on overlapping windows), sampled", "ring": ring_rep,
                             "seconds": time.perf_counter() - t0, **ring_case}
+    if reo_rep is not None:  # the same replicates with the re-chosen atoms: their effect on a matched sample
+        reo = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], (t_reo - t_pair)[r * m:(r + 1) * m]
+                           .astype(np.complex64), len(ids) / m) for r in range(replicates)]
+        reo_case = _sampled_metrics(cp, reo, sensor, fab)
+        a, b = reo_case.pop("_loo"), rep["_loo"]
+        reo_rep["effect"] = {k: {"mean": reo_case["mean"][k] - rep["mean"][k],
+                                 "stderr": jackknife_se(np.subtract(a[k], b[k]))} for k in SPOT_KEYS}
+        rep["reoptimised"] = {**{k: v for k, v in rep.items() if k not in ("with_ring", "_loo", "correction", "ring")},
+                              "coupling": "certified (PEDS), sampled; atoms re-chosen under it",
+                              "reoptimise": reo_rep, "seconds": time.perf_counter() - t0, **reo_case}
     rep.pop("_loo")
     return (rep, plain, deltas if ring_rep is not None else None) if return_deltas else rep
+
+
+def _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, partial, workers, scheduler, progress, log):
+    """The sampled supercells' atoms re-chosen under the certified model (``reoptimise`` of
+    :func:`certified_case`): ``(report, t (n, 2) of the re-chosen atoms)``."""
+    design, K, sweeps = reoptimise
+    t0 = time.perf_counter()
+    a, S = sampled_supercells(design, pick)
+    aw = np.stack([design.atoms.wx, design.atoms.wy], 1)
+    if a.min() < 0 or a.max() >= len(aw) or not np.allclose(aw[a], w, rtol=0, atol=1e-12):
+        raise ValueError("certified_case: the design to re-optimise is not the device's (its atoms' widths differ)")
+    gamma = (np.conj(S) * t_cert).sum(0) / (np.abs(S) ** 2).sum(0)
+    target = S * gamma
+    nbr = atom_neighbours(design.atoms.phase, min(int(K), len(aw)))
+    solved = [0]
+
+    def evaluate(tuples):
+        solved[0] += len(tuples)
+        return certified_t(fab.lib, aw[tuples], partial, pm, workers=workers, scheduler=scheduler, progress=progress)
+
+    log(f"    re-optimising {len(a)} supercells under the certified model: {nbr.shape[1]} candidates per position, "
+        f"{sweeps} sweep(s), {len(a) * 4 * sweeps * (nbr.shape[1] - 1)} solves ...")
+    a_new = a.copy()
+    t_new = descend_under(a_new, target, nbr, evaluate, sweeps, t=t_cert)
+    c0, c1 = (np.abs(t_cert - target) ** 2).mean(0), (np.abs(t_new - target) ** 2).mean(0)
+    return {"neighbours": int(nbr.shape[1]), "sweeps": int(sweeps), "supercells": int(len(a)),
+            "gamma": [[float(g.real), float(g.imag)] for g in gamma],
+            "residual_rms_before": np.sqrt(c0).tolist(), "residual_rms_after": np.sqrt(c1).tolist(),
+            "pillars_changed_fraction": float((a_new != a).mean()), "solves": int(solved[0]),
+            "seconds": time.perf_counter() - t0,
+            "cost": "sum_p |t_certified,p - gamma_p mean_i exp(i phi_i,p)|^2 per supercell"}, t_new
 
 
 def _plus_pupil(a, b):
