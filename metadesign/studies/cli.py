@@ -807,6 +807,12 @@ def _cmd_coupling_check(a: argparse.Namespace) -> int:
                          f"   ({c['sampling']['supercells']} supercells of {c['sampling']['eligible_supercells']:,})"
                          + (f"   NPiB +- {rep['downstream'][name]['npib_unet_se']:.3f}"
                             if name in rep.get("downstream", {}) else ""))
+        eff = ((c.get("ring") or {}).get("effect") or (c.get("reoptimise") or {}).get("effect"))
+        if eff:  # a case measured on the same replicates as its plain one: the difference and its error
+            lines.append(f"  {'  effect (matched replicates)':<{wl}} "
+                         + ", ".join(f"{k} {v['mean'] * (1e3 if k == 'focal_shift_mm' else 1):+.4g} +- "
+                                     f"{v['stderr'] * (1e3 if k == 'focal_shift_mm' else 1):.2g}"
+                                     for k, v in eff.items()).replace("focal_shift_mm", "focal shift (um)"))
     if "downstream" in rep:
         d = rep["downstream"]
         lines.append(f"  NPiB uncorrected {d['npib_none']:.3f}, phase conjugate {d['npib_phase_conjugate']:.3f} "

@@ -329,7 +329,8 @@ def plot_case_metrics(rep: dict, out):
     names = list(rep["cases"])
     fig, axs = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
     colours = {"lpa": "0.6", "compensated_lpa": "0.8", "coupled": "C0", "compensated": "C2", "certified": "C1",
-               "compensated_certified": "C3", "certified_ring": "C4", "compensated_certified_ring": "C5"}
+               "compensated_certified": "C3", "certified_ring": "C4", "compensated_certified_ring": "C5",
+               "certified_reoptimised": "C6", "compensated_certified_reoptimised": "C7"}
     for ax, (k, title) in zip(axs, SPOT_TITLES.items()):
         scale = 1e3 if k == "focal_shift_mm" else 1.0
         for i, n in enumerate(names):
