@@ -364,6 +364,7 @@ def test_certified_case_with_its_atoms_reoptimised(demo, tmp_path):
         assert both["mean"][k] == base["mean"][k] and both["stderr"][k] == base["stderr"][k]
         eff = reo["reoptimise"]["effect"][k]
         assert eff["mean"] == pytest.approx(reo["mean"][k] - base["mean"][k]) and eff["stderr"] >= 0
+    assert reo["label"].endswith("atoms re-chosen under it")
     r = reo["reoptimise"]
     assert r["solves"] == 12 * 4 * 2 and r["neighbours"] == 3 and 0 < r["pillars_changed_fraction"] <= 1
     assert sum(v * v for v in r["residual_rms_after"]) < sum(v * v for v in r["residual_rms_before"])
@@ -374,6 +375,38 @@ def test_certified_case_with_its_atoms_reoptimised(demo, tmp_path):
     with pytest.raises(ValueError, match="nominal device"):
         certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "d", reoptimise=(d, 3, 1),
                        pert=Perturbation.from_nm(5.0), **kw)
+
+
+def test_pillars_of_sampled_supercells_are_the_coupled_devices(demo):
+    """Each pillar's ``t`` under the coupling model, for supercells taken out of the device (what the
+    re-optimised case moves pillar by pillar), equals the coupled device's own pillar map there, and its
+    mean over the supercell is the model's supercell ``t``; a per-pillar correction equal on the four
+    pillars is the per-supercell one."""
+    from metadesign.library.coupling_net import coupling_t
+    from metadesign.sensing.transmission import pillar_transmission
+    from metadesign.studies.coupling_check import _pillar_t
+
+    fab, sr, _, _ = demo
+    fc = fab.with_coupling("supercell")
+    ids = eligible_supercells(fab)[np.random.default_rng(2).choice(len(eligible_supercells(fab)), 30, replace=False)]
+    w = supercell_widths(fc, ids)
+    got = _pillar_t(fc, w)
+    C2 = fab.n_cells // 2
+    I, J = ids // C2, ids % C2
+    rows = np.unique(np.concatenate([2 * I, 2 * I + 1]))
+    r0, r1 = int(rows.min()) // 2 * 2, int(rows.max()) + 1
+    t_map, _ = pillar_transmission(fc.layout.index_map, fc.layout.atom_widths_nm, fc.lib, Perturbation(),
+                                   slice(r0, r1), None, fc.fab_lib, fc.coupling)
+    want = np.stack([t_map[2 * I + r - r0, 2 * J + c] for r in (0, 1) for c in (0, 1)], 1).reshape(-1, 2, 2, 2)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    tu = unit_t_as_made(fc.lib, w[..., 0], w[..., 1], Perturbation(), fc.fab_lib)
+    np.testing.assert_allclose(got.mean((1, 2)), coupling_t(fc.coupling, w, tu), atol=2e-5)
+    assert np.abs(got - tu).max() > 1e-2  # the coupling terms are there
+    delta = np.random.default_rng(3).normal(size=(30, 2)) + 0j
+    a = delta_pupil(fc, sr.sensor.distance, sr.pupil_grid, ids, delta, 2.0)
+    b = delta_pupil(fc, sr.sensor.distance, sr.pupil_grid, ids, np.repeat(np.repeat(delta[:, None, None], 2, 1), 2, 2),
+                    2.0)
+    np.testing.assert_array_equal(a.G, b.G)
 
 
 @pytest.mark.parametrize("extra, says", [(["--reoptimise", "3"], "give --certified"),

@@ -110,12 +110,15 @@ def solve_layers(layers, L: float, stack: Stack = Stack(), n_harmonics: int = 20
     # with the zero blocks.  Mirror symmetry in x and y (``symmetric``) makes every convolution matrix real
     # (the structure is even), so the sectors' eigenproblems are solved in real arithmetic.
     real = bool(symmetric)
+    mirrors = _mirror_permutations(G) if real else None
     ops = []
     for _, rects in layers:
         exx, eyy, ezz = staircase_permittivity(G, L, rects, eps_p, eps_sup)
         if laurent:
             exx = eyy = ezz
         if real:
+            for e in (exx, eyy, ezz):
+                _check_mirrors(e, mirrors)
             exx, eyy, ezz = (_real_part(e) for e in (exx, eyy, ezz))
         ei = np.linalg.inv(ezz)
         kp = np.block([[-(ky[:, None] * ei * ky[None, :]), ky[:, None] * ei * kx[None, :]],
@@ -194,11 +197,32 @@ class _Cell:
             self.kp_list.append(kp)
 
 
+def _mirror_permutations(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index permutations of the harmonic set ``G`` under the mirrors ``x -> -x`` and ``y -> -y``."""
+    index = {(int(a), int(b)): i for i, (a, b) in enumerate(G)}
+    try:
+        return (np.array([index[(-int(a), int(b))] for a, b in G]), np.array([index[(int(a), -int(b))] for a, b in G]))
+    except KeyError:
+        raise RuntimeError("harmonic set is not mirror-symmetric") from None
+
+
+def _check_mirrors(m: np.ndarray, mirrors) -> None:
+    """A convolution matrix of a structure with the two mirror lines through the cell centre is invariant
+    under both mirrors of the harmonics (what the sector solve assumes; inversion symmetry alone, which also
+    makes it real, is not enough).  Tolerance 1e-6 of its largest entry: the band edges' rounding leaves
+    ~1e-9 on periods off a round grid."""
+    scale = float(np.abs(m).max()) or 1.0
+    for P in mirrors:
+        if float(np.abs(m[P][:, P] - m).max()) > 1e-6 * scale:
+            raise ValueError("symmetric solve of a structure that is not mirror-symmetric about the cell centre")
+
+
 def _real_part(m: np.ndarray) -> np.ndarray:
-    """The real part of a convolution matrix of an even structure (its imaginary part is rounding)."""
+    """The real part of a convolution matrix of an even structure (its imaginary part is rounding, up to
+    ~1e-9 of its largest entry)."""
     re, im = m.real, m.imag
     scale = max(float(re.max()), -float(re.min()), float(im.max()), -float(im.min())) or 1.0
-    if max(float(im.max()), -float(im.min())) > 1e-9 * scale:
+    if max(float(im.max()), -float(im.min())) > 1e-6 * scale:
         raise ValueError("symmetric solve of a structure that is not mirror-symmetric about the cell centre")
     return np.ascontiguousarray(m.real)
 

@@ -112,7 +112,7 @@ def supercell_widths(fab, ids: np.ndarray, pert: Perturbation = Perturbation(),
 def delta_pupil(fab, z: float, pupil_grid: int, ids: np.ndarray, delta: np.ndarray, weight: float) -> CoarsePupil:
     """The coarse pupil of corrections only: ``weight * delta[s]`` (n, 2 pol) complex added to each of the
     four pillars of supercell ``ids[s]`` (so the supercell's ``t``, the mean of its four, moves by that),
-    nothing elsewhere; each pillar summed into its block with the demodulating chirp and ``tn`` scale, as
+    or ``delta`` (n, 2, 2, 2 pol) one per pillar (``[s, row, column]``), nothing elsewhere; each pillar summed into its block with the demodulating chirp and ``tn`` scale, as
     :func:`~metadesign.sensing.forward.coarse_pupil` sums a device (so it adds to a device's pupil), but
     touching only the sampled pillars (not a pass over the whole device per replicate)."""
     ids = np.asarray(ids, np.int64)
@@ -125,7 +125,8 @@ def delta_pupil(fab, z: float, pupil_grid: int, ids: np.ndarray, delta: np.ndarr
     for b in range(2):
         for a in range(2):
             row, col = 2 * I + b, 2 * J + a
-            w = d * cexp(k0 * ((x0 + row * p) ** 2 + (x0 + col * p) ** 2) / (2 * z))[:, None]
+            w = (d[:, b, a] if d.ndim == 4 else d) * cexp(k0 * ((x0 + row * p) ** 2 + (x0 + col * p) ** 2)
+                                                           / (2 * z))[:, None]
             for pol in range(2):
                 np.add.at(G[pol, a + 2 * b], (row // B, col // B), w[:, pol])
     G /= B * B

@@ -32,7 +32,7 @@ from ..sensing.sampled import (
     supercell_widths,
 )
 from ..sensing.sensor import SensorSpec
-from ..sensing.transmission import Perturbation, unit_t_as_made
+from ..sensing.transmission import Perturbation, couple_supercells, unit_t_as_made
 from .lpa import pupil_downstream
 
 __all__ = ["CASES", "SPOT_KEYS", "SWEEP_AXES", "certified_case", "coupling_check", "plot_case_metrics",
@@ -94,6 +94,9 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
             "power_on_sensor": [float(f.sum()) / (fab.n_cells * fab.period) ** 2 for f in frames[name]],
         }
     sampled = {}
+    if certified and certified.get("reoptimise") and not all(n in (designs or {}) for n in ("coupled", "compensated")
+                                                             if n in fabs):
+        raise ValueError("coupling_check: re-optimising needs each coupled case's design (designs=)")
     if certified:
         for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
             if name in fabs:
@@ -151,12 +154,14 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     ``reoptimise = (design, K, sweeps)`` (``design`` the device's own, nominal widths only): the sampled
     supercells' atoms re-chosen under the certified model, as the compensating discretizer chooses them
     under the pair model (:func:`~metadesign.design.compensate.descend_under`: each position tries its
-    atom's ``K`` nearest atoms in phase, ``sweeps`` times, towards ``gamma_p mean_i exp(i phi_i,p)`` with
-    ``gamma_p`` fitted to the sample's starting atoms under the certified model).  A supercell's choice
-    depends only on its own atoms and target, so the sample's re-chosen supercells are those of the device
-    re-optimised whole, and the same replicates estimate that device without bias (its correction
-    ``t_reoptimised - t_coupled`` on the coupled pupil ``cp`` of the starting design) without making it:
-    the report's ``reoptimised`` (its effect against the starting design on matched replicates in
+    atom's ``K`` nearest atoms in phase, ``sweeps`` times, towards ``gamma_p mean_i exp(i phi_i,p)``, with
+    ``gamma_p`` fitted to the sample's starting atoms under the certified model).  Given ``gamma``, a
+    supercell's choice depends only on its own atoms and target, so the sample's re-chosen supercells are
+    those of the device re-optimised whole, and the same replicates estimate that device (each pillar's
+    correction: from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new ones, plus
+    the supercell's certified correction; on the coupled pupil ``cp`` of the starting design) without
+    making it.  ``gamma``'s own sampling error (O(1/n)) is not in the error bars.  The report's
+    ``reoptimised`` (its effect against the starting design on matched replicates in
     ``reoptimised["reoptimise"]["effect"]``)."""
     t0 = time.perf_counter()
     if fab.coupling is None:
@@ -188,13 +193,9 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                          progress=progress_lines("certified solves"),
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
-    reo_rep = None
-    if reoptimise is not None:
-        if pert != Perturbation():
-            raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or "
-                             "wall error)")
-        reo_rep, t_reo = _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, f"{partial}/reoptimise",
-                                            workers, scheduler, progress_lines("re-optimising"), log)
+    if reoptimise is not None and replace(pert, seed=0) != Perturbation():
+        raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or wall "
+                         "error)")
     ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
     if ring_supercells:
         k = min(m, ring_supercells // replicates)
@@ -257,23 +258,39 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                             "label": label.replace("(PEDS", "(PEDS, overlapping windows"),
                             "coupling": "certified (PEDS on overlapping windows), sampled", "ring": ring_rep,
                             "seconds": time.perf_counter() - t0, **ring_case}
-    if reo_rep is not None:  # the same replicates with the re-chosen atoms: their effect on a matched sample
-        reo = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], (t_reo - t_pair)[r * m:(r + 1) * m]
-                           .astype(np.complex64), len(ids) / m) for r in range(replicates)]
+    if reoptimise is not None:  # the same replicates with the re-chosen atoms: their effect on a matched sample
+        reo_rep, D = _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, f"{partial}/reoptimise",
+                                        workers, scheduler, progress_lines("re-optimising"), log)
+        reo = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], D[r * m:(r + 1) * m], len(ids) / m)
+               for r in range(replicates)]
         reo_case = _sampled_metrics(cp, reo, sensor, fab)
         a, b = reo_case.pop("_loo"), rep["_loo"]
         reo_rep["effect"] = {k: {"mean": reo_case["mean"][k] - rep["mean"][k],
                                  "stderr": jackknife_se(np.subtract(a[k], b[k]))} for k in SPOT_KEYS}
         rep["reoptimised"] = {**{k: v for k, v in rep.items() if k not in ("with_ring", "_loo", "correction", "ring")},
+                              "label": f"{label}, atoms re-chosen under it",
                               "coupling": "certified (PEDS), sampled; atoms re-chosen under it",
                               "reoptimise": reo_rep, "seconds": time.perf_counter() - t0, **reo_case}
     rep.pop("_loo")
     return (rep, plain, deltas if ring_rep is not None else None) if return_deltas else rep
 
 
+def _pillar_t(fab, w: np.ndarray) -> np.ndarray:
+    """(n, 2, 2, 2 pol) each pillar's ``t`` under the device's coupling model (its unit cell plus its coupling
+    term, as the coupled pupil has it) for nominal supercells ``w`` (n, 2, 2, 2) m: the supercells side by
+    side in one strip of two rows."""
+    n = len(w)
+    tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], Perturbation(), fab.fab_lib)
+    strip = lambda x: np.swapaxes(x, 0, 1).reshape(2, 2 * n, *x.shape[3:])  # noqa: E731  [s, r, c] -> [r, 2s + c]
+    t = couple_supercells(strip(tu).astype(np.complex64), strip(w), np.ones((2, 2 * n), bool), fab.coupling)
+    return np.swapaxes(np.asarray(t).reshape(2, n, 2, 2), 0, 1)
+
+
 def _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, partial, workers, scheduler, progress, log):
     """The sampled supercells' atoms re-chosen under the certified model (``reoptimise`` of
-    :func:`certified_case`): ``(report, t (n, 2) of the re-chosen atoms)``."""
+    :func:`certified_case`): ``(report, per-pillar correction (n, 2, 2, 2) to the coupled pupil)``: each
+    pillar moves from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new ones, and
+    the supercell's mean from there to the certified model's ``t`` of the new atoms."""
     design, K, sweeps = reoptimise
     t0 = time.perf_counter()
     a, S = sampled_supercells(design, pick)
@@ -294,12 +311,14 @@ def _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, partial, workers, s
     a_new = a.copy()
     t_new = descend_under(a_new, target, nbr, evaluate, sweeps, t=t_cert)
     c0, c1 = (np.abs(t_cert - target) ** 2).mean(0), (np.abs(t_new - target) ** 2).mean(0)
+    p_old, p_new = _pillar_t(fab, aw[a]), _pillar_t(fab, aw[a_new])
+    D = p_new - p_old + (t_new - p_new.mean((1, 2)))[:, None, None, :]
     return {"neighbours": int(nbr.shape[1]), "sweeps": int(sweeps), "supercells": int(len(a)),
             "gamma": [[float(g.real), float(g.imag)] for g in gamma],
             "residual_rms_before": np.sqrt(c0).tolist(), "residual_rms_after": np.sqrt(c1).tolist(),
             "pillars_changed_fraction": float((a_new != a).mean()), "solves": int(solved[0]),
             "seconds": time.perf_counter() - t0,
-            "cost": "sum_p |t_certified,p - gamma_p mean_i exp(i phi_i,p)|^2 per supercell"}, t_new
+            "cost": "sum_p |t_certified,p - gamma_p mean_i exp(i phi_i,p)|^2 per supercell"}, D.astype(np.complex64)
 
 
 def _plus_pupil(a, b):
