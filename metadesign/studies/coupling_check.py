@@ -176,7 +176,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, fab.fab_lib)
     t_pair = coupling_t(fab.coupling, w, tu)
     stack = replace(fab.lib.stack, height=fab.lib.stack.height + pert.height)
-    def progress_lines(what):
+    def progress_lines(what, steps=""):
         said = {"pass": 0, "last": -1, "tenths": set()}
 
         def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
@@ -185,7 +185,9 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
             said["last"] = d
             if d * 10 // max(n, 1) not in said["tenths"]:
                 said["tenths"].add(d * 10 // max(n, 1))
-                log(f"    {what}, level {said['pass'] + 1}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
+                k, L = said["pass"], len(pm.harmonics)
+                where = f"level {k + 1}" if not steps else f"{steps} {k // L + 1}, level {k % L + 1}"
+                log(f"    {what}, {where}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
         return progress
 
     taper = (pert.sidewall_deg, taper_slices) if pert.sidewall_deg != 90.0 and taper_slices else None
@@ -260,7 +262,7 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                             "seconds": time.perf_counter() - t0, **ring_case}
     if reoptimise is not None:  # the same replicates with the re-chosen atoms: their effect on a matched sample
         reo_rep, D = _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, f"{partial}/reoptimise",
-                                        workers, scheduler, progress_lines("re-optimising"), log)
+                                        workers, scheduler, progress_lines("re-optimising", "step"), log)
         reo = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], D[r * m:(r + 1) * m], len(ids) / m)
                for r in range(replicates)]
         reo_case = _sampled_metrics(cp, reo, sensor, fab)
