@@ -266,26 +266,33 @@ def test_pair_tables_reproduce_the_network(paper_library):
     assert np.abs(want - ta[a].mean((1, 2))).mean() > 1e-2
 
 
+def _strong_pair_table(lib, seed: int, n_atoms: int):
+    """A pair model with its weights scaled up (coupling terms well above rounding) and its tables over
+    ``n_atoms`` random atoms: ``(atom widths, atom t, tables)``."""
+    import torch
+
+    from metadesign.library import pair_tables
+
+    torch.manual_seed(seed)
+    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), lib).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.mul_(3.0)
+    aw = np.random.default_rng(seed).uniform(0.15e-6, 0.45e-6, size=(n_atoms, 2))
+    ta = interpolate_t(lib, aw[:, 0], aw[:, 1])[0].astype(np.complex64)
+    return aw, ta, pair_tables(m, aw, ta)
+
+
 def test_compensation_descends_and_its_updates_are_exact(paper_library):
     """The discretizer's incremental look-ups give exactly the pair-table t of the atoms it ends on; no
     supercell's cost rises; its cost never beats the brute-force optimum over every 4-tuple."""
     import itertools
 
-    import torch
-
     from metadesign.design.compensate import _descend, atom_neighbours
-    from metadesign.library import pair_tables, tuple_t
+    from metadesign.library import tuple_t
 
-    torch.manual_seed(8)
-    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
-    with torch.no_grad():
-        for p in m.parameters():
-            p.mul_(3.0)
+    _, ta, tab = _strong_pair_table(paper_library, 8, 6)
     rng = np.random.default_rng(4)
-    aw = rng.uniform(0.15e-6, 0.45e-6, size=(6, 2))
-    ta, _, _ = interpolate_t(paper_library, aw[:, 0], aw[:, 1])
-    ta = ta.astype(np.complex64)
-    tab = pair_tables(m, aw, ta)
     a0 = rng.integers(0, 6, size=(30, 2, 2))
     S = (np.exp(1j * rng.uniform(-np.pi, np.pi, size=(30, 2))) * 0.5).astype(np.complex64)
     a = a0.copy()
@@ -305,20 +312,11 @@ def test_descent_under_a_whole_tuple_model_is_the_table_descent(paper_library):
     """The descent that scores whole candidate tuples (for models without pair tables: the certified one),
     given the pair model's own tuple look-up as its model, ends on the atoms and ``t`` of the incremental
     table descent, supercell by supercell, and never raises a cost."""
-    import torch
-
     from metadesign.design.compensate import _descend, atom_neighbours, descend_under
-    from metadesign.library import pair_tables, tuple_t
+    from metadesign.library import tuple_t
 
-    torch.manual_seed(9)
-    m = build_coupling(CouplingConfig(hidden=16, layers=3, interaction="pair"), paper_library).eval()
-    with torch.no_grad():
-        for p in m.parameters():
-            p.mul_(3.0)
+    _, ta, tab = _strong_pair_table(paper_library, 9, 9)
     rng = np.random.default_rng(5)
-    aw = rng.uniform(0.15e-6, 0.45e-6, size=(9, 2))
-    ta = interpolate_t(paper_library, aw[:, 0], aw[:, 1])[0].astype(np.complex64)
-    tab = pair_tables(m, aw, ta)
     nbr = atom_neighbours(np.angle(ta), 5)
     a0 = rng.integers(0, 9, size=(40, 2, 2))
     S = (np.exp(1j * rng.uniform(-np.pi, np.pi, size=(40, 2))) * 0.5).astype(np.complex64)
