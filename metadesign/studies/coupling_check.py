@@ -166,6 +166,9 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
     t0 = time.perf_counter()
     if fab.coupling is None:
         raise ValueError("certified_case: the device needs its coupling model (the control variate)")
+    if reoptimise is not None and replace(pert, seed=0) != Perturbation():
+        raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or wall "
+                         "error)")
     pm = peds if isinstance(peds, PedsModel) else load_peds(peds if peds is not None else find_peds(fab.lib), fab.lib)
     ids = eligible_supercells(fab)
     m = supercells // replicates
@@ -195,9 +198,6 @@ def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 200
                          progress=progress_lines("certified solves"),
                          stack=stack, t_unit=tu, taper=taper)
     delta = (t_cert - t_pair).astype(np.complex64)
-    if reoptimise is not None and replace(pert, seed=0) != Perturbation():
-        raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or wall "
-                         "error)")
     ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
     if ring_supercells:
         k = min(m, ring_supercells // replicates)
