@@ -214,6 +214,7 @@ def test_synthetic_captures_are_seeded_and_16_bit(captures, tmp_path):
 
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_transfer_runs_three_models_on_the_imported_set_and_resumes(tmp_path, tiny_dataset, demo_products):
     """``metadesign transfer`` at toy scale: device as made, captures, import (the relay recovered), and the
     unadapted / fine-tuned / scratch models on the same imported test split (the phase conjugate through the

@@ -446,6 +446,7 @@ def test_convergence_ladder_measures_label_changes(paper_library, tmp_path):
     np.testing.assert_allclose(labels[:, 0], tu[0].mean((0, 1))[None].repeat(2, 0), atol=1e-9)
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_ladder_and_active_cli(tmp_path, capsys):
     """The two commands end to end at a small truncation: JSON products with their format tags, a rerun
     over our own output allowed (and resumed), a foreign file at the output refused with one line."""

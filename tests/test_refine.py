@@ -212,6 +212,7 @@ def test_noise_range_in_recipes_is_checked():
         train_recipe_from_dict({"data": {"photons_at_peak": [0, 100]}})
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_a_refiner_trains_evaluates_compares_and_exports(tiny_dataset, tmp_path):
     """A [refine] recipe trains on top of a frozen U-Net (noise drawn from a range), saves a refiner that
     `evaluate`, `compare` (as the registered estimator "refine", with its per-step curve) and `export`

@@ -12,6 +12,7 @@ from conftest import REPO, run_cli
 torch = pytest.importorskip("torch")
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_tolerance_study_same_samples_every_case_and_resumes(tmp_path, demo_products):
     from conftest import tiny_model
 

@@ -136,6 +136,7 @@ def _cli(*args, env_extra=None, timeout=600):
                           text=True, timeout=timeout)
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_sigkilled_training_resumes_to_the_same_loss_curve(tiny_dataset, tmp_path):
     rec = _recipe(tmp_path, tiny_dataset, epochs=4)
     ref = _cli("train", rec, "-o", tmp_path / "ref", "--json")
@@ -169,6 +170,7 @@ def test_sigkilled_training_resumes_to_the_same_loss_curve(tiny_dataset, tmp_pat
     assert again.returncode == 2 and "--resume" in again.stderr
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_two_gloo_processes_reach_the_weights_of_one(tiny_dataset, tmp_path):
     rec = _recipe(tmp_path, tiny_dataset, epochs=2, batch=4, extra="")
     one = _cli("train", rec, "-o", tmp_path / "one", "--max-steps", "3", "--json")
@@ -253,6 +255,7 @@ def test_recipe_noise_is_percent_of_the_peak(tiny_dataset, tmp_path):
     assert np.std(d / peak) == pytest.approx(0.05, rel=0.1)
 
 
+@pytest.mark.slow  # a training run: the default suite's 10-minute budget
 def test_quadratic_form_training_follows_the_split_step_loss(tiny_dataset, tmp_path):
     """pib_operator = "quadratic" caches each sample's bucket operator in the first PiB epoch and loads no
     screens afterwards; the loss curve must follow the split-step training's (same seed, same batches)."""
