@@ -218,6 +218,7 @@ def test_shack_hartmann_drops_dark_subapertures():
     assert not valid[0][:, 0].any() and valid[0][1:4, 1:4].all()
 
 
+@pytest.mark.slow  # a study run end to end: the default suite's 10-minute budget
 def test_compare_and_retrieve_cli(tmp_path, tiny_dataset):
     """Both commands on the tiny dataset: files, strict JSON, physical ordering of the references, the
     same bytes with 1 or 2 workers."""

@@ -238,6 +238,7 @@ def test_coupling_check_certified_cli(demo, tmp_path, repo, capsys):
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow  # a study run end to end: the default suite's 10-minute budget
 def test_etch_depth_under_every_model_and_its_sweep(demo, repo, tmp_path, capsys):
     """An etch-depth error (and a sloped wall) through coupling-check (in-process; the subprocess path is
     the test above): the coupled and certified devices take

@@ -213,6 +213,7 @@ def test_noise_models_seeded():
     assert np.std(s) / np.mean(s) == pytest.approx(1 / np.sqrt(1e4), rel=0.1)
 
 
+@pytest.mark.slow  # a study run end to end: the default suite's 10-minute budget
 def test_psf_and_fab_study_cli(demo, repo):
     _, _, out = demo
     layout = out / "layout.oas"
