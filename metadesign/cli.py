@@ -58,13 +58,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"metadesign {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    from .studies import cli as studies_cli
+    from .studies.cli import STUDY_MODULES
+    from .studies.cli_main import register as register_main
 
-    studies_cli.register_main(sub)  # demo and run first in the help
+    register_main(sub)  # demo and run first in the help
     groups: dict = {}
     for mod in _stage_modules():
         groups.update(mod.register(sub) or {})
-    studies_cli.register(sub, groups)
+    for mod in STUDY_MODULES:  # studies that combine stages: top-level commands and the stage groups' actions
+        mod.register(sub, groups)
     return p
 
 
