@@ -1,5 +1,6 @@
-"""Stage 6: reconstruction.  Datasets of 8-PSF tensors and their store (:mod:`.dataset`: build, open,
-verify, the device a dataset was made with), the torch loader over a store (:mod:`.data`), the U-Net
+"""Stage 6: reconstruction.  Datasets of 8-PSF tensors (:mod:`.dataset`: the recipe
+:mod:`.dataset_recipe`, the build :mod:`.dataset_build`, the store :mod:`.dataset_store`: open, verify, the
+device a dataset was made with), the torch loader over a store (:mod:`.data`), the U-Net
 (:mod:`.model`), the losses (:mod:`.losses`: the end-to-end power in bucket), training (:mod:`.train`),
 evaluation (:mod:`.evaluate`, :mod:`.metrics`), ONNX export (:mod:`.export`), the stored bucket operators
 (:mod:`.operators`), capture import (:mod:`.captures`), the model-based baselines (:mod:`.retrieval`,

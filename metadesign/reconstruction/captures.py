@@ -58,8 +58,9 @@ from ..sensing.camera import Alignment
 from ..sensing.forward import sensor_frames
 from ..sensing.sensor import area_resample, quadrant_slices
 from ..validation import ValidationError
-from .dataset import (DATASET_FORMAT, _create_store, consolidate, load_device, normalise_psf, open_dataset, open_store,
-                      split_labels)
+from .dataset_build import normalise_psf
+from .dataset_recipe import split_labels
+from .dataset_store import DATASET_FORMAT, consolidate, create_store, load_device, open_dataset, open_store
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
@@ -526,7 +527,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _create_store(tmp, n, S, options.shard_size, a, attrs, split, rytov_fill=-1.0)
+        create_store(tmp, n, S, options.shard_size, a, attrs, split, rytov_fill=-1.0)
         g = open_store(tmp, "r+")
         g["psf"][:] = np.stack(psf)
         g["received"][:] = np.stack(rec)

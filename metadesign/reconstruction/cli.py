@@ -15,7 +15,8 @@ __all__ = ["register"]
 
 
 def _cmd_build(a: argparse.Namespace) -> int:
-    from .dataset import build_dataset, load_dataset_recipe
+    from .dataset_build import build_dataset
+    from .dataset_recipe import load_dataset_recipe
 
     rec = load_dataset_recipe(a.recipe)
     if a.samples is not None:
@@ -62,7 +63,7 @@ def _crop_line(info) -> str:
 
 
 def _cmd_show(a: argparse.Namespace) -> int:
-    from .dataset import open_dataset
+    from .dataset_store import open_dataset
 
     info = open_dataset(a.dataset)
     s = info.summary()
@@ -93,7 +94,7 @@ def _cmd_show(a: argparse.Namespace) -> int:
 
 
 def _cmd_verify(a: argparse.Namespace) -> int:
-    from .dataset import verify_dataset
+    from .dataset_store import verify_dataset
 
     rep = verify_dataset(a.dataset, progress=None if a.json else progress_bar("verify", unit="sample"))
     bad = rep["damaged_shards"]
@@ -108,7 +109,7 @@ def _cmd_verify(a: argparse.Namespace) -> int:
 
 
 def _cmd_plot(a: argparse.Namespace) -> int:
-    from .dataset import open_dataset
+    from .dataset_store import open_dataset
     from .plot import plot_dataset
 
     out = out_file(a.output or Path(a.dataset) / "fig-dataset.png", suffixes=(".png",))

@@ -1,5 +1,5 @@
 """Reading a dataset: :class:`PSFDataset`, a ``torch.utils.data.Dataset`` over a metadesign dataset store
-(the store itself, its format, build, checks and device: :mod:`.dataset`).  It opens the zarr arrays
+(the store itself, its format, checks and device: :mod:`.dataset_store`).  It opens the zarr arrays
 lazily in each DataLoader worker, checks every sample it reads (a damaged one is one line naming its
 shard), applies the noise when samples are read (seeded per sample and epoch, so one dataset serves
 every noise study), and returns tensors."""
@@ -13,7 +13,8 @@ import numpy as np
 from ..turbulence.propagate import Turbulence
 from ..validation import ValidationError, check_int, check_number
 from ..sensing.sensor import NoiseSpec, add_noise
-from .dataset import check_psf, damaged, has_operators, load_device, open_dataset, open_store, sample_rytov
+from .dataset_recipe import sample_rytov
+from .dataset_store import check_psf, damaged, has_operators, load_device, open_dataset, open_store
 
 __all__ = ["PSFDataset", "apply_noise", "NoiseRange"]
 

@@ -16,7 +16,7 @@ from ..sensing.forward import sensor_frames
 from ..sensing.sensor import CHANNELS, QUADRANTS, quadrant_slices
 from ..validation import ValidationError
 from .captures import spot_centroids
-from .dataset import load_device, open_dataset
+from .dataset_store import load_device, open_dataset
 from .model import check_sizes
 from .refine import load_network
 

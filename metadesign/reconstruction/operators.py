@@ -26,9 +26,9 @@ import numpy as np
 from ..outputs import Need, check_need, product
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
-from .dataset import OPERATOR_ARRAY as ARRAY
-from .dataset import (consolidate, has_operators, open_dataset, open_store, operator_info, run_shards, shard_folder,
-                      shard_name)
+from .dataset_build import run_shards, shard_folder, shard_name
+from .dataset_store import OPERATOR_ARRAY as ARRAY
+from .dataset_store import consolidate, has_operators, open_dataset, open_store, operator_info
 from .losses import PiB
 
 __all__ = ["OperatorContext", "build_operators", "operator_info", "has_operators"]

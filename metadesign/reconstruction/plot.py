@@ -8,7 +8,7 @@ import numpy as np
 
 from ..plotting import pyplot, save_figure
 from .data import PSFDataset
-from .dataset import DatasetInfo
+from .dataset_store import DatasetInfo
 
 __all__ = ["plot_dataset"]
 

@@ -31,7 +31,7 @@ from ..plotting import pyplot, save_figure
 from ..validation import ValidationError, check_memory
 from .codesign import CodesignConfig, build_codesign, diversity_record
 from .data import PSFDataset
-from .dataset import load_device
+from .dataset_store import load_device
 from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
