@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from ..sensing.detector import Detector
 from ..sensing.diversity import DEFAULT_MODES, diversity_operators, focal_to_defocus, lens_table
 from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
@@ -85,12 +86,9 @@ class CodesignNet(nn.Module):
         with torch.autocast(received.device.type, enabled=False):
             x = normalise(self.twin(received).to(torch.float32))
         lo, hi = self.noise_percent
-        if hi > 0:
-            b = x.shape[0]
-            lv = lo + (hi - lo) * torch.rand(b, generator=self._gen, dtype=torch.float64)
-            peak = x.detach().amax(dim=(-2, -1), keepdim=True)
-            z = torch.randn(x.shape, generator=self._gen, dtype=torch.float32).to(x.device)
-            x = x + (lv.to(device=x.device, dtype=x.dtype) / 100.0)[:, None, None, None] * peak * z
+        if hi > 0:  # the detector's torch backend, at a level per sample drawn in the range
+            lv = lo + (hi - lo) * torch.rand(x.shape[0], generator=self._gen, dtype=torch.float64)
+            x = Detector().read_torch(x, self._gen, gaussian_sigma=lv.to(device=x.device, dtype=x.dtype) / 100.0)
         return x
 
     def forward(self, received):

@@ -18,9 +18,12 @@ Studies (``metadesign compare``) build every registered estimator from a :class:
 device.Device` and the estimator's own settings (``config_key``: the attribute of the study's settings
 that holds them) and run them on the same samples and the same sensor noise.
 
-A batch is a dict of numpy arrays of one dataset split: ``psf`` (B, 8, S, S) with the sensor noise,
+A batch is a dict of numpy arrays of one dataset split: ``psf`` (B, 8, S, S) as the detector read them,
 ``received`` (B, A, A) complex (the true field: what a Shack-Hartmann sensor in the same plane would see),
-``index`` (B,) sample indices (seeds for per-sample noise)."""
+``index`` (B,) sample indices, and ``sh_spots`` (B, L, L, K, K): a Shack-Hartmann sensor's spot images as
+its detector read them (:func:`sh_exposures`; noise-free spots of ``received`` when absent).  Estimators
+never see noise settings: the detector (:mod:`metadesign.sensing.detector`) made their input; what an
+estimator assumes of its data (the retrieval's likelihood, a centroid threshold) is its own config."""
 
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from ..validation import ValidationError
 from .retrieval import RetrievalConfig, RetrievalContext, retrieve
 from .shack_hartmann import ShackHartmann, SHConfig
 
-__all__ = ["Estimator", "register", "ESTIMATORS", "estimator_names", "make_estimator", "checkpoints_for",
+__all__ = ["Estimator", "register", "ESTIMATORS", "estimator_names", "make_estimator", "checkpoints_for", "sh_exposures",
            "UNetEstimator", "RetrievalEstimator", "HybridEstimator", "ShackHartmannEstimator", "RefineEstimator"]
 
 #: name -> estimator class, in registration order (the order studies run and list them)
@@ -71,11 +74,11 @@ class Estimator:
     needs_refiner: ClassVar[bool] = False  # takes a trained refiner (a study's model argument when it is one)
     config_key: ClassVar[str | None] = None  # attribute of a study's settings holding this estimator's config
     starts_from: ClassVar[str | None] = None  # the estimator whose estimate it starts from (its latency adds)
+    own_sensor: ClassVar[bool] = False  # reads its own sensor's frames, not the metasurface's PSFs
 
-    def __init__(self, device: Device, config=None, model=None, noise_percent: float = 0.0, noise_seed: int = 0):
+    def __init__(self, device: Device, config=None, model=None):
         """The ``prepare`` step: everything that does not depend on the sample (not timed)."""
         self.device, self.config, self.model = device, config, model
-        self.noise_percent, self.noise_seed = float(noise_percent), int(noise_seed)
         if self.needs_model and model is None:
             raise ValidationError(f"estimator {self.name}: needs a model")
 
@@ -110,30 +113,43 @@ def _torch(a):
 
 @register
 class ShackHartmannEstimator(Estimator):
-    """A simulated Shack-Hartmann sensor in the received-field plane (its own spots, its own noise:
-    Gaussian, ``noise_percent`` of each frame's peak, seeded per sample)."""
+    """A simulated Shack-Hartmann sensor in the received-field plane: centroids and reconstruction of its
+    spot images (``batch["sh_spots"]``, as its detector read them: :func:`sh_exposures`), the centroid
+    threshold set by its config's ``noise_percent``."""
 
     name, label, style, config_key = "shack_hartmann", "Shack-Hartmann", ("tab:orange", "v"), "sh"
+    own_sensor = True  # its input is not the metasurface's PSFs: a study renders its spots (sh_exposures)
 
-    def __init__(self, device: Device, config: SHConfig | None = None, model=None, noise_percent: float = 0.0,
-                 noise_seed: int = 0):
-        super().__init__(device, config or SHConfig(), model, noise_percent, noise_seed)
+    def __init__(self, device: Device, config: SHConfig | None = None, model=None):
+        super().__init__(device, config or SHConfig(), model)
         self.sh = ShackHartmann.for_device(self.config, device)
 
-    def rng(self, index: int) -> np.random.Generator:
-        return np.random.default_rng(np.random.SeedSequence(self.noise_seed, spawn_key=(7, int(index))))
-
-    def spots(self, received: np.ndarray, index: int) -> np.ndarray:
-        return self.sh.add_noise(self.sh.frames(received[None]), self.noise_percent, self.rng(index))
+    def _spots(self, batch) -> np.ndarray:
+        if "sh_spots" in batch:
+            return np.asarray(batch["sh_spots"])
+        return self.sh.frames(np.asarray(batch["received"]))  # a noise-free detector
 
     def estimate(self, batch, done=None, on_checkpoint=None):
-        out = [self.sh.reconstruct(*self.sh.centroids(self.spots(r, i), self.noise_percent))[0]
-               for r, i in zip(batch["received"], batch["index"])]
+        out = [self.sh.reconstruct(*self.sh.centroids(s[None], self.config.noise_percent))[0]
+               for s in self._spots(batch)]
         return _torch(np.stack(out))
 
     def latency_fn(self, item, done=None):
-        spots = self.spots(item["received"][0], 0)  # the sensor's exposure is not the estimator's latency
-        return lambda: self.sh.reconstruct(*self.sh.centroids(spots, self.noise_percent))
+        spots = self._spots(item)[:1]  # the sensor's exposure is not the estimator's latency
+        return lambda: self.sh.reconstruct(*self.sh.centroids(spots, self.config.noise_percent))
+
+
+def sh_exposures(est: ShackHartmannEstimator, received: np.ndarray, index: np.ndarray, noise_percent: float,
+                 noise_seed: int) -> np.ndarray:
+    """The spot images (B, L, L, K, K) of the Shack-Hartmann sensor of ``est`` for received crops (B, A, A),
+    read by its detector: Gaussian noise of ``noise_percent`` % of each frame's peak, seeded per sample
+    (``SeedSequence(noise_seed, spawn_key=(7, index))``).  The study's side of the sensor, not the
+    estimator's."""
+    out = []
+    for r, i in zip(received, index):
+        rng = np.random.default_rng(np.random.SeedSequence(int(noise_seed), spawn_key=(7, int(i))))
+        out.append(est.sh.add_noise(est.sh.frames(np.asarray(r)[None]), noise_percent, rng)[0])
+    return np.stack(out)
 
 
 @register
@@ -143,9 +159,8 @@ class RetrievalEstimator(Estimator):
 
     name, label, style, config_key = "retrieval", "PD retrieval", ("tab:purple", "D"), "retrieval"
 
-    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None,
-                 noise_percent: float = 0.0, noise_seed: int = 0):
-        super().__init__(device, config or RetrievalConfig(misfit="gaussian"), model, noise_percent, noise_seed)
+    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None):
+        super().__init__(device, config or RetrievalConfig(misfit="gaussian"), model)
         self.ctx = RetrievalContext.build(device, self.config)
         self._misfit = None
 
@@ -187,9 +202,8 @@ class HybridEstimator(RetrievalEstimator):
     starts_from = "unet"
     DEFAULT = RetrievalConfig(modal_iterations=0, zonal_iterations=50, lr_zonal=0.03, misfit="gaussian")
 
-    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None,
-                 noise_percent: float = 0.0, noise_seed: int = 0):
-        super().__init__(device, config or self.DEFAULT, model, noise_percent, noise_seed)
+    def __init__(self, device: Device, config: RetrievalConfig | None = None, model=None):
+        super().__init__(device, config or self.DEFAULT, model)
 
     def start(self, batch, done):
         import torch
@@ -224,8 +238,7 @@ class RefineEstimator(Estimator):
         return phi * self.model.mask
 
 
-def make_estimator(name: str, device: Device, settings=None, model=None, noise_percent: float = 0.0,
-                   noise_seed: int = 0, refiner=None) -> Estimator:
+def make_estimator(name: str, device: Device, settings=None, model=None, refiner=None) -> Estimator:
     """The registered estimator ``name`` for ``device``; its config is ``getattr(settings, config_key)``;
     ``model`` the U-Net, ``refiner`` a trained refiner (for the estimators that need one)."""
     if name not in ESTIMATORS:
@@ -234,4 +247,4 @@ def make_estimator(name: str, device: Device, settings=None, model=None, noise_p
     cfg = getattr(settings, cls.config_key) if settings is not None and cls.config_key else None
     if cls.needs_refiner and refiner is None:
         raise ValidationError(f"estimator {name}: needs a trained refiner (give its .safetensors as the model)")
-    return cls(device, cfg, refiner if cls.needs_refiner else model, noise_percent, noise_seed)
+    return cls(device, cfg, refiner if cls.needs_refiner else model)

@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import __version__
 from ..io import atomic_path
-from ..sensing.forward import sensor_frames
+from ..sensing.device import Device
 from ..sensing.sensor import CHANNELS, QUADRANTS, quadrant_slices
 from ..validation import ValidationError
 from .captures import spot_centroids
@@ -74,7 +74,7 @@ def camera_contract(dev) -> dict:
     for k, q in enumerate(QUADRANTS, 1):
         r, c = quadrant_slices(sen, k)
         windows[q] = {"rows": [r.start, r.stop], "cols": [c.start, c.stop]}
-    flat = sensor_frames(dev.pupil, sen, None)
+    flat = Device(dev.pupil, sen).frames()
     cen = spot_centroids(flat, sen)
     return {
         "frames": ["x-pol", "y-pol"],

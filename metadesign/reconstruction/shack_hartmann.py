@@ -52,6 +52,7 @@ class SHConfig:
     reconstructor: str = "zonal"
     modes: int = 0  # modal: Noll 2 .. modes+1; 0: as many as 3/4 of the lenslets inside the aperture
     smoothing: float = 0.05  # zonal: weight of the Laplacian fill
+    noise_percent: float = 0.0  # the frames' expected Gaussian noise (% of the peak): sets the centroid threshold
 
     def __post_init__(self):
         check_int("sh.lenslets", self.lenslets, 2, 64)
@@ -63,9 +64,13 @@ class SHConfig:
             raise ConfigError("sh.reconstructor", f"expected zonal or modal, got {self.reconstructor!r}")
         check_int("sh.modes", self.modes, 0, 300)
         check_number("sh.smoothing", self.smoothing, 0, 100)
+        check_number("sh.noise_percent", self.noise_percent, 0, 100)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The sensor's settings (the expected noise is the study's, reported with it)."""
+        d = asdict(self)
+        d.pop("noise_percent")
+        return d
 
 
 class ShackHartmann:

@@ -9,7 +9,24 @@ interpolation, the differentiable twin, the retrieval, the Shack-Hartmann model 
 
 A dataset hands one out (:func:`metadesign.reconstruction.dataset.load_device`); the twin, retrieval,
 Shack-Hartmann, capture import and the studies take it.  The wavelength is the pupil's; a turbulence
-scenario at another wavelength is refused (:meth:`Device.check_wavelength`)."""
+scenario at another wavelength is refused (:meth:`Device.check_wavelength`).
+
+**The forward-model contract.**  A device renders its sensor's eight PSFs from an incident field, and every
+backend of the model answers to the same three names (the loop in time calls them per frame):
+
+===========================  ======================================================================
+``pupil_field(crop)``        received crop(s) ``(..., A, A)`` -> incident field(s) on the coarse pupil grid
+``psfs(e_in)``               incident pupil field(s) ``(..., N, N)`` -> PSF tensor(s) ``(..., 8, S, S)``
+                             (power per tensor pixel, unit incident intensity, no noise)
+``from_crop(crop)``          ``psfs(pupil_field(crop))``
+===========================  ======================================================================
+
+Backends: numpy, this class (exact: :func:`~.forward.sensor_frames` + :func:`~.sensor.psf_tensor`, one
+field at a time; :meth:`Device.frames` and :meth:`Device.render` also give the camera frames); torch,
+:meth:`Device.twin` (:class:`~.twin.TorchTwin`, batched and differentiable, the same operators); the
+learnable diversity's :class:`~.twin_diversity.DiversityTwin`.  Noise is the detector's alone, after
+rendering (:class:`~.detector.Detector`: :meth:`Device.render` with a detector in numpy,
+``Detector.read_torch`` in torch); estimators receive frames, never noise settings."""
 
 from __future__ import annotations
 
@@ -21,10 +38,11 @@ import numpy as np
 from ..conventions import fft_centered
 from ..io import read_npz, write_npz
 from ..validation import ValidationError, check_int, check_number
-from .forward import CoarsePupil
-from .sensor import SensorSpec
+from .detector import Detector
+from .forward import CoarsePupil, sensor_frames
+from .sensor import SensorSpec, psf_tensor
 
-__all__ = ["ReceiverCrop", "Device", "load_pupil", "save_pupil", "check_wavelengths", "WAVELENGTH_RTOL"]
+__all__ = ["ReceiverCrop", "Device", "Exposure", "load_pupil", "save_pupil", "check_wavelengths", "WAVELENGTH_RTOL"]
 
 #: relative tolerance of a wavelength match (float32 round-trips of nm values stay far below it)
 WAVELENGTH_RTOL = 1e-6
@@ -79,17 +97,74 @@ class ReceiverCrop:
 
 
 @dataclass(frozen=True)
+class Exposure:
+    """One rendered exposure: the camera frames ``(2, H, W)`` (x- and y-polarisation; power per pixel for unit
+    incident intensity, after the detector) and the PSF tensor ``(8, S, S)`` made from them."""
+
+    frames: np.ndarray
+    psfs: np.ndarray
+
+
+@dataclass(frozen=True)
 class Device:
-    """A metasurface as made, its sensor, and the received-field crop it is fed from."""
+    """A metasurface as made, its sensor, and the received-field crop it is fed from (None: a device fed
+    with fields on its pupil grid only, e.g. the stage-4 PSF of a layout)."""
 
     pupil: CoarsePupil
     sensor: SensorSpec
-    crop: ReceiverCrop
+    crop: ReceiverCrop | None = None
 
     def __post_init__(self):
         if not isinstance(self.pupil, CoarsePupil) or not isinstance(self.sensor, SensorSpec) \
-                or not isinstance(self.crop, ReceiverCrop):
-            raise TypeError("Device(pupil: CoarsePupil, sensor: SensorSpec, crop: ReceiverCrop)")
+                or not (self.crop is None or isinstance(self.crop, ReceiverCrop)):
+            raise TypeError("Device(pupil: CoarsePupil, sensor: SensorSpec, crop: ReceiverCrop | None)")
+
+    # -- the forward-model contract (numpy backend) -------------------------------------------------
+    def frames(self, e_in: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free camera frames ``(2, H, W)`` for the incident field ``e_in`` on the pupil grid (None: a
+        flat unit plane wave)."""
+        return sensor_frames(self.pupil, self.sensor, e_in)
+
+    def render(self, e_in: np.ndarray | None = None, detector: Detector | None = None,
+               rng: np.random.Generator | None = None) -> Exposure:
+        """The one call per frame: the frames of ``e_in``, read by the ``detector`` (None: noise-free; ``rng``
+        its draws, else its seed's), and the PSF tensor of what it read."""
+        frames = self.frames(e_in)
+        if detector is not None:
+            frames = detector.read(frames, rng)
+        return Exposure(frames, psf_tensor(frames, self.sensor))
+
+    def psfs(self, e_in: np.ndarray | None = None) -> np.ndarray:
+        """The noise-free PSF tensor ``(8, S, S)`` (or ``(B, 8, S, S)`` for a batch of fields)."""
+        if e_in is not None and np.ndim(e_in) == 3:
+            return np.stack([self.psfs(e) for e in e_in])
+        return psf_tensor(self.frames(e_in), self.sensor)
+
+    def pupil_field(self, crop: np.ndarray) -> np.ndarray:
+        """Received crop(s) ``(..., A, A)`` -> the incident field(s) on the pupil grid (the cubic resampling
+        of :meth:`~metadesign.turbulence.propagate.Turbulence.to_metasurface`, the metasurface's mask)."""
+        from .twin import crop_to_pupil
+
+        c = self._need_crop()
+        crop = np.asarray(crop)
+        if crop.ndim == 3:
+            return np.stack([self.pupil_field(x) for x in crop])
+        return crop_to_pupil(crop, c.n_grid, c.dx, c.aperture, c.start, self.pupil_n)
+
+    def from_crop(self, crop: np.ndarray) -> np.ndarray:
+        return self.psfs(self.pupil_field(crop))
+
+    def twin(self, rebin: int = 1, samples: int | None = None, device="cpu", double: bool = False):
+        """The torch backend of this device (:class:`~metadesign.sensing.twin.TorchTwin`: the same three
+        calls, batched, differentiable)."""
+        from .twin import TorchTwin
+
+        return TorchTwin.for_device(self, rebin, samples, device, double)
+
+    def _need_crop(self) -> ReceiverCrop:
+        if self.crop is None:
+            raise ValidationError("this device has no receiver crop: it takes fields on its pupil grid only")
+        return self.crop
 
     @property
     def wavelength(self) -> float:
@@ -102,7 +177,7 @@ class Device:
 
     @property
     def geometry(self) -> tuple[int, int, int, float, float]:
-        return self.crop.geometry
+        return self._need_crop().geometry
 
     def check_wavelength(self, wavelength: float, what: str = "turbulence scenario") -> None:
         """Refuse a field at another wavelength than the device's (one line naming both)."""

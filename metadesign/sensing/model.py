@@ -18,7 +18,7 @@ from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap
 from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
 from ..parallel import run_tasks
-from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields, sensor_frames
+from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
@@ -385,4 +385,6 @@ def spot_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_s
 def render_frames(fab: AsFabricated, sr: SensingRecipe, pert: Perturbation = Perturbation(),
                   e_in: np.ndarray | None = None, progress=None) -> tuple[np.ndarray, CoarsePupil]:
     cp = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress)
-    return sensor_frames(cp, sr.sensor, e_in), cp
+    from .device import Device  # the device module builds on this one
+
+    return Device(cp, sr.sensor).frames(e_in), cp

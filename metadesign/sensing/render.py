@@ -14,10 +14,12 @@ from .. import __version__
 from ..io import atomic_path, atomic_write_text, json_array, read_product, write_npz
 from ..library.locate import file_sha256
 from ..validation import ValidationError, check_finite_array
-from .forward import CoarsePupil, full_resolution_frames, sensor_frames
+from .detector import Detector
+from .device import Device
+from .forward import CoarsePupil, full_resolution_frames
 from .model import AsFabricated, SensingRecipe, channel_metrics
 from .plot import plot_fab_study
-from .sensor import NoiseSpec, add_noise, psf_tensor, quadrant_slices
+from .sensor import NoiseSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
 __all__ = ["PSFResult", "render_psf", "save_psf", "load_psf", "PSF_FORMAT", "full_resolution_check",
@@ -55,10 +57,8 @@ def render_psf(fab: AsFabricated, sensing: SensingRecipe, field: np.ndarray | No
     if pupil is None:
         pupil = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
     e_in = None if field is None else check_field(field, pupil)
-    frames = sensor_frames(pupil, sensing.sensor, e_in)
-    if noise is not None and noise.active:
-        frames = add_noise(frames, noise, rng)
-    return PSFResult(frames, psf_tensor(frames, sensing.sensor), pupil, pert, noise)
+    shot = Device(pupil, sensing.sensor).render(e_in, Detector(noise) if noise is not None else None, rng)
+    return PSFResult(shot.frames, shot.psfs, pupil, pert, noise)
 
 
 def save_psf(path: str | Path, res: PSFResult, fab: AsFabricated, sensing: SensingRecipe,

@@ -1,4 +1,4 @@
-"""The sensor: frame geometry, quadrant windows, the 8-channel PSF tensor, noise.
+"""The sensor: frame geometry, quadrant windows, the 8-channel PSF tensor (its noise: :mod:`.detector`).
 
 Frame geometry: a ``width x height`` pixel frame (paper: 640 x 512, 15 um)
 images the metasurface focal plane through a relay of magnification ``M``
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..conventions import centered
-from ..validation import ConfigError, check_int, check_number
+from ..validation import ConfigError, check_int, check_number  # noqa: F401
 
 __all__ = ["QUADRANTS", "CHANNELS", "SensorSpec", "NoiseSpec", "quadrant_slices", "psf_tensor", "add_noise", "photo_electrons", "area_weights", "area_resample"]
 
@@ -108,64 +108,5 @@ def psf_tensor(frames: np.ndarray, sensor: SensorSpec) -> np.ndarray:
     return out
 
 
-@dataclass(frozen=True)
-class NoiseSpec:
-    gaussian_sigma: float = 0.0  # additive Gaussian, sigma as a fraction of each frame's peak (paper: 0-0.1)
-    photons_at_peak: float | None = None  # shot noise: Poisson with this many photo-electrons at the peak
-    read_noise_e: float = 0.0  # read noise (electrons, Gaussian), needs photons_at_peak
-    bit_depth: int | None = None  # ADC quantisation of [0, peak]
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        check_number("noise.gaussian_sigma", self.gaussian_sigma, 0, 1)
-        if self.photons_at_peak is not None:
-            # Poisson sampling needs lam < ~1e18; beyond ~1e15 photo-electrons shot noise is < 3e-8 of the peak
-            check_number("noise.photons_at_peak", self.photons_at_peak, 0, 1e15, open_lo=True)
-        check_number("noise.read_noise_e", self.read_noise_e, 0, 1e6)
-        if self.read_noise_e and not self.photons_at_peak:
-            raise ConfigError("noise.read_noise_e", "needs noise.photons_at_peak > 0 (read noise is counted in "
-                                                    "photo-electrons)")
-        if self.bit_depth is not None:
-            check_int("noise.bit_depth", self.bit_depth, 1, 32)
-        check_int("noise.seed", self.seed, 0, 2**63 - 1)
-
-    @property
-    def active(self) -> bool:
-        return bool(self.gaussian_sigma or self.photons_at_peak or self.bit_depth)
-
-    def to_dict(self) -> dict:
-        return {"gaussian_percent": self.gaussian_sigma * 100, "photons_at_peak": self.photons_at_peak or 0.0,
-                "read_noise_e": self.read_noise_e, "bit_depth": self.bit_depth or 0, "seed": self.seed}
-
-
-def photo_electrons(mean_e: np.ndarray, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
-    """The detector's one noise kernel: expected photo-electrons per pixel -> detected electrons (float64):
-    Poisson shot noise plus Gaussian read noise (electrons).  :func:`add_noise` (sensing, datasets,
-    evaluation, estimators) and :func:`metadesign.sensing.camera.expose` (the capture synthesiser's
-    counts) both draw through it."""
-    e = rng.poisson(mean_e).astype(np.float64)
-    if read_noise_e:
-        e += rng.normal(0.0, read_noise_e, e.shape)
-    return e
-
-
-def add_noise(frames: np.ndarray, noise: NoiseSpec, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Noisy copy of ``frames`` (..., H, W), each frame scaled by its own peak; seeded.
-
-    The one detector model (hcipy's ``NoisyDetector`` in spirit), in one unit, the frame's peak: the
-    irradiance is clipped at zero (a detector sees no negative power), then shot + read noise
-    (:func:`photo_electrons`), additive Gaussian noise of ``gaussian_sigma`` x peak, and an optional ADC
-    quantisation of [0, peak].  Noise may take a pixel below zero; only the ADC clips the result."""
-    rng = rng or np.random.default_rng(noise.seed)
-    f = np.asarray(frames, np.float64)
-    peak = f.max(axis=(-2, -1), keepdims=True)
-    peak = np.where(peak > 0, peak, 1.0)
-    x = np.clip(f / peak, 0.0, None)
-    if noise.photons_at_peak:
-        x = photo_electrons(x * noise.photons_at_peak, noise.read_noise_e, rng) / noise.photons_at_peak
-    if noise.gaussian_sigma:
-        x = x + rng.normal(0.0, noise.gaussian_sigma, x.shape)
-    if noise.bit_depth:
-        levels = 2**noise.bit_depth - 1
-        x = np.round(np.clip(x, 0.0, 1.0) * levels) / levels
-    return (x * peak).astype(np.float32)
+# the detector (noise on rendered frames) lives in .detector; its names stay importable from here
+from .detector import NoiseSpec, add_noise, photo_electrons  # noqa: E402,F401

@@ -165,7 +165,8 @@ def normalise(tensor):
 
 
 class TorchTwin:
-    """The twin on a torch device: :meth:`tensor` of pupil fields, :meth:`from_crop` of received crops."""
+    """The torch backend of the forward-model contract (:mod:`metadesign.sensing.device`): :meth:`psfs` of
+    pupil fields, :meth:`pupil_field` and :meth:`from_crop` of received crops."""
 
     @classmethod
     def for_device(cls, dev: Device, rebin: int = 1, samples: int | None = None, device="cpu",
@@ -192,16 +193,18 @@ class TorchTwin:
     def pupil_n(self) -> int:
         return self.K.shape[-1]
 
-    def tensor(self, e_in):
+    def psfs(self, e_in):
         """``e_in`` (B, N, N) complex pupil fields -> (B, 8, S, S) PSF tensors (power, unit incident intensity)."""
         return render_tensor(self.K, e_in, self.Ay, self.Ax, self.w, self.Ry, self.Rx)
+
+    tensor = psfs  # the name before the contract (metadesign.sensing.device)
 
     def pupil_field(self, crop):
         """Received crops (B, A, A) complex -> pupil fields (B, N, N) (the metasurface mask is in ``K``)."""
         return self.W @ crop.to(self.cdtype) @ self.W.transpose(-1, -2)
 
     def from_crop(self, crop):
-        return self.tensor(self.pupil_field(crop))
+        return self.psfs(self.pupil_field(crop))
 
 
 def twin_error(cp: CoarsePupil, sensor: SensorSpec, crop_geometry, fields: np.ndarray, rebin: int,

@@ -20,7 +20,8 @@ __all__ = ["DiversityTwin"]
 
 
 class DiversityTwin(nn.Module):
-    """Parameters: ``defocus_waves`` (2, 4) and ``zernike_rad`` (2, 4, J) of each channel (``[p, k-1]``).
+    """A torch backend of the forward-model contract (:mod:`metadesign.sensing.device`: :meth:`psfs`,
+    :meth:`pupil_field`, :meth:`from_crop`) whose diversity is learnable.  Parameters: ``defocus_waves`` (2, 4) and ``zernike_rad`` (2, 4, J) of each channel (``[p, k-1]``).
     ``double``: float64 / complex128 throughout (for gradient checks); ``persistent=False`` keeps the
     device's operators out of the state dict (a checkpoint holds the diversity, the dataset the device)."""
 
@@ -59,19 +60,24 @@ class DiversityTwin(nn.Module):
         d = torch.complex(torch.cos(psi), torch.sin(psi))
         return (self.G * d).sum(dim=1)
 
-    def tensor(self, e_in):
+    def psfs(self, e_in):
         """Pupil fields (B, N, N) complex -> (B, 8, S, S) PSF tensors (power, unit incident intensity)."""
         g = self.pupils()
         K = torch.cat([g[0:1].expand(4, -1, -1), g[1:2].expand(4, -1, -1)]) * self.P  # (8, N, N)
         return render_tensor(K, e_in.to(self.cdtype), self.Ay, self.Ax, self.w, self.Ry, self.Rx)
 
+    tensor = psfs  # the name before the contract (metadesign.sensing.device)
+
     def pupil_field(self, crop):
         """Received crops (B, A, A) -> pupil fields (B, N, N)."""
         return self.W @ crop.to(self.cdtype) @ self.W.transpose(-1, -2)
 
-    def forward(self, crop):
+    def from_crop(self, crop):
         """Received crops (B, A, A) complex -> (B, 8, S, S) PSF tensors."""
-        return self.tensor(self.pupil_field(crop))
+        return self.psfs(self.pupil_field(crop))
+
+    def forward(self, crop):
+        return self.from_crop(crop)
 
     def describe(self) -> dict:
         """The diversity as numbers: focal lengths (mm) and Zernike coefficients (rad) per channel."""

@@ -31,7 +31,7 @@ from ..parallel import WorkerPool
 from ..plotting import pyplot, save_figure
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.estimators import ESTIMATORS as ESTIMATOR_CLASSES
-from ..reconstruction.estimators import HybridEstimator, checkpoints_for, estimator_names, make_estimator
+from ..reconstruction.estimators import HybridEstimator, checkpoints_for, estimator_names, make_estimator, sh_exposures
 from ..reconstruction.evaluate import RYTOV_BINS
 from ..reconstruction.losses import PiB
 from ..reconstruction.metrics import EVAL_NOISE_SEED, npib_rows
@@ -85,7 +85,7 @@ class CompareSettings:
         if bad:
             raise ConfigError("methods", f"expected some of {', '.join(estimator_names())}, got {', '.join(bad)}")
         # the retrieval's Gaussian likelihood uses the noise level of the data
-        for k in ("retrieval", "hybrid"):
+        for k in ("retrieval", "hybrid", "sh"):  # ... and the Shack-Hartmann centroid threshold
             object.__setattr__(self, k, replace(getattr(self, k), noise_percent=self.noise_percent))
 
     def to_dict(self) -> dict:
@@ -97,6 +97,15 @@ class CompareSettings:
 def _batch_of(items: list[dict]) -> dict:
     return {"psf": np.stack([s["psf"] for s in items]), "received": np.stack([s["received"] for s in items]),
             "index": np.array([s["index"] for s in items])}
+
+
+def _exposed(est, batch: dict, st: "CompareSettings") -> dict:
+    """``batch`` with what ``est``'s own sensor recorded (a Shack-Hartmann's spots, through its detector at the
+    study's noise), when it has one; the metasurface's PSFs came with the dataset's detector."""
+    if not est.own_sensor:
+        return batch
+    return {**batch, "sh_spots": sh_exposures(est, batch["received"], batch["index"], st.noise_percent,
+                                              st.noise_seed)}
 
 
 class _Runner:
@@ -113,7 +122,7 @@ class _Runner:
         self.dev = dev = self.ds.device()
         self.pib = PiB(self.ds.scenario(), dev.crop.start, dev.crop.size)
         self.model, self.refiner, self.card = _models(model)
-        self.est = {name: make_estimator(name, dev, st, self.model, st.noise_percent, st.noise_seed, self.refiner)
+        self.est = {name: make_estimator(name, dev, st, self.model, self.refiner)
                     for name in _run_order(st.methods, self.model is not None, self.refiner is not None)}
 
     def items(self, js):
@@ -140,7 +149,7 @@ class _Runner:
         done: dict = {}
         for name, est in self.est.items():
             if est.iterations is None:
-                done[name] = est.estimate(batch, done)
+                done[name] = est.estimate(_exposed(est, batch, self.st), done)
                 r[name] = npib(done[name])
                 continue
             cks, curve = est.checkpoints(), {}
@@ -159,7 +168,7 @@ class _Runner:
         for name, est in self.est.items():
             base = out.get(est.starts_from, 0.0)
             if est.iterations is None:
-                out[name] = 1e3 * repeat_seconds(est.latency_fn(_batch_of(items[:1])), 15)
+                out[name] = 1e3 * repeat_seconds(est.latency_fn(_exposed(est, _batch_of(items[:1]), self.st)), 15)
                 continue
             cks, runs = est.checkpoints(), []
             for s in items:
@@ -415,8 +424,8 @@ def tune(model, dataset, st: CompareSettings, n: int, split: str = "val", log=pr
             continue
         table = []
         for cfg in _grid(getattr(st, cls.config_key), grid):
-            est = cls(base.dev, cfg, mdl, st.noise_percent, st.noise_seed)
-            table.append((npib(est.estimate(batch, done)), cfg))
+            est = cls(base.dev, cfg, mdl)
+            table.append((npib(est.estimate(_exposed(est, batch, st), done)), cfg))
         best = max(table, key=lambda t: t[0])
         st = replace(st, **{cls.config_key: best[1]})
         report[name] = {"best": best[1].to_dict(), "npib": best[0],

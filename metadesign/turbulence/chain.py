@@ -11,9 +11,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..sensing.device import check_wavelengths
-from ..sensing.forward import CoarsePupil, sensor_frames
+from ..sensing.device import Device
+from ..sensing.forward import CoarsePupil
 from ..sensing.model import AsFabricated, SensingRecipe
-from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import Perturbation
 from .path import Scenario
 from .propagate import Turbulence, split_step
@@ -42,6 +42,7 @@ class BeaconChain:
     def __init__(self, pupil: CoarsePupil, sensing: SensingRecipe, scenario: Scenario, aperture: float):
         check_wavelengths(pupil.wavelength, scenario.wavelength, "turbulence scenario")  # one wavelength per chain
         self.pupil, self.sensing = pupil, sensing
+        self.device = Device(pupil, sensing.sensor)  # the forward-model contract: one render per sample
         self.turbulence = Turbulence(replace(scenario, metasurface_aperture=aperture))
 
     @classmethod
@@ -65,8 +66,7 @@ class BeaconChain:
         received = tb.collimated(field)
         e_in = tb.to_metasurface(field, self.pupil.G.shape[-1])
         t3 = time.perf_counter()
-        frames = sensor_frames(self.pupil, self.sensing.sensor, e_in)
-        tensor = psf_tensor(frames, self.sensing.sensor)
+        shot = self.device.render(e_in)
         t4 = time.perf_counter()
-        return BeaconSample(seed, rytov, received, e_in, frames, tensor,
+        return BeaconSample(seed, rytov, received, e_in, shot.frames, shot.psfs,
                             {"screens": t1 - t0, "split_step": t2 - t1, "to_metasurface": t3 - t2, "psf": t4 - t3})
