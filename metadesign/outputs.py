@@ -13,6 +13,9 @@ nothing written:
 * an existing output that metadesign did not write (a user's file; a folder holding anything else,
   dot-files included) or that holds another kind of product (a unit-cell library where a supercell table
   is to be written);
+* a folder at the output's resume-folder path (``OUT.partial``) that metadesign did not make (it carries no
+  scratch marker, :data:`metadesign.tasks.SCRATCH_MARK`; an empty folder is a user's too): it would be
+  taken for a resume folder and removed;
 * a second writer of the same output while one works, whatever its recipe (an advisory ``flock`` the
   kernel drops when the writer dies, even by SIGKILL);
 * a job whose estimated disk or memory (:class:`Need`) exceeds what the machine has free, with the
@@ -44,6 +47,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
+from .execution import is_scratch
 from .io import atomic_write_text, claim, output_lock
 from .plotting import PNG_KEY
 from .validation import MEMORY_FRACTION, InputError, available_memory
@@ -410,7 +414,8 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
                  scratch: tuple[str | Path, ...] = ()) -> Path:
     """Every refusal of :func:`product`, done before any work (one-line InputError).  ``also``: further
     files the product writes beside a file output (a card, a figure): each must be absent or ours.
-    ``scratch``: the product's resume folders beside it (``OUT.partial``): absent or folders."""
+    ``scratch``: the product's resume folders beside it (``OUT.partial``): each absent or a folder metadesign
+    made (it carries :data:`metadesign.tasks.SCRATCH_MARK`)."""
     if kind not in KINDS:
         raise ValueError(f"unknown product kind {kind!r}")
     out = Path(out)
@@ -443,6 +448,9 @@ def check_output(out: str | Path, kind: str, inputs: Mapping[str, str | Path | I
         if sc.is_symlink() or (sc.exists() and not sc.is_dir()):
             raise InputError(f"{sc}: exists and is not the resume folder metadesign keeps there (refusing to "
                              "replace it)")
+        if sc.is_dir() and not is_scratch(sc):  # a user's folder, even an empty one: never resumed, never removed
+            raise InputError(f"{sc}: exists and metadesign did not make it (it is where {out}'s resume folder "
+                             "goes: move it)")
     check_need(out, need)
     return out
 

@@ -5,8 +5,11 @@
   depends on where a file lies: hash its content with :func:`file_key`).
 * :class:`TaskFolder` keeps a job's finished tasks, each written atomically (a ``NAME.npz`` of arrays or a
   ``NAME.json`` marker of a task whose result lives elsewhere, e.g. a zarr shard): a task is done exactly
-  when its file exists and reads back.  The folder records the job's key: a folder left by another job
-  (other recipe, other version) is emptied before use, never mixed in.
+  when its file exists and reads back.  The folder carries the scratch marker :data:`SCRATCH_MARK` (its
+  manifest, ``{"format": "metadesign.scratch/1", ...}``), written before anything else, so a folder
+  metadesign made is told from a user's (:func:`metadesign.outputs.check_output` refuses a user's folder
+  where a resume folder goes; only a marked folder is ever removed).  The folder records the job's key: a
+  folder left by another job (other recipe, other version) is emptied before use, never mixed in.
 * :func:`run_resumable` runs the tasks not yet done through :func:`metadesign.parallel.run_tasks` (a local
   pool or Dask), keeps each result as it arrives, reports progress, and returns every task's result.  A
   job killed at any point (SIGKILL included) loses at most the tasks in flight; the rerun computes only
@@ -15,7 +18,9 @@
 * :meth:`TaskFolder.step` is the sequential form (a pipeline stage, a tolerance case, a transfer run): a
   step reruns exactly when its content key changed or its outputs are gone.
 
-Used by the library build (``OUT.partial/``), the supercell table (``OUT.partial/``), the tiled layout
+Scratch folders follow one convention (:func:`metadesign.execution.scratch_path`): an output's resume
+folder is ``OUT.partial`` beside it, a step's a folder inside it.  Used by the library build
+(``OUT.partial/``), the supercell table (``OUT.partial/``, its PEDS levels ``OUT.partial/nG-N/``), the tiled layout
 (``OUT/.tiled-partial-KEY/``), the dataset's shards (``DATASET/.shards/``) and its bucket operators
 (``DATASET/.operators/``); steps by the pipeline (``OUT/.steps/``), the tolerance study's cases and the
 transfer study's stages (``OUT/.steps/``).
@@ -32,11 +37,13 @@ from typing import Callable, Iterable, Mapping
 import numpy as np
 
 from .cliutil import plural
+from .execution import SCRATCH_FORMAT, SCRATCH_MARK, is_scratch, make_scratch, remove_scratch
 from .io import atomic_write_text, read_npz, write_npz
 from .parallel import run_tasks
-from .validation import ValidationError
+from .validation import InputError, ValidationError
 
-__all__ = ["content_key", "file_key", "path_key", "TaskFolder", "run_resumable"]
+__all__ = ["content_key", "file_key", "path_key", "TaskFolder", "run_resumable", "SCRATCH_MARK", "SCRATCH_FORMAT",
+           "is_scratch"]
 
 
 def _canonical(obj):
@@ -88,20 +95,20 @@ class TaskFolder:
     the task names carry the content themselves, e.g. a supercell chunk named by its rows' hash, so
     results of several jobs may share the folder)."""
 
-    MANIFEST = "manifest.json"
+    MANIFEST = SCRATCH_MARK
 
     def __init__(self, root: str | Path, key: str | None = None, log: Callable[[str], None] = lambda s: None,
                  **manifest):
         self.root = Path(root)
         self.key = key
-        if key is not None and self.root.exists():
-            m = self.manifest()
-            if m.get("key") != key:
-                log(f"discarding {self.root} (made by another job: other inputs or version)")
-                shutil.rmtree(self.root)
-        self.root.mkdir(parents=True, exist_ok=True)
-        if key is not None and not (self.root / self.MANIFEST).exists():
-            atomic_write_text(self.root / self.MANIFEST, json.dumps({"key": key, **manifest}, sort_keys=True))
+        if key is not None and self.root.is_dir() and self.manifest().get("key") != key:
+            if not is_scratch(self.root):  # never remove what metadesign did not make
+                raise InputError(f"{self.root}: exists and metadesign did not make it (refusing to use or remove "
+                                 "it: move it)")
+            log(f"discarding {self.root} (made by another job: other inputs or version)")
+            shutil.rmtree(self.root)
+        # the marker first (a folder of an earlier version without one is used as it is, never removed)
+        make_scratch(self.root, **({} if key is None else {"key": key, **manifest}))
 
     def manifest(self) -> dict:
         try:
@@ -143,7 +150,8 @@ class TaskFolder:
         atomic_write_text(self._file(name, "json"), json.dumps(dict(info or {}), sort_keys=True, default=float))
 
     def remove(self) -> None:
-        shutil.rmtree(self.root, ignore_errors=True)
+        """Remove the folder (only if it carries the marker: a folder metadesign did not make stays)."""
+        remove_scratch(self.root)
 
     def step(self, name: str, key: str, fn: Callable[[], dict], outputs: Iterable[Path] = (),
              clear: Iterable[Path] = ()) -> tuple[dict, bool]:

@@ -15,6 +15,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import REPO, run_main, tiny_model
@@ -348,3 +349,102 @@ def test_nothing_is_written_into_the_package(tmp_path):
         with pytest.raises(InputError, match="inside the installed metadesign package"):
             check_output(out, kind)
     check_output(tmp_path / "fig.png", "figure")
+
+
+# commands that keep a resume folder beside their output (OUT.partial)
+SCRATCH_COMMANDS = ["library build", "library supercells", "dataset import"]
+
+
+@pytest.mark.parametrize("content", ["empty", "with-file"])
+@pytest.mark.parametrize("cmd", SCRATCH_COMMANDS)
+def test_a_users_folder_where_the_resume_folder_goes_is_refused(cmd, content, inputs, tmp_path, capsys):
+    """A folder a user made at ``OUT.partial`` (even an empty one) is never taken for a resume folder (and
+    so never removed): one line, exit 2, nothing written or changed."""
+    from metadesign.execution import scratch_path
+
+    base = tmp_path / "in"
+    shutil.copytree(inputs, base)
+    ph = tmp_path / "work" / "out"
+    ph.parent.mkdir()
+    argv = _argv(cmd, base, ph)
+    out = _out_of(argv, ph)
+    user = scratch_path(out)
+    user.mkdir()
+    if content == "with-file":
+        (user / "notes.txt").write_text("mine")
+    before = {"in": _tree(base), "work": _tree(ph.parent)}
+    rc, _, err = run_main(argv, capsys)
+    assert rc == 2, (cmd, content, err[-3:])
+    assert len(err) == 1 and err[0].startswith("metadesign: error:"), err
+    assert f"{user}: exists and metadesign did not make it" in err[0] and "resume folder" in err[0], err
+    assert {"in": _tree(base), "work": _tree(ph.parent)} == before
+    assert user.is_dir() and (content == "empty" or (user / "notes.txt").read_text() == "mine")
+
+
+MINI_RECIPE = """[stack]
+wavelength_nm = 1550.0
+period_um = 0.7
+height_um = 1.2
+[sweep]
+w_min_um = 0.20
+w_max_um = 0.26
+step_nm = 10.0
+[solver]
+n_harmonics = 60
+[convergence]
+reference_n_harmonics = 80
+check_cells_um = [[0.3, 0.2]]
+tolerance_rad = 0.5
+"""
+
+
+def test_an_interrupted_job_resumes_from_the_folder_metadesign_made(tmp_path, capsys):
+    """The resume folder carries the scratch marker from its first moment: a build stopped after a chunk
+    (as a SIGKILL would) is resumed by the command, and the folder goes once the library is written."""
+    from metadesign.execution import is_scratch, scratch_path
+    from metadesign.library.build import build_library
+    from metadesign.library.recipe import load_recipe
+    from metadesign.outputs import check_output
+    from metadesign.tasks import SCRATCH_MARK
+
+    rec = tmp_path / "mini.toml"
+    rec.write_text(MINI_RECIPE)
+    out = tmp_path / "mini.npz"
+    with pytest.raises(KeyboardInterrupt):
+        build_library(load_recipe(rec), out, workers=1, chunk_size=5, _stop_after_chunks=1)
+    part = scratch_path(out)
+    assert is_scratch(part) and (part / SCRATCH_MARK).is_file() and len(list(part.glob("chunk-*.npz"))) == 1
+    check_output(out, "unit-cell-library", scratch=(part,))  # ours: accepted
+    rc, _, err = run_main(["library", "build", rec, "-o", out, "-j", "1"], capsys)
+    assert rc == 0, err
+    assert any("resuming: 1/" in line for line in err), err
+    assert out.is_file() and not part.exists()
+
+
+def test_a_task_folder_never_removes_a_folder_metadesign_did_not_make(tmp_path):
+    from metadesign.library.supercells import remove_partial
+    from metadesign.tasks import SCRATCH_MARK, TaskFolder, is_scratch
+    from metadesign.validation import InputError
+
+    key, other = "a" * 64, "b" * 64
+    for content in ("empty", "with-file"):
+        user = tmp_path / content
+        user.mkdir()
+        if content == "with-file":
+            (user / "chunk-00000.npz").write_text("mine")
+        before = _tree(user)
+        with pytest.raises(InputError, match="metadesign did not make it"):
+            TaskFolder(user, key)  # another job's key: it would discard the folder
+        TaskFolder(user).remove()
+        remove_partial(user)
+        assert user.is_dir() and _tree(user) == before and not is_scratch(user)
+    # a folder it made (the marker first, its parents too) is its to discard and remove
+    f = TaskFolder(tmp_path / "out.partial" / "nG-5", key)
+    assert is_scratch(tmp_path / "out.partial") and is_scratch(f.root)
+    f.save("t", {"x": np.zeros(2)})
+    g = TaskFolder(f.root, other)
+    assert g.manifest()["key"] == other and not g.has("t")
+    g.remove()
+    assert not g.root.exists() and (tmp_path / "out.partial" / SCRATCH_MARK).is_file()
+    remove_partial(tmp_path / "out.partial")
+    assert not (tmp_path / "out.partial").exists()

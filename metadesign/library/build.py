@@ -1,7 +1,8 @@
 """Library sweep: convergence certification, parallel resumable build.
 
 Work is split into chunks of cells; each finished chunk is written atomically
-into ``<output>.partial/``.  A killed build resumes from the chunks on disk
+into ``<output>.partial/`` (:func:`metadesign.execution.scratch_path`; the folder carries the scratch
+marker from its first moment).  A killed build resumes from the chunks on disk
 (only those made with the same recipe and code version are reused) and the
 final library is written atomically, after which the partial folder is
 removed.  Workers are spawned processes with single-threaded BLAS.
@@ -18,6 +19,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import InputError
+from ..execution import scratch_path
 from ..optics.phase import wrap
 from ..parallel import WorkerPool
 from ..tasks import TaskFolder, content_key, run_resumable
@@ -241,7 +243,7 @@ def _build(recipe, output, pool, workers, chunk_size, allow_unconverged, progres
     if recipe.fab_axes is not None:
         pairs = [(i, j, ih, ia) for ih, ia in axes for i, j in pairs]
     chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]
-    part_dir = output.parent / (output.name + ".partial")
+    part_dir = scratch_path(output)
     folder = TaskFolder(part_dir, _build_key(recipe), log, chunk_size=chunk_size, n_chunks=len(chunks))
     chunk_size = int(folder.manifest().get("chunk_size", chunk_size))  # a resumed build keeps its chunking
     chunks = [pairs[k:k + chunk_size] for k in range(0, len(pairs), chunk_size)]

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..cliutil import emit, log_to, num, out_file, progress_bar, workers_arg
+from ..execution import scratch_path
 from ..paths import default_library_path
 from ..outputs import product
 
@@ -18,7 +19,7 @@ def _cmd_build(a: argparse.Namespace) -> int:
 
     recipe = load_recipe(a.recipe)
     out = out_file(Path(a.output) if a.output else Path(a.recipe).with_suffix(".npz"), suffixes=(".npz",))
-    with product(out, "unit-cell-library", {"recipe": a.recipe}, scratch=(out.with_name(out.name + ".partial"),)):
+    with product(out, "unit-cell-library", {"recipe": a.recipe}, scratch=(scratch_path(out),)):
         lib, rep = build_library(
             recipe, out, workers=a.workers, allow_unconverged=a.allow_unconverged,
             progress=progress_bar("library"), log=log_to(a.json), scheduler=a.scheduler,

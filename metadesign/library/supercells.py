@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import functools
 import json
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
+from ..execution import remove_scratch
 from ..io import atomic_write_text, read_npz, write_npz
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
@@ -163,7 +163,8 @@ def solve_table(widths: np.ndarray, stack: Stack, n_harmonics: int, partial: str
                 progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] = lambda s: None,
                 taper: tuple[float, int] | None = None, _stop_after_chunks: int | None = None):
     """``t`` (n, 2) of the supercells ``widths`` (n, 2, 2, 2), solved at ``n_harmonics`` (requested), chunks
-    kept in the folder ``partial`` (resumable; the caller removes it once the table is saved).  Returns
+    kept in the folder ``partial`` (made with the scratch marker first, :class:`~metadesign.tasks.TaskFolder`;
+    resumable; the caller removes it once the table is saved, :func:`remove_partial`).  Returns
     ``(t, nG, seconds spent solving, t_unit)``: ``t_unit`` every pillar's unit cell at ``unit_harmonics``
     (requested; the matched unit cell's, :func:`matched_unit_harmonics`), None without it.  ``taper =
     (sidewall_deg, slices)``: every pillar (and unit cell) with sloped walls, the widths at mid-height."""
@@ -211,7 +212,9 @@ def load_table(path: str | Path) -> SupercellTable:
 
 
 def remove_partial(partial: str | Path) -> None:
-    shutil.rmtree(partial, ignore_errors=True)
+    """Remove a job's scratch folder once its product is saved (only if metadesign made it: it carries the
+    scratch marker; a user's folder stays)."""
+    remove_scratch(partial)
 
 
 def write_json(path: str | Path, obj) -> None:
