@@ -78,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
 
     enforce_claims(True)  # every write goes through the product layer (metadesign.outputs)
     try:
+        if getattr(a, "scheduler", None):  # a refused scheduler is refused before any output is opened
+            from .parallel import check_scheduler
+
+            check_scheduler(a.scheduler)
         return int(a.func(a) or 0)
     except ValidationError as exc:
         print(f"metadesign: error: {str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__}",

@@ -76,28 +76,45 @@ def dask_client(scheduler: str):
                               f"({exc.__class__.__name__}: {str(exc).splitlines()[0][:120]})") from None
 
 
+#: the address schemes a Dask client connects to
+_SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
+
+
+def check_scheduler(scheduler: str) -> None:
+    """The up-front check of a ``--scheduler`` option (the CLI runs it before a command opens its output):
+    an address a Dask client can reach; one line otherwise."""
+    _probe(scheduler)
+
+
 def _probe(scheduler: str) -> None:
-    """Fail at once when nothing listens at a ``tcp://host:port`` address (a refused connection), instead of
-    after the client's 20 s of retries; other addresses (tls://, inproc://) go to the client as they are."""
+    """Fail at once on an address that cannot name a scheduler (no scheme or port, an unknown scheme), on a
+    host name that does not resolve, and when nothing listens at a ``tcp://host:port`` address (a refused
+    connection), instead of after the client's 20 s of retries; a timeout goes to the client."""
     import socket
     from urllib.parse import urlsplit
 
-    if not scheduler.startswith("tcp://"):
+    head = f"--scheduler {scheduler}: "
+    scheme = scheduler.split("://", 1)[0] if "://" in scheduler else None
+    if scheme is None or scheme not in _SCHEMES:
+        raise ValidationError(head + "expected a Dask scheduler address such as tcp://host:8786 "
+                              f"(schemes: {', '.join(_SCHEMES)})")
+    if scheme != "tcp":
         return
     try:
         u = urlsplit(scheduler)
         host, port = u.hostname, u.port
-    except ValueError:
-        return
+    except ValueError as exc:
+        raise ValidationError(head + f"not an address ({exc})") from None
     if not host or port is None:
-        return
+        raise ValidationError(head + "expected tcp://host:port")
     try:
         socket.create_connection((host, port), timeout=5).close()
     except ConnectionRefusedError as exc:
-        raise ValidationError(f"--scheduler {scheduler}: cannot reach a Dask scheduler "
-                              f"(nothing listens there: {exc.strerror})") from None
+        raise ValidationError(head + f"cannot reach a Dask scheduler (nothing listens there: {exc.strerror})") from None
+    except socket.gaierror as exc:
+        raise ValidationError(head + f"cannot resolve host {host!r} ({exc.strerror})") from None
     except OSError:
-        return  # a timeout or an unresolved name: the client says it with its own retries
+        return  # a timeout: the client says it with its own retries
 
 
 _SHARED = None  # a worker's shared object (set once by the pool's initializer)

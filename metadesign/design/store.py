@@ -169,13 +169,37 @@ def design_file(path: str | Path) -> Path:
     return p / "design.npz" if p.is_dir() else p
 
 
+#: the atom table's arrays: (kind of dtype, trailing shape); each has one row per atom
+_ATOM_ARRAYS = {"atom_wx_m": ("f", ()), "atom_wy_m": ("f", ()), "atom_t": ("c", (2,)), "atom_T0": ("f", (2,)),
+                "atom_lib_index": ("iu", (2,))}
+
+
+def _check_atoms(path: Path, z: dict) -> int:
+    """The number of atoms of a design file whose atom arrays agree in length, shape and kind, are finite and
+    have positive widths (one line naming the array otherwise)."""
+    n = np.shape(z["atom_wx_m"])[0] if np.ndim(z["atom_wx_m"]) == 1 else -1
+    if n < 1:
+        raise InputError(f"{path}: atom_wx_m has shape {np.shape(z['atom_wx_m'])}, expected (n_atoms,) with n_atoms >= 1")
+    for name, (kinds, tail) in _ATOM_ARRAYS.items():
+        a = np.asarray(z[name])
+        if a.shape != (n, *tail) or a.dtype.kind not in kinds:
+            want = {"f": "real", "c": "complex", "iu": "integer"}[kinds]
+            raise InputError(f"{path}: {name} has shape {a.shape} {a.dtype}, expected {(n, *tail)} {want} "
+                             "(one row per atom)")
+        if a.dtype.kind in "fc" and not np.isfinite(a).all():
+            raise InputError(f"{path}: {name} holds NaN or infinite values")
+    if (np.asarray(z["atom_wx_m"]) <= 0).any() or (np.asarray(z["atom_wy_m"]) <= 0).any():
+        raise InputError(f"{path}: atom widths must be > 0")
+    return n
+
+
 def load_design(path: str | Path) -> Design:
     path = design_file(path)
     z, meta = read_product(path, "design file",
                            ("index_map", "atom_wx_m", "atom_wy_m", "atom_t", "atom_T0", "atom_lib_index"), DESIGN_FORMAT)
     spec = _spec_from_dict(meta["spec"])
     im = z["index_map"]
-    n = len(z["atom_wx_m"])
+    n = _check_atoms(path, z)
     dtype, empty = empty_index(n, spec.bounded)
     if im.shape != (spec.n_cells, spec.n_cells) or im.dtype != dtype or meta.get("empty_index") != empty:
         raise InputError(f"{path}: index_map has shape {im.shape} {im.dtype}, expected "

@@ -1,0 +1,77 @@
+"""Hostile inputs to the newest commands, as a new user would give them: each ends in one line on stderr,
+exit 2, before the work, with nothing written or changed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _refused(argv, capsys, match: str, folder: Path | None = None):
+    before = _tree(folder) if folder is not None else None
+    rc, _, err = run_main(argv, capsys)
+    assert rc == 2 and len(err) == 1 and err[0].startswith("metadesign: error:"), (argv, rc, err)
+    assert match in err[0], err[0]
+    if folder is not None:
+        assert _tree(folder) == before, "a refused command wrote or changed files"
+    return err[0]
+
+
+def _tree(folder: Path) -> set:
+    return {(str(p.relative_to(folder)), p.stat().st_size) for p in Path(folder).rglob("*")}
+
+
+@pytest.mark.parametrize("address, match", [
+    ("tcp://127.0.0.1:9", "nothing listens there"),
+    ("127.0.0.1:8786", "expected a Dask scheduler address"),
+    ("tcp://127.0.0.1", "expected tcp://host:port"),
+    ("tcp://no-such-host.invalid:8786", "cannot resolve host"),
+])
+def test_a_refused_scheduler_is_refused_before_any_output(address, match, tmp_path, capsys):
+    """Every command with --scheduler checks it before opening its output: no partial folder is left."""
+    out = tmp_path / "lib.npz"
+    _refused(["library", "build", REPO / "library" / "paper.toml", "-o", out, "--scheduler", address], capsys,
+             match, tmp_path)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.fixture(scope="module")
+def design_arrays(tmp_path_factory):
+    """A small real design's arrays (a 0.1 mm aperture)."""
+    from metadesign.design.recipe import load_design_recipe
+    from metadesign.design.store import run_design
+
+    base = tmp_path_factory.mktemp("design")
+    rec = base / "tiny.toml"
+    rec.write_text(f'[design]\nlibrary = "{REPO / "library" / "paper.npz"}"\nwavelength_nm = 1550.0\n'
+                   'period_um = 0.7\naperture_mm = 0.1\n')
+    d = run_design(load_design_recipe(rec), base / "d")
+    with np.load(base / "d" / "design.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}, d
+
+
+@pytest.mark.parametrize("name, damage, match", [
+    ("atom_t", lambda a: a[:3], "atom_t has shape"),
+    ("atom_wx_m", lambda a: a.astype(str), "atom_wx_m has shape"),
+    ("atom_T0", lambda a: a[:, :1], "atom_T0 has shape"),
+    ("atom_lib_index", lambda a: a.astype(np.float64), "atom_lib_index has shape"),
+    ("atom_wy_m", lambda a: np.where(np.arange(len(a)) == 0, np.nan, a), "NaN or infinite"),
+    ("atom_wy_m", lambda a: -a, "widths must be > 0"),
+])
+def test_a_design_with_a_broken_atom_table_is_refused_by_every_reader(name, damage, match, design_arrays, tmp_path,
+                                                                      capsys):
+    """design show / plot and layout write read the design through one loader that checks the atom table
+    (was: an IndexError or a ufunc error in the middle of the work, or a layout written from it)."""
+    arrays, _ = design_arrays
+    bad = dict(arrays)
+    bad[name] = damage(arrays[name])
+    f = tmp_path / "bad.npz"
+    np.savez(f, **bad)
+    for argv in (["design", "show", f], ["design", "plot", f, "-o", tmp_path / "p.png"],
+                 ["layout", "write", f, "-o", tmp_path / "l.oas"]):
+        _refused(argv, capsys, match, tmp_path)
