@@ -121,6 +121,7 @@ def _cmd_plot(a: argparse.Namespace) -> int:
 
 
 def _cmd_train(a: argparse.Namespace) -> int:
+    import dataclasses
     import os
 
     from .train import load_train_recipe, train
@@ -134,8 +135,10 @@ def _cmd_train(a: argparse.Namespace) -> int:
 
         raise ValidationError(f"--init {a.init}: no such model")
     rank = int(os.environ.get("RANK", "0"))
+    if a.max_steps is not None:
+        rec = dataclasses.replace(rec, max_steps=a.max_steps)
     rep = train(rec, run, dataset=a.dataset, resume=a.resume, init=a.init, log=log_to(a.json or rank != 0),
-                progress=not a.json, max_steps=a.max_steps)
+                progress=not a.json)
     if rank == 0:
         h = rep["history"][-1] if rep["history"] else {}
         text = (f"trained {rep['run']}: {rep['epochs_done']} epochs on {rep['world_size']} process(es) ({rep['device']}); "
