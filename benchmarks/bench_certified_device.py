@@ -38,7 +38,8 @@ def main(argv=None) -> int:
     if fab is None:
         return 2
     from metadesign.sensing.model import load_sensing_recipe
-    from metadesign.studies.coupling_check import certified_case
+    from metadesign.execution import Execution
+    from metadesign.studies.coupling_check import CertifiedSettings, SampledDevice, certified_case
 
     sr = load_sensing_recipe(REPO / "sensing" / "paper.toml")
     fab = fab.with_coupling("supercell")
@@ -48,8 +49,8 @@ def main(argv=None) -> int:
     partial = Path(tempfile.mkdtemp(prefix="bench-certified-"))
     try:
         t0 = time.perf_counter()
-        case = certified_case(fab, cp, sr.sensor, sr.pupil_grid, a.supercells, a.replicates, partial,
-                              workers=a.workers, ring_supercells=a.ring)
+        case = certified_case(SampledDevice(fab, cp, sr.sensor, sr.pupil_grid), CertifiedSettings(
+            a.supercells, a.replicates, ring_supercells=a.ring), partial, run=Execution(workers=a.workers))
         t_case = time.perf_counter() - t0
     finally:
         shutil.rmtree(partial, ignore_errors=True)

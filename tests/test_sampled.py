@@ -320,15 +320,16 @@ def test_certified_case_with_the_neighbour_ring(demo, tmp_path):
     plain one; asked, every supercell whose +x, +y and +x+y neighbours exist (the demo's square aperture:
     all but the last row and column) gets its ring term from three straddling windows, and the device
     moves."""
-    from metadesign.studies.coupling_check import certified_case
+    from metadesign.studies.coupling_check import CertifiedSettings, SampledDevice, certified_case
 
     fab, sr, cp, _ = demo
     fc = fab.with_coupling("supercell")
     cpc = fc.pupil(sr.sensor.distance, sr.pupil_grid)
     peds = PedsModel((25,), (0.8 + 0.1j,), fab.lib.identity)
-    kw = dict(supercells=12, replicates=3, peds=peds, seed=4)
-    base = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "a", **kw)
-    both = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", ring_supercells=6, **kw)
+    st = CertifiedSettings(supercells=12, replicates=3, peds=peds, seed=4)
+    dev = SampledDevice(fc, cpc, sr.sensor, sr.pupil_grid)
+    base = certified_case(dev, st, tmp_path / "a")
+    both = certified_case(dev, replace(st, ring_supercells=6), tmp_path / "c")
     ring = both.pop("with_ring")
     assert base["ring"] is None and "with_ring" not in base and ring["ring"]["supercells"] == 6
     assert "windows" in ring["label"] and "windows" not in both["label"]
@@ -350,16 +351,17 @@ def test_certified_case_with_its_atoms_reoptimised(demo, tmp_path):
     sample's; every supercell's cost towards its target falls or stays; (K - 1) solves per supercell and
     position; the effect is the difference of the two cases; a design that is not the device's, or a
     perturbed device, is refused."""
-    from metadesign.studies.coupling_check import certified_case
+    from metadesign.studies.coupling_check import CertifiedSettings, SampledDevice, certified_case
 
     fab, sr, cp, out = demo
     d = load_design(out)
     fc = fab.with_coupling("supercell")
     cpc = fc.pupil(sr.sensor.distance, sr.pupil_grid)
     peds = PedsModel((25,), (0.8 + 0.1j,), fab.lib.identity)
-    kw = dict(supercells=12, replicates=3, peds=peds, seed=4)
-    base = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "a", **kw)
-    both = certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "b", reoptimise=(d, 3, 1), **kw)
+    st = CertifiedSettings(supercells=12, replicates=3, peds=peds, seed=4)
+    dev = SampledDevice(fc, cpc, sr.sensor, sr.pupil_grid, design=d)
+    base = certified_case(dev, st, tmp_path / "a")
+    both = certified_case(dev, replace(st, reoptimise=3), tmp_path / "b")
     reo = both.pop("reoptimised")
     for k in ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm"):
         assert both["mean"][k] == base["mean"][k] and both["stderr"][k] == base["stderr"][k]
@@ -372,10 +374,9 @@ def test_certified_case_with_its_atoms_reoptimised(demo, tmp_path):
     assert abs(reo["mean"]["spot_strehl"] - base["mean"]["spot_strehl"]) > 0
     other = replace(d, index_map=np.roll(d.index_map, 1, axis=1))
     with pytest.raises(ValueError, match="not the device's"):
-        certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "c", reoptimise=(other, 3, 1), **kw)
+        certified_case(replace(dev, design=other), replace(st, reoptimise=3), tmp_path / "c")
     with pytest.raises(ValueError, match="nominal device"):
-        certified_case(fc, cpc, sr.sensor, sr.pupil_grid, partial=tmp_path / "d", reoptimise=(d, 3, 1),
-                       pert=Perturbation.from_nm(5.0), **kw)
+        certified_case(replace(dev, pert=Perturbation.from_nm(5.0)), replace(st, reoptimise=3), tmp_path / "d")
 
 
 def test_pillars_of_sampled_supercells_are_the_coupled_devices(demo):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, workers_arg
 from ..design.store import design_file
-from ..io import atomic_write_text
+from ..execution import scratch_path
 from ..outputs import product, zarr_input
 from ..validation import InputError
 
@@ -16,98 +16,27 @@ __all__ = ["register"]
 
 
 def _cmd_coupling_check(a: argparse.Namespace) -> int:
-    import json
-
-    import numpy as np
-
-    from ..design.store import load_design
-    from ..library.locate import file_sha256
-    from ..library.store import load_library
-    from ..library.supercells import remove_partial
-    from ..paths import product as packaged
-    from ..sensing.model import AsFabricated, load_sensing_recipe
+    from ..execution import Execution
     from ..sensing.transmission import Perturbation
-    from ..validation import ValidationError
-    from .coupling_check import CASES, coupling_check, plot_case_metrics, plot_coupling_frames
+    from .certified import CertifiedSettings
+    from .coupling_check_study import CouplingCheckRequest, run_coupling_check
+    from .lpa import downstream_of
 
-    if (a.dataset is None) != (a.model is None):
-        raise ValidationError("--dataset and --model go together (the NPiB needs both)")
-    if a.ring and not a.certified:
-        raise ValidationError("--ring: the neighbour ring adds to the certified model; give --certified N")
-    if a.ring and a.ring < a.replicates:
-        raise ValidationError(f"--ring {a.ring}: at least one supercell per replicate (--replicates {a.replicates})")
-    if a.reoptimise and not a.certified:
-        raise ValidationError("--reoptimise: re-chooses the sampled supercells' atoms; give --certified N")
-    if a.reoptimise == 1:
-        raise ValidationError("--reoptimise 1: K counts the atom itself, so at least 2 (0: none)")
-    if a.reoptimise and (a.bias_nm or a.jitter_nm or a.height_nm or a.sidewall_deg != 90):
-        raise ValidationError("--reoptimise: the atoms are re-chosen for the nominal device (no --bias-nm, "
-                              "--jitter-nm, --height-nm or --sidewall-deg)")
-    if a.certified and a.certified < 2 * a.replicates:
-        raise ValidationError(f"--certified {a.certified}: at least two supercells per replicate "
-                              f"(--replicates {a.replicates}), so >= {2 * a.replicates}")
+    downstream = downstream_of(a.dataset, a.model, a.samples, a.noise, a.seed, what="the NPiB")
+    certified = CertifiedSettings(a.certified, a.replicates, a.peds, a.seed, a.taper_slices, a.ring, a.reoptimise,
+                                  a.reoptimise_sweeps)
+    pert = Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm, seed=a.jitter_seed, height_nm=a.height_nm,
+                                sidewall_deg=a.sidewall_deg)
     src = Path(a.design)
+    req = CouplingCheckRequest(src, a.compensated, a.coupling_model, a.sensor, a.fab_library, pert, downstream,
+                               certified)
     out = out_dir(a.output or (src if src.is_dir() else src.parent) / "coupling-check")
-    partial = out.with_name(out.name + ".partial")
-    log = log_to(a.json)
     inputs = {"design": design_file(src), "--compensated": design_file(a.compensated) if a.compensated else None,
               "--coupling-model": a.coupling_model, "--sensor": a.sensor,
               "--dataset": zarr_input(a.dataset) if a.dataset else None, "--model": a.model,
               "--peds": a.peds, "--fab-library": a.fab_library}
-    with product(out, "coupling-check", inputs, scratch=(partial,)):
-        designs = {"coupled": load_design(src)}
-        fab = AsFabricated.from_design(designs["coupled"])
-        if a.fab_library:
-            fab.fab_lib = load_library(a.fab_library)
-        if a.height_nm or a.sidewall_deg != 90:
-            F = fab.fab_lib if fab.fab_lib is not None else fab.lib
-            if F.fab is None:
-                raise ValidationError("--height-nm / --sidewall-deg need a library with fab axes: pass --fab-library "
-                                      "(e.g. library/paper-fab.npz)")
-            hs = (np.asarray(F.fab["heights"]) - fab.lib.stack.height) * 1e9
-            if not hs.min() - 1e-6 <= a.height_nm <= hs.max() + 1e-6:
-                raise ValidationError(f"--height-nm {a.height_nm:g}: the fab library spans {hs.min():+.0f} to "
-                                      f"{hs.max():+.0f} nm")
-            ws = np.asarray(F.fab["sidewalls"], float)
-            if not ws.min() - 1e-9 <= a.sidewall_deg <= ws.max() + 1e-9:
-                raise ValidationError(f"--sidewall-deg {a.sidewall_deg:g}: the fab library spans {ws.min():g} to "
-                                      f"{ws.max():g} deg")
-        fabs = {"lpa": fab, "coupled": fab.with_coupling("supercell", a.coupling_model)}
-        if a.compensated:
-            designs["compensated"] = load_design(a.compensated)
-            fc = AsFabricated.from_design(designs["compensated"])
-            fc.fab_lib = fab.fab_lib
-            fabs["compensated"] = fc.with_coupling("supercell", a.coupling_model)
-            fabs["compensated_lpa"] = fc
-        if a.dataset:
-            from ..reconstruction.dataset import load_device
-
-            dev = load_device(a.dataset)
-            sensor, grid = dev.sensor, dev.pupil.G.shape[-1]
-            if dev.pupil.block != fab.pupil_block(grid):
-                raise ValidationError(f"{a.dataset}: its device's pupil ({dev.pupil.block}-cell blocks) is not this "
-                                      "design's on that grid: use the dataset made with this design")
-        else:
-            sr = load_sensing_recipe(a.sensor or packaged("sensing", "paper.toml"))
-            sensor, grid = sr.sensor, sr.pupil_grid
-        log(f"coupling-check: {src} ({', '.join(CASES[k] for k in fabs)}) ...")
-        cert = {"supercells": a.certified, "replicates": a.replicates, "partial": partial, "peds": a.peds,
-                "workers": a.workers, "scheduler": a.scheduler, "seed": a.seed,
-                "taper_slices": a.taper_slices, "ring_supercells": a.ring,
-                "reoptimise": (a.reoptimise, a.reoptimise_sweeps) if a.reoptimise else None} if a.certified else None
-        rep, frames = coupling_check(fabs, sensor, grid, a.dataset, a.model, a.samples, a.noise, log=log,
-                                     certified=cert, pert=Perturbation.from_nm(a.bias_nm, jitter_nm=a.jitter_nm,
-                                                                               seed=a.jitter_seed,
-                                                                               height_nm=a.height_nm,
-                                                                               sidewall_deg=a.sidewall_deg),
-                                     designs=designs)
-        rep["figure"] = str(plot_coupling_frames(frames, sensor, out / "coupling-frames.png"))
-        if cert:
-            rep["metrics_figure"] = str(plot_case_metrics(rep, out / "coupling-metrics.png"))
-        rep["coupling_model_sha256"] = fabs["coupled"].coupling_card["weights_sha256"]
-        rep["design"] = {"path": str(src), "sha256": file_sha256(design_file(src))}  # coupling-sweep matches it
-        atomic_write_text(out / "coupling-check.json", json.dumps(rep, indent=1))
-        remove_partial(partial)
+    with product(out, "coupling-check", inputs, scratch=(scratch_path(out),)):
+        rep = run_coupling_check(req, out, Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json)))
     wl = max(27, *(len(c["label"]) for c in rep["cases"].values()))
     lines = [f"wrote {out}/coupling-check.json and coupling-frames.png",
              f"  {'case':<{wl}} spot eff.  spot Strehl  stray    |focal shift| um"

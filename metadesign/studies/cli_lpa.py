@@ -3,56 +3,30 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, progress_bar, workers_arg
 from ..design.store import design_file
-from ..io import atomic_write_text
 from ..outputs import product, zarr_input
 
 __all__ = ["register"]
 
 
 def _cmd_lpa(a: argparse.Namespace) -> int:
-
     import numpy as np
 
-    from ..sensing.model import AsFabricated
-    from .lpa import lpa_check, lpa_downstream, plot_lpa
+    from ..execution import Execution
+    from .lpa import LpaSettings, downstream_of, lpa_study
 
     src = Path(a.design)
     out = out_dir(a.output or (src.parent if src.is_file() else src) / "lpa-check")
-    if (a.dataset is None) != (a.model is None):
-        from ..validation import ValidationError
-
-        raise ValidationError("--dataset and --model go together (the downstream NPiB needs both)")
-    log = log_to(a.json)
+    downstream = downstream_of(a.dataset, a.model, a.samples, a.noise, a.seed)
+    run = Execution(workers=a.workers, log=log_to(a.json),
+                    progress=None if a.json else progress_bar("supercells", unit="cell"))
     inputs = {"design": design_file(src), "--dataset": zarr_input(a.dataset) if a.dataset else None,
               "--model": a.model}
     with product(out, "lpa-check", inputs):
-        if src.is_dir():
-            from ..design.store import load_design
-
-            fab = AsFabricated.from_design(load_design(src))
-        else:
-            fab = AsFabricated.from_files(src)
-        im, w = fab.layout.index_map, fab.layout.atom_widths_nm
-        mask = None
-        if (fab.aperture or {}).get("kind") == "circle":
-            n2 = im.shape[0] // 2
-            x = (np.arange(n2) - (n2 - 1) / 2) * 2 * fab.period
-            mask = x[None, :] ** 2 + x[:, None] ** 2 <= (im.shape[0] * fab.period / 2) ** 2 * 0.98
-        log(f"lpa-check: {a.supercells} supercells of {src} (period {fab.period * 1e6:.3f} um, 2 x 2) ...")
-        rep = lpa_check(im, w, fab.lib, a.supercells, a.harmonics, a.seed, a.workers, a.check, mask,
-                        progress=None if a.json else progress_bar("supercells", unit="cell"))
-        eps = rep.pop("_eps")
-        rep.pop("_contrast"), rep.pop("_spread")
-        if a.dataset is not None:
-            log("downstream: channel metrics and NPiB with the measured error ...")
-            rep["downstream"] = lpa_downstream(eps, a.dataset, a.model, fab, a.samples, a.noise, a.seed, log)
-        atomic_write_text(out / "lpa.json", json.dumps(rep, indent=1))
-        rep["figure"] = str(plot_lpa(rep, out / "lpa.png"))
+        rep = lpa_study(src, out, LpaSettings(a.supercells, a.harmonics, a.seed, a.check), downstream, run)
     L, Ll = rep["lpa"], rep["lpa_library"]
     lines = [f"LPA error on {rep['supercells']} supercells (RCWA nG {rep['n_harmonics_supercell']}, unit cells nG "
              f"{rep['n_harmonics_unit']}; 1.5x harmonics change <= "

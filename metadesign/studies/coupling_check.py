@@ -11,38 +11,39 @@ dataset and a U-Net, the U-Net's NPiB on its test samples re-rendered through ea
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
 
-from ..design.compensate import atom_neighbours, descend_under, sampled_supercells
-from ..library.coupling import relative_error
-from ..library.coupling_net import coupling_t
-from ..library.peds import PedsModel, certified_t, find_peds, load_peds, neighbour_windows, window_ring
+from ..execution import SERIAL, Execution
 from ..plotting import pyplot, save_figure
 from ..sensing.forward import sensor_frames
 from ..sensing.model import channel_metrics, spot_metrics
 from ..sensing.plot import case_label
-from ..sensing.sampled import (
-    delta_pupil,
-    eligible_supercells,
-    jackknife_bias,
-    jackknife_se,
-    sampled_spot_metrics,
-    supercell_widths,
-)
 from ..sensing.sensor import SensorSpec
-from ..sensing.transmission import Perturbation, couple_supercells, unit_t_as_made
-from .lpa import pupil_downstream
+from ..sensing.transmission import Perturbation
+from .certified import (  # noqa: F401  (re-exported: the certified case lived here)
+    CERTIFIED_LABEL,
+    SPOT_KEYS,
+    CertifiedSettings,
+    SampledDevice,
+    _mean,
+    _pillar_t,
+    _sampled_metrics,
+    certified_case,
+)
+from .lpa import Downstream, pupil_downstream
 
-__all__ = ["CASES", "SPOT_KEYS", "SWEEP_AXES", "certified_case", "coupling_check", "plot_case_metrics",
-           "plot_coupling_frames", "sweep_axis", "sweep_table", "plot_sweep"]
+__all__ = ["CASES", "SPOT_KEYS", "SWEEP_AXES", "CertifiedCheck", "CertifiedSettings", "SampledDevice",
+           "certified_case", "coupling_check", "plot_case_metrics", "plot_coupling_frames", "sweep_axis",
+           "sweep_table", "plot_sweep"]
 
-SPOT_KEYS = ("spot_efficiency", "spot_strehl", "stray", "focal_shift_mm")
 SPOT_TITLES = dict(zip(SPOT_KEYS, ("spot efficiency", "spot Strehl", "stray fraction", "|focal shift| (um)")))
 
 CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compensated": "compensated, coupling",
-         "compensated_lpa": "compensated, LPA", "certified": "design, certified (PEDS, sampled)",
+         "compensated_lpa": "compensated, LPA", "certified": CERTIFIED_LABEL,
          "compensated_certified": "compensated, certified (PEDS, sampled)",
          "certified_ring": "design, certified (PEDS, overlapping windows, sampled)",
          "compensated_certified_ring": "compensated, certified (PEDS, overlapping windows, sampled)",
@@ -50,28 +51,33 @@ CASES = {"lpa": "design, LPA", "coupled": "design, supercell coupling", "compens
          "compensated_certified_reoptimised": "compensated, atoms re-chosen under the certified model (sampled)"}
 
 
-def _mean(rows, key):
-    return float(np.mean([abs(r[key]) if key == "focal_shift_mm" else r[key] for r in rows]))
+@dataclass(frozen=True)
+class CertifiedCheck:
+    """The certified cases of :func:`coupling_check`: how they are measured (``settings``), their resume
+    folder ``partial`` (a folder per case inside it) and, to re-choose their atoms, each coupled case's
+    :class:`~metadesign.design.store.Design` (``designs``: case name -> design)."""
+
+    settings: CertifiedSettings
+    partial: str | Path
+    designs: Mapping[str, Any] = field(default_factory=dict)
 
 
-def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, model=None, samples: int = 64,
-                   noise_percent: float = 5.0, seed: int = 0, log=lambda s: None,
-                   certified: dict | None = None, pert: Perturbation = Perturbation(),
-                   designs: dict | None = None) -> tuple[dict, dict]:
+def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, pert: Perturbation = Perturbation(),
+                   downstream: Downstream | None = None, certified: CertifiedCheck | None = None,
+                   run: Execution = SERIAL) -> tuple[dict, dict]:
     """``fabs``: case name -> :class:`~metadesign.sensing.model.AsFabricated` (its coupling set).  Returns
-    the report and the flat-wavefront frames per case.  ``certified``: ``{"supercells": n, "replicates": R,
-    "partial": folder, "peds": model or None, "workers": j, "scheduler": address or None, "seed": s,
-    "taper_slices": k}``: each
-    coupled case (``coupled``, ``compensated``) also under the certified model, sampled
-    (:func:`certified_case`; no flat-wavefront frames; with a dataset and a model, the NPiB from the
-    sampled device's frames, with its jackknife error bar).  ``pert``: every
-    device made with those widths (bias, jitter: the same pillars in every case and in the sample) and that
-    global etch-depth error and wall angle (the devices' ``fab_lib`` gives the unit cells' change with height
-    and angle; the certified model solves its supercells at that height, tapered in ``taper_slices`` slices
-    of the ``certified`` dict, or vertical at mid-height widths with 0).  ``certified["reoptimise"] = (K,
-    sweeps)`` with ``designs`` (case name -> its :class:`~metadesign.design.store.Design`): each certified case
-    also with its sampled supercells' atoms re-chosen under the certified model (``reoptimise`` of
-    :func:`certified_case`)."""
+    the report and the flat-wavefront frames per case.  ``certified``: each coupled case (``coupled``,
+    ``compensated``) also under the certified model, sampled (:func:`certified_case` with
+    ``certified.settings``, on ``run``'s workers; no flat-wavefront frames; with ``downstream``, the NPiB from
+    the sampled device's frames, with its jackknife error bar).  ``pert``: every device made with those
+    widths (bias, jitter: the same pillars in every case and in the sample) and that global etch-depth error
+    and wall angle (the devices' ``fab_lib`` gives the unit cells' change with height and angle; the
+    certified model solves its supercells at that height, tapered in ``taper_slices`` slices, or vertical at
+    mid-height widths with 0).  ``certified.settings.reoptimise = K`` with ``certified.designs``: each
+    certified case also with its sampled supercells' atoms re-chosen under the certified model
+    (:func:`certified_case`).  ``downstream``: the U-Net's NPiB through every case
+    (:func:`~metadesign.studies.lpa.pupil_downstream`)."""
+    log = run.log
     if pert.height_gradient or pert.sidewall_gradient_deg:
         raise ValueError("coupling_check: width errors and a global etch depth and wall angle only (no gradients "
                          "across the device)")
@@ -94,20 +100,18 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
             "power_on_sensor": [float(f.sum()) / (fab.n_cells * fab.period) ** 2 for f in frames[name]],
         }
     sampled = {}
-    if certified and certified.get("reoptimise") and not all(n in (designs or {}) for n in ("coupled", "compensated")
-                                                             if n in fabs):
+    if certified and certified.settings.reoptimise and not all(n in certified.designs
+                                                               for n in ("coupled", "compensated") if n in fabs):
         raise ValueError("coupling_check: re-optimising needs each coupled case's design (designs=)")
     if certified:
         for name, cert in (("coupled", "certified"), ("compensated", "compensated_certified")):
             if name in fabs:
-                log(f"  {CASES[cert]}: {certified['supercells']} supercells through the certified model ...")
-                reo = certified.get("reoptimise")
-                rep["cases"][cert], deltas, ring = certified_case(
-                    fabs[name], pupils[name], sensor, grid, label=CASES[cert], log=log, pert=pert,
-                    partial=f"{certified['partial']}/{name}", return_deltas=True,
-                    reoptimise=(designs[name], *reo) if reo else None,
-                    **{k: v for k, v in certified.items() if k not in ("partial", "reoptimise")})
-                if reo:
+                log(f"  {CASES[cert]}: {certified.settings.supercells} supercells through the certified model ...")
+                device = SampledDevice(fabs[name], pupils[name], sensor, grid, pert, certified.designs.get(name))
+                rep["cases"][cert], deltas, ring = certified_case(device, certified.settings,
+                                                                  f"{certified.partial}/{name}", run=run,
+                                                                  label=CASES[cert], return_deltas=True)
+                if certified.settings.reoptimise:
                     rep["cases"][cert + "_reoptimised"] = {**rep["cases"][cert].pop("reoptimised"),
                                                            "label": CASES[cert + "_reoptimised"]}
                 sampled[cert] = (name, deltas)
@@ -119,228 +123,11 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, dataset=None, mode
         for c in rep["cases"].values():
             c["relative_to_lpa"] = {k: (c["mean"][k] / base[k] if base[k] else None)
                                     for k in ("spot_efficiency", "spot_strehl", "stray")}
-    if dataset is not None and model is not None:
-        any_fab = next(iter(fabs.values()))
-        rep["downstream"] = pupil_downstream(pupils, dataset, model, any_fab, samples, noise_percent, seed, log,
-                                             sampled=sampled)
+    if downstream is not None:
+        d = downstream
+        rep["downstream"] = pupil_downstream(pupils, d.dataset, d.model, next(iter(fabs.values())), d.samples,
+                                             d.noise_percent, d.seed, log, sampled=sampled)
     return rep, frames
-
-
-def certified_case(fab, cp, sensor: SensorSpec, grid: int, supercells: int = 2000, replicates: int = 8,
-                   partial=None, peds=None, workers: int = 1, scheduler: str | None = None, seed: int = 0,
-                   label: str = CASES["certified"], pert: Perturbation = Perturbation(),
-                   log=lambda s: None, return_deltas: bool = False, taper_slices: int = 4,
-                   ring_supercells: int = 0, reoptimise: tuple | None = None):
-    """``fab`` (with its supercell coupling model) under the certified model: its coupled pupil ``cp`` plus
-    the certified model's correction ``t_peds - t_coupled``, measured on ``supercells`` supercells drawn
-    uniformly (seeded) from the device's complete ones in ``replicates`` equal replicates
-    (:mod:`metadesign.sensing.sampled`), with the widths, etch depth and wall angle of ``pert`` (``cp`` made
-    with it, on ``grid``; the pillars' unit cells as the device's, the low-fidelity solves at the etched
-    height, with sloped walls in ``taper_slices`` slices (0: vertical, the widths at mid-height)).  The case's
-    metrics, their jackknife standard errors, and the corrections' statistics (in units of the pillars'
-    rms |t|, as the certification); with ``return_deltas``, also the replicates' correction pupils
-    (``(report, deltas, deltas with the ring or None)``: the sampled device's frames,
-    :func:`~metadesign.sensing.sampled.sampled_frames`).
-
-    ``ring_supercells``: also the neighbour ring, by overlapping windows
-    (:func:`~metadesign.library.peds.window_ring`): each of the first ``ring_supercells / replicates``
-    supercells of every replicate gets its ring term from the certified model on its three windows that
-    straddle towards +x, +y and +x+y (with its neighbours as made; solved like the supercells: at the etched
-    height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
-    without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
-    none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
-    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``).
-
-    ``reoptimise = (design, K, sweeps)`` (``design`` the device's own, nominal widths only): the sampled
-    supercells' atoms re-chosen under the certified model, as the compensating discretizer chooses them
-    under the pair model (:func:`~metadesign.design.compensate.descend_under`: each position tries its
-    atom's ``K`` nearest atoms in phase, ``sweeps`` times, towards ``gamma_p mean_i exp(i phi_i,p)``, with
-    ``gamma_p`` fitted to the sample's starting atoms under the certified model).  Given ``gamma``, a
-    supercell's choice depends only on its own atoms and target, so the sample's re-chosen supercells are
-    those of the device re-optimised whole, and the same replicates estimate that device (each pillar's
-    correction: from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new ones, plus
-    the supercell's certified correction; on the coupled pupil ``cp`` of the starting design) without
-    making it.  ``gamma``'s own sampling error (O(1/n)) is not in the error bars.  The report's
-    ``reoptimised`` (its effect against the starting design on matched replicates in
-    ``reoptimised["reoptimise"]["effect"]``)."""
-    t0 = time.perf_counter()
-    if fab.coupling is None:
-        raise ValueError("certified_case: the device needs its coupling model (the control variate)")
-    if reoptimise is not None and replace(pert, seed=0) != Perturbation():
-        raise ValueError("certified_case: re-optimising the atoms is for the nominal device (no width, etch or wall "
-                         "error)")
-    pm = peds if isinstance(peds, PedsModel) else load_peds(peds if peds is not None else find_peds(fab.lib), fab.lib)
-    ids = eligible_supercells(fab)
-    m = supercells // replicates
-    if m < 1 or replicates < 3:
-        raise ValueError("certified_case: at least three replicates of one supercell each")
-    pick = ids[np.random.default_rng(seed).integers(0, len(ids), m * replicates)]
-    w = supercell_widths(fab, pick, replace(pert, height=0.0, sidewall_deg=90.0), grid)  # widths at mid-height
-    tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], pert, fab.fab_lib)
-    t_pair = coupling_t(fab.coupling, w, tu)
-    stack = replace(fab.lib.stack, height=fab.lib.stack.height + pert.height)
-    def progress_lines(what, steps=""):
-        said = {"pass": 0, "last": -1, "tenths": set()}
-
-        def progress(d, n):  # a line per tenth of each pass (one pass per low-fidelity level)
-            if d < said["last"]:
-                said["pass"], said["tenths"] = said["pass"] + 1, set()
-            said["last"] = d
-            if d * 10 // max(n, 1) not in said["tenths"]:
-                said["tenths"].add(d * 10 // max(n, 1))
-                k, L = said["pass"], len(pm.harmonics)
-                where = f"level {k + 1}" if not steps else f"{steps} {k // L + 1}, level {k % L + 1}"
-                log(f"    {what}, {where}: {d}/{n} ({time.perf_counter() - t0:.0f} s)")
-        return progress
-
-    taper = (pert.sidewall_deg, taper_slices) if pert.sidewall_deg != 90.0 and taper_slices else None
-    t_cert = certified_t(fab.lib, w, partial, pm, workers=workers, scheduler=scheduler,
-                         progress=progress_lines("certified solves"),
-                         stack=stack, t_unit=tu, taper=taper)
-    delta = (t_cert - t_pair).astype(np.complex64)
-    ring_rep, ring_rows = None, [np.zeros(0, np.int64)] * replicates
-    if ring_supercells:
-        k = min(m, ring_supercells // replicates)
-        if k < 1:
-            raise ValueError("certified_case: at least one ring supercell per replicate")
-        sub = np.concatenate([np.arange(r * m, r * m + k) for r in range(replicates)])
-        C2 = fab.n_cells // 2
-        s_ids = pick[sub]
-        corners = [s_ids + 1, s_ids + C2, s_ids + C2 + 1]  # the neighbours at +x, +y, +x+y
-        whole = (s_ids % C2 + 1 < C2) & np.all([np.isin(c, ids) for c in corners], axis=0)
-        nw = int(whole.sum())  # the three neighbours' widths in one pass over the device's rows
-        wn = supercell_widths(fab, np.concatenate([c[whole] for c in corners]),
-                              replace(pert, height=0.0, sidewall_deg=90.0), grid)
-        wq = [w[sub][whole]] + [wn[i * nw:(i + 1) * nw] for i in range(3)]
-        nbhd = np.concatenate([np.concatenate([wq[0], wq[1]], 2), np.concatenate([wq[2], wq[3]], 2)], 1)[:, :3, :3]
-        win = neighbour_windows(nbhd).reshape(-1, 2, 2, 2)
-        log(f"    neighbour ring: {len(win)} straddling windows of {int(whole.sum())} supercells ...")
-        t_r = time.perf_counter()
-        tu_w = unit_t_as_made(fab.lib, win[..., 0], win[..., 1], pert, fab.fab_lib)
-        t_win = certified_t(fab.lib, win, f"{partial}/ring", pm, workers=workers, scheduler=scheduler,
-                            progress=progress_lines("ring windows"), stack=stack, t_unit=tu_w,
-                            taper=taper).reshape(-1, 3, 2)
-        rterm = np.zeros((len(sub), 2), np.complex128)
-        rterm[whole] = window_ring(t_win, t_cert[sub][whole])
-        ring_rows = [np.arange(r * k, (r + 1) * k) for r in range(replicates)]
-        rel_r = np.abs(rterm) / np.sqrt((np.abs(tu[sub]) ** 2).mean((1, 2)))
-        ring_rep = {"supercells": int(len(sub)), "with_neighbours": int(whole.sum()), "windows": int(len(win)),
-                    "seconds": time.perf_counter() - t_r, "mean_relative": [float(v) for v in rel_r.mean(0)],
-                    "p90_relative": [float(v) for v in np.percentile(rel_r, 90, axis=0)],
-                    "mean_complex": [[float(v.real), float(v.imag)] for v in rterm.mean(0)]}
-        ring_ids, ring_delta, ring_weight = s_ids, rterm.astype(np.complex64), len(ids) / k
-    t_solved = time.perf_counter()
-    plain = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], delta[r * m:(r + 1) * m], len(ids) / m)
-             for r in range(replicates)]
-    deltas = plain
-    if ring_rep is not None:  # the ring's sub-sample, weighted for its own size, on top of the same replicates
-        deltas = [_plus_pupil(d, delta_pupil(fab, cp.z, grid, ring_ids[ring_rows[r]], ring_delta[ring_rows[r]],
-                                             ring_weight)) for r, d in enumerate(plain)]
-    rel = relative_error(t_cert, t_pair, tu)  # the certification's measure: in units of the pillars' rms |t|
-    rep = {
-        "label": label,
-        "coupling": "certified (PEDS), sampled", "seconds": time.perf_counter() - t0,
-        "seconds_solves": t_solved - t0, **_sampled_metrics(cp, plain, sensor, fab),
-        "sampling": {"supercells": int(m * replicates), "replicates": int(replicates), "seed": int(seed),
-                     "eligible_supercells": len(ids), "distinct_sampled": len(np.unique(pick))},
-        "peds": {"harmonics": list(pm.harmonics), "library_sha256": pm.library_sha256,
-                 "taper": list(taper) if taper else None,
-                 "coefficients": [[float(c.real), float(c.imag)] for c in np.atleast_1d(pm.coef)]},
-        "ring": None,
-        "correction": {"mean_relative": [float(v) for v in rel.mean(0)],
-                       "p90_relative": [float(v) for v in np.percentile(rel, 90, axis=0)],
-                       "mean_complex": [[float(v.real), float(v.imag)] for v in delta.mean(0)]},
-    }
-    if ring_rep is not None:  # the same sample with the ring added: the ring's effect on matched replicates
-        ring_case = _sampled_metrics(cp, deltas, sensor, fab)
-        a, b = ring_case.pop("_loo"), rep["_loo"]
-        ring_rep["effect"] = {k: {"mean": ring_case["mean"][k] - rep["mean"][k],
-                                  "stderr": jackknife_se(np.subtract(a[k], b[k]))} for k in SPOT_KEYS}
-        rep["with_ring"] = {**{k: v for k, v in rep.items() if k not in ("with_ring", "_loo")},
-                            "label": label.replace("(PEDS", "(PEDS, overlapping windows"),
-                            "coupling": "certified (PEDS on overlapping windows), sampled", "ring": ring_rep,
-                            "seconds": time.perf_counter() - t0, **ring_case}
-    if reoptimise is not None:  # the same replicates with the re-chosen atoms: their effect on a matched sample
-        reo_rep, D = _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, f"{partial}/reoptimise",
-                                        workers, scheduler, progress_lines("re-optimising", "step"), log)
-        reo = [delta_pupil(fab, cp.z, grid, pick[r * m:(r + 1) * m], D[r * m:(r + 1) * m], len(ids) / m)
-               for r in range(replicates)]
-        reo_case = _sampled_metrics(cp, reo, sensor, fab)
-        a, b = reo_case.pop("_loo"), rep["_loo"]
-        reo_rep["effect"] = {k: {"mean": reo_case["mean"][k] - rep["mean"][k],
-                                 "stderr": jackknife_se(np.subtract(a[k], b[k]))} for k in SPOT_KEYS}
-        rep["reoptimised"] = {**{k: v for k, v in rep.items() if k not in ("with_ring", "_loo", "correction", "ring")},
-                              "label": f"{label}, atoms re-chosen under it",
-                              "coupling": "certified (PEDS), sampled; atoms re-chosen under it",
-                              "reoptimise": reo_rep, "seconds": time.perf_counter() - t0, **reo_case}
-    rep.pop("_loo")
-    return (rep, plain, deltas if ring_rep is not None else None) if return_deltas else rep
-
-
-def _pillar_t(fab, w: np.ndarray) -> np.ndarray:
-    """(n, 2, 2, 2 pol) each pillar's ``t`` under the device's coupling model (its unit cell plus its coupling
-    term, as the coupled pupil has it) for nominal supercells ``w`` (n, 2, 2, 2) m: the supercells side by
-    side in one strip of two rows."""
-    n = len(w)
-    tu = unit_t_as_made(fab.lib, w[..., 0], w[..., 1], Perturbation(), fab.fab_lib)
-    strip = lambda x: np.swapaxes(x, 0, 1).reshape(2, 2 * n, *x.shape[3:])  # noqa: E731  [s, r, c] -> [r, 2s + c]
-    t = couple_supercells(strip(tu).astype(np.complex64), strip(w), np.ones((2, 2 * n), bool), fab.coupling)
-    return np.swapaxes(np.asarray(t).reshape(2, n, 2, 2), 0, 1)
-
-
-def _reoptimise_sample(reoptimise, fab, pick, w, t_cert, pm, partial, workers, scheduler, progress, log):
-    """The sampled supercells' atoms re-chosen under the certified model (``reoptimise`` of
-    :func:`certified_case`): ``(report, per-pillar correction (n, 2, 2, 2) to the coupled pupil)``: each
-    pillar moves from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new ones, and
-    the supercell's mean from there to the certified model's ``t`` of the new atoms."""
-    design, K, sweeps = reoptimise
-    t0 = time.perf_counter()
-    a, S = sampled_supercells(design, pick)
-    aw = np.stack([design.atoms.wx, design.atoms.wy], 1)
-    if a.min() < 0 or a.max() >= len(aw) or not np.allclose(aw[a], w, rtol=0, atol=1e-12):
-        raise ValueError("certified_case: the design to re-optimise is not the device's (its atoms' widths differ)")
-    gamma = (np.conj(S) * t_cert).sum(0) / (np.abs(S) ** 2).sum(0)
-    target = S * gamma
-    nbr = atom_neighbours(design.atoms.phase, min(int(K), len(aw)))
-    solved = [0]
-
-    def evaluate(tuples):
-        solved[0] += len(tuples)
-        return certified_t(fab.lib, aw[tuples], partial, pm, workers=workers, scheduler=scheduler, progress=progress)
-
-    log(f"    re-optimising {len(a)} supercells under the certified model: {nbr.shape[1]} candidates per position, "
-        f"{sweeps} sweep(s), {len(a) * 4 * sweeps * (nbr.shape[1] - 1)} solves ...")
-    a_new = a.copy()
-    t_new = descend_under(a_new, target, nbr, evaluate, sweeps, t=t_cert)
-    c0, c1 = (np.abs(t_cert - target) ** 2).mean(0), (np.abs(t_new - target) ** 2).mean(0)
-    p_old, p_new = _pillar_t(fab, aw[a]), _pillar_t(fab, aw[a_new])
-    D = p_new - p_old + (t_new - p_new.mean((1, 2)))[:, None, None, :]
-    return {"neighbours": int(nbr.shape[1]), "sweeps": int(sweeps), "supercells": int(len(a)),
-            "gamma": [[float(g.real), float(g.imag)] for g in gamma],
-            "residual_rms_before": np.sqrt(c0).tolist(), "residual_rms_after": np.sqrt(c1).tolist(),
-            "pillars_changed_fraction": float((a_new != a).mean()), "solves": int(solved[0]),
-            "seconds": time.perf_counter() - t0,
-            "cost": "sum_p |t_certified,p - gamma_p mean_i exp(i phi_i,p)|^2 per supercell"}, D.astype(np.complex64)
-
-
-def _plus_pupil(a, b):
-    """Two coarse pupils of the same grid, summed."""
-    return replace(a, G=a.G + b.G)
-
-
-def _sampled_metrics(cp, deltas, sensor, fab) -> dict:
-    """The spot metrics of ``cp`` plus the sampled replicate corrections ``deltas``, per channel with their
-    jackknife errors, their means, standard errors and jackknife bias estimates."""
-    rows, loo = sampled_spot_metrics(cp, deltas, sensor, fab)
-    for i, row in enumerate(rows):
-        for k in SPOT_KEYS:
-            row[k + "_se"] = jackknife_se([lo[i][k] for lo in loo])
-    means = {k: [_mean(lo, k) for lo in loo] for k in SPOT_KEYS}
-    return {"channels": rows, "mean": {k: _mean(rows, k) for k in SPOT_KEYS}, "_loo": means,
-            "stderr": {k: jackknife_se(means[k]) for k in SPOT_KEYS},
-            # the jackknife's estimate of the sampling bias (the peaks behind the Strehl and the focus are
-            # maxima over noisy points: biased up by O(1 / supercells)); small beside stderr when it suffices
-            "bias": {k: jackknife_bias(_mean(rows, k), [_mean(lo, k) for lo in loo]) for k in SPOT_KEYS}}
 
 
 def plot_case_metrics(rep: dict, out):

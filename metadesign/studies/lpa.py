@@ -19,11 +19,16 @@ metrics (focusing efficiency, Strehl, crosstalk) and the NPiB of a model are com
 
 from __future__ import annotations
 
+import json
 import time
-from typing import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
+from ..io import atomic_write_text
 from ..library.rcwa import SolverSettings, solve_cell
 from ..library.supercell import solve_supercell
 from ..library.supercells import matched_unit_harmonics
@@ -41,8 +46,74 @@ from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import interpolate_t
 from ..sensing.twin import crop_to_pupil
 
-__all__ = ["lpa_check", "sample_supercells", "perturbed_pupil", "lpa_downstream", "pupil_downstream",
-           "plot_lpa"]
+__all__ = ["LpaSettings", "Downstream", "downstream_of", "lpa_study", "lpa_check", "sample_supercells",
+           "perturbed_pupil", "lpa_downstream", "pupil_downstream", "plot_lpa"]
+
+
+@dataclass(frozen=True)
+class LpaSettings:
+    """The LPA check's sample: ``supercells`` drawn with ``seed``, solved at ``harmonics`` (requested), the
+    first ``check`` of them again at 1.5x the harmonics (the truncation's certification)."""
+
+    supercells: int = 32
+    harmonics: int = 800
+    seed: int = 0
+    check: int = 2
+
+
+@dataclass(frozen=True)
+class Downstream:
+    """A downstream NPiB study: the U-Net ``model`` on at most ``samples`` test samples of ``dataset``
+    (whose device pupil the devices share) at ``noise_percent`` noise, the noise drawn from ``seed``."""
+
+    dataset: Any
+    model: Any
+    samples: int = 64
+    noise_percent: float = 5.0
+    seed: int = 0
+
+
+def downstream_of(dataset, model, samples: int = 64, noise_percent: float = 5.0, seed: int = 0, *,
+                  what: str = "the downstream NPiB") -> Downstream | None:
+    """The downstream study of a dataset and a model (None without them); one of them alone is refused
+    (ValidationError: ``what`` needs both)."""
+    if (dataset is None) != (model is None):
+        from ..validation import ValidationError
+
+        raise ValidationError(f"--dataset and --model go together ({what} needs both)")
+    return None if dataset is None else Downstream(dataset, model, samples, noise_percent, seed)
+
+
+def lpa_study(src: str | Path, out: Path, settings: LpaSettings = LpaSettings(),
+              downstream: Downstream | None = None, run: Execution = SERIAL) -> dict:
+    """The LPA check of the layout or design folder ``src`` (:func:`lpa_check`, inside its clear aperture
+    when that is a circle) and, with ``downstream``, the channel metrics and NPiB with the measured error
+    (:func:`lpa_downstream`); writes ``out/lpa.json`` and ``out/lpa.png`` (the report's ``figure``)."""
+    from ..sensing.model import AsFabricated
+
+    src = Path(src)
+    if src.is_dir():
+        from ..design.store import load_design
+
+        fab = AsFabricated.from_design(load_design(src))
+    else:
+        fab = AsFabricated.from_files(src)
+    im, w = fab.layout.index_map, fab.layout.atom_widths_nm
+    mask = None
+    if (fab.aperture or {}).get("kind") == "circle":
+        n2 = im.shape[0] // 2
+        x = (np.arange(n2) - (n2 - 1) / 2) * 2 * fab.period
+        mask = x[None, :] ** 2 + x[:, None] ** 2 <= (im.shape[0] * fab.period / 2) ** 2 * 0.98
+    run.log(f"lpa-check: {settings.supercells} supercells of {src} (period {fab.period * 1e6:.3f} um, 2 x 2) ...")
+    rep = lpa_check(im, w, fab.lib, settings, mask, run)
+    eps = rep.pop("_eps")
+    rep.pop("_contrast"), rep.pop("_spread")
+    if downstream is not None:
+        run.log("downstream: channel metrics and NPiB with the measured error ...")
+        rep["downstream"] = lpa_downstream(eps, fab, downstream, run.log)
+    atomic_write_text(out / "lpa.json", json.dumps(rep, indent=1))
+    rep["figure"] = str(plot_lpa(rep, out / "lpa.png"))
+    return rep
 
 
 def sample_supercells(index_map: np.ndarray, n: int, seed: int, mask: np.ndarray | None = None) -> np.ndarray:
@@ -71,11 +142,13 @@ def _solve_one(args):
     return sc, units
 
 
-def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, n: int = 32, n_super: int = 800,
-              seed: int = 0, workers: int = 1, check: int = 2, mask: np.ndarray | None = None,
-              progress: Callable[[int, int], None] | None = None) -> dict:
-    """Measured LPA error on ``n`` random supercells; ``check`` of them are re-solved at 1.5x the harmonics
-    (the certification of the supercell truncation)."""
+def lpa_check(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib, settings: LpaSettings = LpaSettings(),
+              mask: np.ndarray | None = None, run: Execution = SERIAL) -> dict:
+    """Measured LPA error on ``settings.supercells`` random supercells (inside ``mask``); ``settings.check`` of
+    them are re-solved at 1.5x the harmonics (the certification of the supercell truncation); on
+    ``run.workers`` processes, ``run.progress`` called per supercell."""
+    n, n_super, seed, check = settings.supercells, settings.harmonics, settings.seed, settings.check
+    workers, progress = run.workers, run.progress
     stack = lib.stack
     ns, nu = matched_unit_harmonics(n_super, stack)
     cells = sample_supercells(index_map, n, seed, mask)
@@ -171,10 +244,11 @@ def perturbed_pupil(cp, eps: np.ndarray, model: str, seed: int = 0, supercells_p
     return CoarsePupil(G.astype(np.complex64), cp.X, cp.block, cp.period, cp.wavelength, cp.z, cp.n_clamped)
 
 
-def lpa_downstream(eps: np.ndarray, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
-                   seed: int = 0, log=lambda s: None) -> dict:
-    """Channel metrics and the model's NPiB with the device pupil of ``dataset`` (nominal LPA) and with the
-    measured LPA error applied (both bounding models)."""
+def lpa_downstream(eps: np.ndarray, fab, downstream: Downstream, log=lambda s: None) -> dict:
+    """Channel metrics and the model's NPiB with the device pupil of ``downstream.dataset`` (nominal LPA) and
+    with the measured LPA error applied (both bounding models)."""
+    dataset, model_path, seed = downstream.dataset, downstream.model, downstream.seed
+    samples, noise_percent = downstream.samples, downstream.noise_percent
     cp = load_device(dataset).pupil
     per_block = max(1, (cp.block // 2) ** 2)
     pupils = {"nominal": cp,
