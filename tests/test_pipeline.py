@@ -108,6 +108,11 @@ import pytest  # noqa: E402
     (BEACONS + "noise_percent = []\n", "at least one level"),
     (BEACONS + "samples = 0\n", "beacons.samples"),
     (BEACONS + "seed = nan\n", "beacons.seed"),
+    # inputs a later stage would refuse, refused before the first stage: a recipe of the wrong kind ...
+    (BEACONS.replace("layouts/paper-5mm.toml", "sensing/paper.toml"), "beacons.design"),
+    (BEACONS.replace("sensing/paper.toml", "layouts/paper-5mm.toml"), "beacons.sensor"),
+    (BEACONS.replace("sensing/models/demo-refine.safetensors", "sensing/paper.toml"), "no such model"),
+    (BEACONS + "[dataset]\nsamples = 4\n[train]\nrecipe = 'no-such.toml'\n", "train.recipe"),
 ])
 def test_bad_pipeline_recipes_are_one_line_and_write_nothing(tmp_path, capsys, body, words):
     rc = main(["run", str(_recipe(tmp_path, body)), "-o", str(tmp_path / "out")])
@@ -130,3 +135,48 @@ def test_bad_pipeline_options_are_one_line(tmp_path, capsys, line, words):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and words in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_up_front_check_reads_cards_not_networks(monkeypatch):
+    """The models' sizes come from their cards and safetensors headers: no network is built, no weight read."""
+    import safetensors.torch
+    import torch
+
+    from metadesign.studies import pipeline_check
+    from metadesign.studies.pipeline import load_pipeline_recipe
+
+    def refuse(*a, **k):
+        raise AssertionError("the up-front check built a network or read weights")
+
+    monkeypatch.setattr(torch.nn.Module, "__init__", refuse)
+    monkeypatch.setattr(safetensors.torch, "load_file", refuse)
+    for name in ("demo-run", "pipeline-demo"):
+        pipeline_check.check_inputs(load_pipeline_recipe(REPO / "sensing" / f"{name}.toml"))
+    c = pipeline_check.card_config(REPO / "sensing" / "models" / "demo-refine.safetensors")
+    assert c.input_size == 64
+
+
+def test_the_recipe_is_typed_and_each_stage_key_follows_from_its_inputs(tmp_path):
+    import dataclasses
+
+    from metadesign.studies.pipeline import load_pipeline_recipe, stage_keys
+
+    src = (REPO / "sensing" / "demo-run.toml").read_text()
+    for rel in ("../library/paper.npz", "../layouts/demo.toml", "demo.toml", "turbulence.toml",
+                "../layouts/paper-5mm.toml", "paper.toml", "models/demo-refine.safetensors"):
+        src = src.replace(f'"{rel}"', f'"{(REPO / "sensing" / rel).resolve()}"')
+    (tmp_path / "r.toml").write_text(src)
+    rec = load_pipeline_recipe(tmp_path / "r.toml")
+    assert rec.pipeline.fab_bias_nm == (0.0, -10.0, 10.0) and rec.pipeline.library_recheck[0] == (40, 20)
+    assert rec.beacons.noise_percent == (0.0, 5.0) and rec.dataset is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        rec.pipeline.klayout = False
+    base = stage_keys(rec, tmp_path / "out")
+    assert set(base) == {"library", "design", "layout", "sensing", "turbulence", "beacons"}
+    for old, new, changed in (("turbulence_samples = 10", "turbulence_samples = 11", {"turbulence"}),
+                              ("klayout = true", "klayout = false", {"layout"}),
+                              ("fab_jitter_nm = [5.0]", "fab_jitter_nm = [4.0]", {"sensing"}),
+                              ("samples = 32", "samples = 31", {"beacons"})):
+        (tmp_path / "r.toml").write_text(src.replace(old, new))
+        keys = stage_keys(load_pipeline_recipe(tmp_path / "r.toml"), tmp_path / "out")
+        assert {k for k in base if keys[k] != base[k]} == changed, (old, new)

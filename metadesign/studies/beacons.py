@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,34 +25,39 @@ from ..reconstruction.refine import load_network
 from ..sensing.model import AsFabricated
 from ..turbulence.system import build_system
 
+if TYPE_CHECKING:
+    from .pipeline_recipe import BeaconsSection
+
 __all__ = ["fresh_beacons"]
 
 LABELS = {"unet": "U-Net", "refine": "U-Net + learned refinement"}
 
 
-def fresh_beacons(model_path: Path, design: Path, sensor: Path, turbulence: Path, work: Path, figure: Path,
-                  samples: int = 32, root: int = 2026, noise_percent=(0.0, 5.0),
-                  rytov: tuple[float, float] = (0.25, 0.6), library: Path | None = None) -> dict:
-    """NPiB of ``samples`` fresh beacons (root seed ``root``; Rytov numbers drawn in ``rytov``) through the
-    device of the design recipe ``design`` (designed into ``work``; with the unit cells of ``library`` when
-    given), corrected by the model at each noise
-    level (% of each channel's peak); a refiner is also reported without its refinement (its U-Net).
-    Returns the mean NPiB per method, the captured fractions (``"unet@5"``, ``"refine@5"``, ...), the median
-    gain of the best estimator at the highest noise level, and the Fig. 3b scatter at ``figure``."""
+def fresh_beacons(spec: BeaconsSection, turbulence: Path, work: Path, figure: Path,
+                  library: Path | None = None) -> dict:
+    """NPiB of ``spec.samples`` fresh beacons (root seed ``spec.seed``; Rytov numbers drawn in
+    [``spec.rytov_min``, ``spec.rytov_max``]) through the device of the design recipe ``spec.design``
+    (designed into ``work``; with the unit cells of ``library`` when given), seen by the sensor
+    ``spec.sensor`` behind ``turbulence``, corrected by the model ``spec.model`` at each noise level of
+    ``spec.noise_percent`` (% of each channel's peak); a refiner is also reported without its refinement
+    (its U-Net).  Returns the mean NPiB per method, the captured fractions (``"unet@5"``, ``"refine@5"``,
+    ...), the median gain of the best estimator at the highest noise level, and the Fig. 3b scatter at
+    ``figure``.  ``spec``: the pipeline's ``[beacons]`` section (any object with its fields)."""
     import torch
 
-    net, card = load_network(model_path)
+    design, samples, root, rytov = Path(spec.design), spec.samples, spec.seed, (spec.rytov_min, spec.rytov_max)
+    net, card = load_network(spec.model)
     refiner = net if hasattr(net, "trajectory") else None
     unet = refiner.unet if refiner is not None else net
     dr = load_design_recipe(design)
     d, _ = run_design(dr if library is None else dataclasses.replace(dr, library_path=Path(library)), work)
-    chain = build_system(AsFabricated.from_design(d), sensor, turbulence,
+    chain = build_system(AsFabricated.from_design(d), spec.sensor, turbulence,
                          tensor_size=unet.config.input_size).chain()
     c0, a = received_crop(chain.turbulence.sc)
     pib = PiB(chain.turbulence.sc, c0, a)
     ap = chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]
     methods = ("unet", "refine") if refiner is not None else ("unet",)
-    levels = tuple(float(v) for v in noise_percent)
+    levels = tuple(float(v) for v in spec.noise_percent)
     rows: dict = {k: [] for k in ("rytov", "none", "phase_conjugate", "complex_conjugate")}
     rows |= {f"{m}@{lv:g}": [] for m in methods for lv in levels}
     with torch.no_grad():
