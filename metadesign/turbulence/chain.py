@@ -16,7 +16,7 @@ from ..sensing.forward import CoarsePupil
 from ..sensing.model import AsFabricated, SensingRecipe
 from ..sensing.transmission import Perturbation
 from .path import Scenario
-from .propagate import Turbulence, split_step
+from .propagate import Turbulence
 
 __all__ = ["BeaconChain", "BeaconSample"]
 
@@ -61,7 +61,7 @@ class BeaconChain:
         t0 = time.perf_counter()
         ph = tb.screens(seed)
         t1 = time.perf_counter()
-        field = split_step(tb.source, ph, tb.H, tb.absorber, active=tb.active)
+        field = tb.element.forward(tb.source, ph)
         t2 = time.perf_counter()
         received = tb.collimated(field)
         e_in = tb.to_metasurface(field, self.pupil.G.shape[-1])

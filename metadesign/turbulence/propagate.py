@@ -89,14 +89,16 @@ class SplitStep:
     angular-spectrum step ``H`` between consecutive screens, the ``absorber`` at every screen),
     ``backward`` from the receiver's plane through them in reverse.  numpy arrays go through
     :func:`split_step` (scipy FFTs, complex64), torch tensors through :func:`split_step_torch` (autograd,
-    GPU); the two agree to float32 rounding (test)."""
+    GPU); the two agree to float32 rounding (test).  ``active``: the screens known to be non-zero (numpy
+    skips the others' phase; None: all).  :class:`Turbulence` holds its path as one (``element``)."""
 
     H: object
     absorber: object
+    active: object = None
 
     def _run(self, u, phases, reverse: bool):
         if isinstance(u, np.ndarray):
-            return split_step(u, phases, self.H, self.absorber, reverse=reverse)
+            return split_step(u, phases, self.H, self.absorber, reverse=reverse, active=self.active)
         return split_step_torch(u, phases, self.H, self.absorber, reverse=reverse)
 
     def forward(self, u, phases):
@@ -134,6 +136,11 @@ class Turbulence:
         self.x = x
         self.aperture = (x[None, :] ** 2 + x[:, None] ** 2) <= (sc.receiver_aperture / 2) ** 2
 
+    @property
+    def element(self) -> SplitStep:
+        """The turbulent path as one optical element (forward: beacon -> receiver; backward: the reverse)."""
+        return SplitStep(self.H, self.absorber, self.active)
+
     def at_rytov(self, rytov: float, check: bool = True) -> "Turbulence":
         """The same scenario at another Rytov number, sharing the grid, source, vacuum field and propagator
         (only the path model is solved again: ~1 ms instead of a vacuum split step)."""
@@ -157,7 +164,7 @@ class Turbulence:
 
     def sample(self, seed: int) -> Sample:
         ph = self.screens(seed)
-        return Sample(seed, ph, split_step(self.source, ph, self.H, self.absorber, active=self.active), self.vacuum)
+        return Sample(seed, ph, self.element.forward(self.source, ph), self.vacuum)
 
     def collimated(self, field: np.ndarray, mask: bool = True) -> np.ndarray:
         """Received field with the vacuum wavefront removed and the vacuum
@@ -201,7 +208,7 @@ class Turbulence:
             raise ValueError(mode)
         u = np.where(ap, u, 0).astype(np.complex64)
         u = u / np.sqrt(np.sum(np.abs(u) ** 2))
-        back = split_step(u, screens_, self.H, self.absorber, reverse=True, active=self.active)
+        back = self.element.backward(u, screens_)
         bucket, ideal_pib = self._vacuum_bucket()
         return float(np.sum(np.abs(back[bucket]) ** 2) / ideal_pib)
 
