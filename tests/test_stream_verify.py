@@ -11,9 +11,11 @@ import pytest
 from conftest import SMALL_TILED_RECIPE, leb128, run_main
 
 from metadesign.design.recipe import load_design_recipe
+from metadesign.execution import Execution
 from metadesign.layouts import oasis as O
 from metadesign.layouts import tiled
 from metadesign.layouts.reader import verify_tiled
+from metadesign.layouts.rules import DesignRules
 from metadesign.layouts.stream import gdelta_decode, verify_stream
 from metadesign.layouts.writer import layout_geometry, snap_widths
 
@@ -84,7 +86,7 @@ def test_a_good_layout_passes_and_agrees_with_klayout(small):
     s = verify_stream(lay, des)
     assert s["exact"] and s["drc"]["passed"], s["problems"]
     assert s["signature"] == {"scheme": "crc32", "ok": True}
-    two = verify_stream(lay, des, workers=2)  # stripes on two processes: the same report
+    two = verify_stream(lay, des, run=Execution(workers=2))  # stripes on two processes: the same report
     drop = ("seconds", "scan_seconds", "workers")
     assert {k: v for k, v in two.items() if k not in drop} == {k: v for k, v in s.items() if k not in drop}
     k = verify_tiled(lay, des, sample_tiles=4)
@@ -150,7 +152,7 @@ def test_design_rules_count_every_violating_pair(small):
     empty = int(json.loads(lay.with_suffix(".oas.json").read_text())["provenance"]["empty_index"])
     ok = s0 = verify_stream(lay, des)
     gap = int(ok["drc"]["min_gap_nm"]) + 20
-    s = verify_stream(lay, des, min_gap_nm=gap, min_feature_nm=int(ok["drc"]["min_feature_nm"]) + 1)
+    s = verify_stream(lay, des, DesignRules(min_feature_nm=int(ok["drc"]["min_feature_nm"]) + 1, min_gap_nm=gap))
     assert not s["drc"]["passed"] and s["exact"]  # the geometry is as designed; the rule fails
     p_nm, _ = layout_geometry(im.shape[0], 0.7e-6)
     w = np.stack([snap_widths(wx, 1)[0], snap_widths(wy, 1)[0]], 1)

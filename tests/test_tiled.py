@@ -13,6 +13,7 @@ from conftest import SMALL_TILED_RECIPE, leb128, run_cli
 
 from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import load_design, run_design
+from metadesign.execution import Execution
 from metadesign.io import StreamedArray, iter_npz_rows, read_npz, write_npz
 from metadesign.layouts import oasis as O
 from metadesign.layouts import read_layout, read_layout_klayout, verify_against_design
@@ -112,7 +113,7 @@ def test_tiled_design_and_layout_equal_the_whole_array_path(tiled_case, tiled64,
         out, rep = tiled64
     else:
         out = tmp / f"{hierarchy}-{workers}"
-        rep = build_tiled(recipe, out, tile=64, hierarchy=hierarchy, workers=workers)
+        rep = build_tiled(recipe, out, tile=64, hierarchy=hierarchy, run=Execution(workers=workers))
     tiled, whole = read_npz(out / "design.npz"), read_npz(tmp / "whole" / "design.npz")
     assert sorted(tiled) == sorted(whole)  # the same arrays (the index map deflated in pieces by the workers)
     for k in whole:
@@ -134,10 +135,10 @@ def test_tiled_bytes_do_not_depend_on_the_worker_count_or_the_scheduler(tiled_ca
 
     tmp, recipe, _ = tiled_case
     ref = tiled64[0]  # the in-process build
-    build_tiled(recipe, tmp / "w2", tile=64, workers=2)
+    build_tiled(recipe, tmp / "w2", tile=64, run=Execution(workers=2))
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                       env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}) as cl:
-        build_tiled(recipe, tmp / "dask", tile=64, scheduler=cl.scheduler_address)
+        build_tiled(recipe, tmp / "dask", tile=64, run=Execution(scheduler=cl.scheduler_address))
     for w in ("w2", "dask"):
         for f in ("design.npz", "layout.oas", "metrics.json"):
             assert (ref / f).read_bytes() == (tmp / w / f).read_bytes(), (w, f)

@@ -9,8 +9,9 @@ from pathlib import Path
 
 from ..cliutil import emit, integer, out_dir, out_file, progress_bar, workers_arg
 from ..config import InputError
+from ..execution import Execution
 from ..outputs import product
-from .rules import DESIGN_RULES
+from .rules import DESIGN_RULES, DesignRules
 
 __all__ = ["register", "SUBCOMMANDS", "DEFAULT", "MAX_PREVIEW_CELLS"]
 
@@ -82,8 +83,8 @@ def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
     from .reader import verify_tiled
 
     design = _design_beside(a, path)
-    rep = verify_tiled(path, design, a.sample_tiles, a.seed, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells,
-                       progress=None if a.json else progress_bar("verify: design stripes", unit="row"))
+    run = Execution(progress=None if a.json else progress_bar("verify: design stripes", unit="row"))
+    rep = verify_tiled(path, design, a.sample_tiles, a.seed, _rules(a), run)
     ok = rep["exact"] and rep["drc"]["passed"]
     rep["passed"] = ok
     d = rep["drc"]
@@ -107,8 +108,9 @@ def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
     from .stream import verify_stream
 
     design = _design_beside(a, path)
-    rep = verify_stream(path, design, a.min_feature_nm, a.min_gap_nm, a.tile, a.workers, a.scheduler,
-                        progress=None if a.json else progress_bar("verify: stripes of tiles", unit="stripe"))
+    run = Execution(workers=a.workers, scheduler=a.scheduler,
+                    progress=None if a.json else progress_bar("verify: stripes of tiles", unit="stripe"))
+    rep = verify_stream(path, design, _rules(a), a.tile, run)
     d = rep["drc"]
     ok = rep["exact"] and d["passed"]
     rep["passed"] = ok
@@ -127,6 +129,11 @@ def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
     lines += [f"    - {p}" for p in rep["problems"]]
     emit(rep, a.json, "\n".join(lines))
     return 0 if ok else 1
+
+
+def _rules(a: argparse.Namespace) -> DesignRules:
+    """The design rules of ``layout verify``'s options."""
+    return DesignRules(a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
 
 
 def _cmd_verify(a: argparse.Namespace) -> int:
@@ -185,8 +192,9 @@ def _cmd_tiled(a: argparse.Namespace) -> int:
     opts = _options(a)
     with product(out, "design", {"recipe": a.recipe, "design.library": recipe.library_path},
                  need=tiled_need(recipe, a.tile, a.workers)):
-        rep = build_tiled(recipe, out, a.tile, a.hierarchy, opts, a.workers, a.scheduler,
-                          progress=None if a.json else progress_bar("tiled design + layout", unit="row"))
+        run = Execution(workers=a.workers, scheduler=a.scheduler,
+                        progress=None if a.json else progress_bar("tiled design + layout", unit="row"))
+        rep = build_tiled(recipe, out, a.tile, a.hierarchy, opts, run)
     m = rep["metrics"]
     emit(rep, a.json, "\n".join([
         f"wrote {rep['design']} and {rep['file']}: {rep['pillars']:,} pillars in {rep['tiles']:,} tiles of "

@@ -8,12 +8,14 @@ import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from ..config import InputError
+from ..execution import SERIAL, Execution
 from ..io import NpzRows, from_json_array, iter_npz_rows
-from .rules import DESIGN_RULES
+from .rules import DESIGN_RULES, DesignRules
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
 __all__ = ["open_layout", "IndexRows", "read_tiled_contents", "LayoutContents", "read_layout", "read_layout_klayout",
@@ -72,13 +74,14 @@ def _provenance(top) -> dict:
     return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
 
 
-def _place(index_map, p_nm, x0, a, xs, ys, r0: int = 0, c0: int = 0):
+def _place(index_map, p_nm, x0, a, xs, ys, origin: tuple[int, int] = (0, 0)):
     """Scatter atom ``a`` at positions (nm) into ``index_map``, whose cell ``[0, 0]`` is lattice cell
-    ``(c0, r0)``; returns (duplicates, off-lattice or outside the map).
+    ``(c0, r0)`` (``origin = (r0, c0)``); returns (duplicates, off-lattice or outside the map).
 
     Readers return float positions (gdstk accumulates the repetition deltas in
     doubles, ~1e-6 nm off); each must be within 0.01 nm of an integer nm,
     which must then lie exactly on the lattice (integer arithmetic)."""
+    r0, c0 = origin
     xi, yi = np.rint(xs).astype(np.int64), np.rint(ys).astype(np.int64)
     near = (np.abs(xs - xi) < 0.01) & (np.abs(ys - yi) < 0.01)
     ix, rx = np.divmod(xi - x0, p_nm)
@@ -342,8 +345,8 @@ def drc_check(lc: LayoutContents, min_feature_nm: int = DESIGN_RULES.min_feature
     n = lc.index_map.shape[0]
     c = min(window_cells, n)
     s = (n - c) // 2
-    win = _window_drc(lc.index_map[s:s + c, s:s + c], s, s, lc.atom_widths_nm, lc.atom_centres_nm, lc.period_nm,
-                      lc.origin_nm, min_feature_nm, min_gap_nm)
+    lat = _AtomLattice(lc.atom_widths_nm, lc.atom_centres_nm, lc.period_nm, lc.origin_nm)
+    win = _window_drc(lc.index_map[s:s + c, s:s + c], (s, s), lat, DesignRules(min_feature_nm, min_gap_nm))
     geo = {"window_cells": c, "pillars_in_window": win["pillars"], "width_violations": win["width_violations"],
            "space_violations": win["space_violations"]}
     passed = _rules_pass(table, [win], min_feature_nm, min_gap_nm)
@@ -362,11 +365,23 @@ def _rules_pass(table: dict, windows: list[dict], min_feature_nm: int, min_gap_n
             >= min_gap_nm and all(w["width_violations"] == 0 and w["space_violations"] == 0 for w in windows))
 
 
-def _window_drc(block: np.ndarray, r0: int, c0: int, widths: np.ndarray, centres2: np.ndarray, p_nm: int,
-                x0: int, min_feature_nm: int, min_gap_nm: int) -> dict:
+class _AtomLattice(NamedTuple):
+    """The atoms' rectangles (sizes and doubled centres, nm) and the lattice they are placed on (pitch and
+    the first cell's centre, nm)."""
+
+    widths: np.ndarray
+    centres2: np.ndarray
+    p_nm: int
+    x0: int
+
+
+def _window_drc(block: np.ndarray, origin: tuple[int, int], lat: _AtomLattice, rules: DesignRules) -> dict:
     """Geometric width and space checks (KLayout regions, merged semantics off) on the pillars of
     ``block`` (an index-map window read back from the file, -1 = none) at cell origin ``(r0, c0)``."""
     import klayout.db as kdb
+
+    r0, c0 = origin
+    widths, centres2, p_nm, x0 = lat
 
     region = kdb.Region()
     for j, i in zip(*np.nonzero(block >= 0)):
@@ -376,38 +391,17 @@ def _window_drc(block: np.ndarray, r0: int, c0: int, widths: np.ndarray, centres
         ww, hh = int(widths[a, 0]), int(widths[a, 1])
         region.insert(kdb.Box((cx2 - ww) // 2, (cy2 - hh) // 2, (cx2 - ww) // 2 + ww, (cy2 - hh) // 2 + hh))
     region.merged_semantics = False
-    return {"pillars": region.count(), "width_violations": region.width_check(min_feature_nm).count(),
-            "space_violations": region.space_check(min_gap_nm).count()}
+    return {"pillars": region.count(), "width_violations": region.width_check(rules.min_feature_nm).count(),
+            "space_violations": region.space_check(rules.min_gap_nm).count()}
 
 
-def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 8, seed: int = 0,
-                 min_feature_nm: int = DESIGN_RULES.min_feature_nm, min_gap_nm: int = DESIGN_RULES.min_gap_nm,
-                 window_cells: int = 64,
-                 progress=None) -> dict:
-    """Verification that scales, for a tiled layout (:mod:`metadesign.layouts.tiled`, ``hierarchy =
-    "tiles"``): KLayout (viewer mode: repetitions stay arrays) counts every pillar, per atom, through the
-    hierarchy; ``sample_tiles`` tiles drawn with ``seed`` are expanded pillar by pillar and compared
-    exactly with the design's index map (streamed from ``design.npz``, one stripe at a time); the
-    geometric design rules run on a window at the centre of each sampled tile.  The report says which
-    fraction of the pillars was compared exactly."""
+def _count_tiles(ly, top, index_of: dict, n_atoms: int, problems: list) -> tuple[np.ndarray, dict]:
+    """Every pillar counted per atom through the hierarchy (KLayout's arrays, not expanded), and the tile
+    cells the top cell places (name -> cell index)."""
     import klayout.db as kdb
 
-    path, design_path = Path(path), Path(design_path)
-    t0 = time.perf_counter()
-    ly, top, prov = _klayout_open(path, editable=False)
-    t_read = time.perf_counter() - t0
-    tiling = prov.get("tiling")
-    if not tiling or tiling.get("hierarchy") != "tiles":
-        raise InputError(f"{path}: not a tiled layout with tile cells (use layout verify without --sample-tiles)")
-    n, tile = int(prov["n_cells"]), int(tiling["tile_cells"])
-    nt = -(-n // tile)
-    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
-    n_atoms = int(prov["n_atoms"])
-    widths, centres2, index_of = _klayout_atoms(ly, path, prov)
-    # --- every pillar counted through the hierarchy (KLayout's arrays)
     counts = np.zeros(n_atoms, np.int64)
     tiles = {}
-    problems = []
     for inst in top.each_inst():
         name = ly.cell(inst.cell_index).name
         if not name.startswith("TILE_"):
@@ -422,33 +416,84 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
                 problems.append(f"{name} places {ly.cell(ti.cell_index).name!r}, expected atom cells only")
                 continue
             counts[a] += ti.size()
-    t_count = time.perf_counter() - t0
-    # --- the design, streamed: its per-atom counts and the sampled tiles' blocks
+    return counts, tiles
+
+
+def _design_empty(design_path: Path) -> int | None:
+    """The design file's no-pillar index (None: every cell holds a pillar)."""
     try:
         with np.load(design_path, allow_pickle=False) as z:  # an NpzFile reads only the entry asked for
             dmeta = from_json_array(z["meta"])
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputError(f"{design_path}: not a design file ({exc})") from None
-    empty = dmeta.get("empty_index")
+    return dmeta.get("empty_index")
+
+
+def _design_blocks(design_path: Path, n: int, n_atoms: int, tile: int, picks: dict[int, list], empty: int | None,
+                   progress) -> tuple[np.ndarray, dict]:
+    """The design's index map (``empty``: its no-pillar index) streamed one stripe of ``tile`` rows at a
+    time: its per-atom pillar counts and the blocks of the tiles ``picks`` names (tile row -> tile columns)."""
+    want = np.zeros(n_atoms + 1, np.int64)
+    blocks = {}
+    for r0, blk in iter_npz_rows(design_path, "index_map", tile):
+        if blk.shape[1] != n:
+            raise InputError(f"{design_path}: index map of {blk.shape[1]} columns, layout has {n}")
+        b = np.bincount(blk.ravel(), minlength=max(n_atoms + 1, int(blk.max()) + 1))
+        want += b[:n_atoms + 1] if empty is None else np.append(b[:n_atoms], 0)
+        for tc in picks.get(r0 // tile, []):
+            blocks[(r0 // tile, tc)] = blk[:, tc * tile:(tc + 1) * tile].copy()
+        if progress:
+            progress(min(n, r0 + tile), n)
+    return want[:n_atoms], blocks
+
+
+def _tile_pillars(ly, ci: int, index_of: dict, shape: tuple[int, int], lat: _AtomLattice,
+                  origin: tuple[int, int]) -> tuple[np.ndarray, int, int]:
+    """Tile cell ``ci``'s pillars expanded one by one onto its lattice cells (``origin``: its first row and
+    column): the index map (-1 = none), duplicates, pillars off the lattice or outside the tile."""
+    got = np.full(shape, -1, np.int64)
+    dup = off = 0
+    for ti in ly.cell(ci).each_inst():
+        pts = np.array([(tt.disp.x, tt.disp.y) for tt in ti.cell_inst.each_trans()], np.float64).reshape(-1, 2)
+        d, o = _place(got, lat.p_nm, lat.x0, index_of[ti.cell_index], pts[:, 0], pts[:, 1], origin)
+        dup += d
+        off += o
+    return got, dup, off
+
+
+def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 8, seed: int = 0,
+                 rules: DesignRules = DESIGN_RULES, run: Execution = SERIAL) -> dict:
+    """Verification that scales, for a tiled layout (:mod:`metadesign.layouts.tiled`, ``hierarchy =
+    "tiles"``): KLayout (viewer mode: repetitions stay arrays) counts every pillar, per atom, through the
+    hierarchy; ``sample_tiles`` tiles drawn with ``seed`` are expanded pillar by pillar and compared
+    exactly with the design's index map (streamed from ``design.npz``, one stripe at a time, reported to
+    ``run.progress``); the geometric design ``rules`` run on a window of ``rules.window_cells`` at the
+    centre of each sampled tile.  The report says which fraction of the pillars was compared exactly."""
+    path, design_path = Path(path), Path(design_path)
+    t0 = time.perf_counter()
+    ly, top, prov = _klayout_open(path, editable=False)
+    t_read = time.perf_counter() - t0
+    tiling = prov.get("tiling")
+    if not tiling or tiling.get("hierarchy") != "tiles":
+        raise InputError(f"{path}: not a tiled layout with tile cells (use layout verify without --sample-tiles)")
+    n, tile = int(prov["n_cells"]), int(tiling["tile_cells"])
+    nt = -(-n // tile)
+    p_nm, x0 = layout_geometry(n, prov["period_nm"] * 1e-9)
+    n_atoms = int(prov["n_atoms"])
+    widths, centres2, index_of = _klayout_atoms(ly, path, prov)
+    lat = _AtomLattice(widths, centres2, p_nm, x0)
+    problems = []
+    counts, tiles = _count_tiles(ly, top, index_of, n_atoms, problems)
+    t_count = time.perf_counter() - t0
+    # --- the design, streamed: its per-atom counts and the sampled tiles' blocks
+    empty = _design_empty(design_path)
     rng = np.random.default_rng(seed)
     k = min(sample_tiles, nt * nt)
     picks = sorted(rng.choice(nt * nt, size=k, replace=False).tolist()) if k else []
     want_rows = {}
     for t in picks:
         want_rows.setdefault(t // nt, []).append(t % nt)
-    want = np.zeros(n_atoms + 1, np.int64)
-    blocks = {}
-    stripe = tile
-    for r0, blk in iter_npz_rows(design_path, "index_map", stripe):
-        if blk.shape[1] != n:
-            raise InputError(f"{design_path}: index map of {blk.shape[1]} columns, layout has {n}")
-        b = np.bincount(blk.ravel(), minlength=max(n_atoms + 1, int(blk.max()) + 1))
-        want += b[:n_atoms + 1] if empty is None else np.append(b[:n_atoms], 0)
-        for tc in want_rows.get(r0 // tile, []):
-            blocks[(r0 // tile, tc)] = blk[:, tc * tile:(tc + 1) * tile].copy()
-        if progress:
-            progress(min(n, r0 + stripe), n)
-    want = want[:n_atoms]
+    want, blocks = _design_blocks(design_path, n, n_atoms, tile, want_rows, empty, run.progress)
     if not np.array_equal(counts, want):
         bad = np.flatnonzero(counts != want)
         problems.append(f"per-atom pillar counts differ from the design for {bad.size} atoms "
@@ -458,17 +503,11 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
     for (tr, tc), blk in sorted(blocks.items()):
         name = f"TILE_{tr:03d}_{tc:03d}"
         r0, c0 = tr * tile, tc * tile
-        got = np.full(blk.shape, -1, np.int64)
-        dup = off = 0
         ci = tiles.get(name)
         if ci is None:
             problems.append(f"tile cell {name} missing")
             continue
-        for ti in ly.cell(ci).each_inst():
-            pts = np.array([(tt.disp.x, tt.disp.y) for tt in ti.cell_inst.each_trans()], np.float64).reshape(-1, 2)
-            d, o = _place(got, p_nm, x0, index_of[ti.cell_index], pts[:, 0], pts[:, 1], r0, c0)
-            dup += d
-            off += o
+        got, dup, off = _tile_pillars(ly, ci, index_of, blk.shape, lat, (r0, c0))
         ref = blk.astype(np.int64)
         if empty is not None:
             ref = np.where(blk == empty, -1, ref)
@@ -477,20 +516,19 @@ def verify_tiled(path: str | Path, design_path: str | Path, sample_tiles: int = 
         mismatched += mm
         if mm or dup or off:
             problems.append(f"{name}: {mm} cells differ from the design, {dup} duplicates, {off} off the tile")
-        h = min(window_cells, blk.shape[0], blk.shape[1])
+        h = min(rules.window_cells, blk.shape[0], blk.shape[1])
         s0, s1 = (blk.shape[0] - h) // 2, (blk.shape[1] - h) // 2
-        drc.append({"tile": name, **_window_drc(got[s0:s0 + h, s1:s1 + h], r0 + s0, c0 + s1, widths, centres2,
-                                                p_nm, x0, min_feature_nm, min_gap_nm)})
+        drc.append({"tile": name, **_window_drc(got[s0:s0 + h, s1:s1 + h], (r0 + s0, c0 + s1), lat, rules)})
     total = int(want.sum())
     table = _atom_table_rules(widths, p_nm)
-    drc_ok = _rules_pass(table, drc, min_feature_nm, min_gap_nm)
+    drc_ok = _rules_pass(table, drc, rules.min_feature_nm, rules.min_gap_nm)
     return {"file": str(path), "design": str(design_path), "exact": not problems, "problems": problems,
             "pillars_klayout": int(counts.sum()), "pillars_design": total, "tiles": nt * nt,
             "sampled_tiles": [f"TILE_{t // nt:03d}_{t % nt:03d}" for t in picks], "seed": seed,
             "sampled_pillars": sampled, "sampled_fraction": sampled / max(total, 1),
             "mismatched_cells": mismatched,
-            "drc": {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm},
-                    "from_atom_table": table, "windows": drc, "window_cells": window_cells, "passed": drc_ok},
+            "drc": {"rules": rules.limits(), "from_atom_table": table, "windows": drc,
+                    "window_cells": rules.window_cells, "passed": drc_ok},
             "read_seconds": t_read, "count_seconds": t_count - t_read, "seconds": time.perf_counter() - t0}
 
 

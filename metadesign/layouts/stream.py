@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
 from ..io import NpzRows, from_json_array
-from ..parallel import run_tasks
 from ..validation import InputError
 from .oasis_read import OasisError, OasisFile, gdelta_decode
-from .rules import DESIGN_RULES
+from .rules import DESIGN_RULES, DesignRules
 from .stream_scan import scan_file, tile_placements, tile_size_of
 from .writer import layout_geometry, snap_widths
 
@@ -148,7 +148,7 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
                 problem(f"malformed file: {name}: {exc}")
                 placed = []
             out["tiles"] += 1
-            got = _tile_map(name, placed, g, r0, c0, h, w, out, problem)
+            got = _tile_map(name, placed, g, (r0, c0, h, w), out)
             ref = block[:, c0:c0 + w]
             mm = int(np.count_nonzero(got != ref))
             if mm:
@@ -172,9 +172,12 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
     return out
 
 
-def _tile_map(name: str, placed: list, g: _Grid, r0: int, c0: int, h: int, w: int, out: dict, problem) -> np.ndarray:
-    """The tile's pillars on its lattice cells (-1: none), counting what lies off the lattice, outside the
-    tile, on an occupied cell or is not an atom."""
+def _tile_map(name: str, placed: list, g: _Grid, box: tuple[int, int, int, int], out: dict) -> np.ndarray:
+    """The tile's pillars on its lattice cells (-1: none; ``box``: the tile's first row and column and its
+    height and width in cells), counting into ``out`` (and its ``problems``) what lies off the lattice,
+    outside the tile, on an occupied cell or is not an atom."""
+    r0, c0, h, w = box
+    problem = out["problems"]
     got = np.full((h, w), -1, g.itype)
     if not placed:
         return got
@@ -210,22 +213,9 @@ def _tile_map(name: str, placed: list, g: _Grid, r0: int, c0: int, h: int, w: in
     return got
 
 
-def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int = DESIGN_RULES.min_feature_nm,
-                  min_gap_nm: int = DESIGN_RULES.min_gap_nm, tile: int | None = None, workers: int = 1,
-                  scheduler: str | None = None, progress=None, max_problems: int = 20) -> dict:
-    """Read the OASIS file ``path`` and check it against the design ``design_path`` (see the module's
-    docstring): one pass over the top-level records (names, the signature, the top and atom cells, where
-    each tile lies), then the stripes of tiles, each against its rows of the design, on ``workers`` local
-    processes or a Dask ``scheduler`` (the same report whatever the count: sums, combined in stripe order).
-    ``tile``: the tiling's cells per tile side (default: the side-car's, checked against the file's own
-    record).  Returns the report: ``exact`` (every pillar as designed, the file well-formed, its signature
-    right), ``drc`` (``passed``), the counts and timings."""
-    path, design_path = Path(path), Path(design_path)
-    tile_size = tile_size_of(path, tile)
-    if tile_size is None:
-        raise InputError(f"{path}: no tile size (no side-car {path.name}.json): pass --tile")
-    t0 = time.perf_counter()
-    problem = _Problems(max_problems)
+def _read_design(design_path: Path) -> tuple[dict, np.ndarray, int, float]:
+    """The design file's metadata, its atoms' widths snapped to the 1 nm grid (``(n_atoms, 2)``), its cells
+    per side and its lattice period (m); one-line InputErrors for a file that is not a design."""
     try:
         with np.load(design_path, allow_pickle=False) as z:
             dmeta = from_json_array(z["meta"])
@@ -238,77 +228,82 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
     period = (dmeta.get("spec") or {}).get("period_m")
     if period is None:
         raise InputError(f"{design_path}: its metadata has no lattice period")
-    n_atoms = len(awx)
     ew = np.stack([snap_widths(awx, 1)[0], snap_widths(awy, 1)[0]], 1).astype(np.int64)
-    p_nm, x0 = layout_geometry(n, float(period))
-    g = _Grid(str(path), str(design_path), n, n_atoms, p_nm, x0, tile_size, dmeta.get("empty_index"))
+    return dmeta, ew, n, float(period)
 
-    scan = scan_file(path, problem)
-    t_scan = time.perf_counter() - t0
-    names = scan["names"]
-    by_row: dict[int, list] = {}
-    for name, r, c, off, ln in scan["tiles"]:
-        by_row.setdefault(r, []).append((name, c, off, ln))
-    stripes = sorted(by_row)
-    for r in stripes:
-        if r * tile_size >= n:
-            problem(f"tile row {r} is outside the design's {n} rows")
-    counts = np.zeros(n_atoms, np.int64)
-    want = np.zeros(n_atoms, np.int64)
-    ph = np.zeros(n_atoms * n_atoms, np.int64)
-    pv = np.zeros(n_atoms * n_atoms, np.int64)
-    tot = {"mismatched": 0, "duplicates": 0, "off_lattice": 0, "tiles": 0}
-    rows = NpzRows(design_path, "index_map")
-    last = [None]  # (stripe, its top row) of the stripe folded last
 
-    def fold(r: int, res: dict | None) -> None:
-        """Stripe ``r``'s result into the totals, in stripe order (the same report whatever the worker
-        count); only its top row is kept, for the vertical pairs across the next border."""
-        nonlocal counts, want, ph, pv
+class _Totals:
+    """The stripes' results summed in stripe order (the same report whatever the worker count): per-atom
+    counts (layout and design), neighbour-pair tables and the mismatch counts."""
+
+    def __init__(self, g: _Grid, rows: NpzRows, problem):
+        k = g.n_atoms
+        self.g, self.rows, self.problem = g, rows, problem
+        self.counts = np.zeros(k, np.int64)
+        self.want = np.zeros(k, np.int64)
+        self.ph = np.zeros(k * k, np.int64)
+        self.pv = np.zeros(k * k, np.int64)
+        self.tot = {"mismatched": 0, "duplicates": 0, "off_lattice": 0, "tiles": 0}
+        self.last = None  # (stripe, its top row) of the stripe folded last
+
+    def fold(self, r: int, res: dict | None) -> None:
+        """Stripe ``r``'s result into the totals; only its top row is kept, for the vertical pairs across
+        the next border."""
+        g, problem = self.g, self.problem
         if res is None:  # a stripe without a tile cell: its designed pillars are in no tile
-            _, w_r = _design_rows(rows, g, r * tile_size, min(n, (r + 1) * tile_size))
-            want += w_r
+            _, w_r = _design_rows(self.rows, g, r * g.tile, min(g.n, (r + 1) * g.tile))
+            self.want += w_r
             if w_r.sum():
-                tot["mismatched"] += int(w_r.sum())
-                problem(f"stripe {r} (rows {r * tile_size}..): no tile cell, {int(w_r.sum())} designed pillars "
+                self.tot["mismatched"] += int(w_r.sum())
+                problem(f"stripe {r} (rows {r * g.tile}..): no tile cell, {int(w_r.sum())} designed pillars "
                         "missing")
-            last[0] = None
+            self.last = None
             return
         for msg in res["problems"]:
             problem(msg)
-        counts += res["counts"]
-        want += res["want"]
-        ph += res["pairs_h"]
-        pv += res["pairs_v"]
-        for k in tot:
-            tot[k] += res[k]
-        if last[0] is not None and last[0][0] == r - 1:  # vertical neighbours across the stripe border
-            pv += _pairs(last[0][1], res["bottom"], n_atoms)
-        last[0] = (r, res["top"])
+        self.counts += res["counts"]
+        self.want += res["want"]
+        self.ph += res["pairs_h"]
+        self.pv += res["pairs_v"]
+        for k in self.tot:
+            self.tot[k] += res[k]
+        if self.last is not None and self.last[0] == r - 1:  # vertical neighbours across the stripe border
+            self.pv += _pairs(self.last[1], res["bottom"], g.n_atoms)
+        self.last = (r, res["top"])
 
-    expected = {r for r in stripes if r * tile_size < n}
-    n_stripes = -(-n // tile_size)
-    pending: dict[int, dict] = {}  # results ahead of their turn (few: stripes are dispatched in order)
+
+def _run_stripes(g: _Grid, by_row: dict[int, list], run: Execution, problem) -> _Totals:
+    """Every stripe of tiles against its rows of the design, on ``run``'s workers, folded in stripe order
+    as the results arrive (the few that arrive ahead of their turn wait)."""
+    expected = {r for r in by_row if r * g.tile < g.n}
+    n_stripes = -(-g.n // g.tile)
+    rows = NpzRows(g.design, "index_map")
+    acc = _Totals(g, rows, problem)
+    pending: dict[int, dict] = {}
     nxt = done = 0
     try:
-        for res in run_tasks(_stripe_job, [(r, by_row[r]) for r in sorted(expected)], workers, g,
-                             scheduler=scheduler, key="verify-stripe"):
+        for res in run.map(_stripe_job, [(r, by_row[r]) for r in sorted(expected)], shared=g, key="verify-stripe"):
             pending[res["r"]] = res
             done += 1
             while nxt < n_stripes and (nxt in pending or nxt not in expected):
-                fold(nxt, pending.pop(nxt, None))
+                acc.fold(nxt, pending.pop(nxt, None))
                 nxt += 1
-            if progress:
-                progress(done, len(stripes))
+            if run.progress:
+                run.progress(done, len(by_row))
         while nxt < n_stripes:
-            fold(nxt, pending.pop(nxt, None))
+            acc.fold(nxt, pending.pop(nxt, None))
             nxt += 1
     finally:
         rows.close()
         for r in _ROWS.values():  # an in-process worker's reader (workers <= 1)
             r.close()
         _ROWS.clear()
-    # --- the tiling, the top cell, the atoms, the counts, the rules
+    return acc
+
+
+def _check_hierarchy(scan: dict, tile_size: int, problem) -> None:
+    """The tiling the file records, and the top cell placing every tile cell once at the origin."""
+    names = scan["names"]
     prov, tiling = scan["prov"], (scan["prov"] or {}).get("tiling") or {}
     if prov is None:
         problem("the top cell has no metadesign property: not a file of this project")
@@ -326,8 +321,13 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
     unplaced = {t[0] for t in scan["tiles"]} - set(placed)
     if unplaced:
         problem(f"{len(unplaced)} tile cells are never placed by the top cell (first: {sorted(unplaced)[0]})")
+
+
+def _atom_widths(scan: dict, counts: np.ndarray, ew: np.ndarray, problem) -> np.ndarray:
+    """Each atom's rectangle as the file writes it (``(n_atoms, 2)``, the design's where the file has none),
+    checked against the design's snapped widths and for being centred on its cell's origin."""
     widths = ew.copy()
-    for a in range(n_atoms):
+    for a in range(len(ew)):
         rects = scan["atom_rects"].get(a)
         if counts[a] == 0 and not rects:
             continue
@@ -341,27 +341,67 @@ def verify_stream(path: str | Path, design_path: str | Path, min_feature_nm: int
                     f"{int(ew[a, 1])} nm")
         if (rx, ry) != (-(w_ // 2) - (w_ % 2), -(h_ // 2) - (h_ % 2)):
             problem(f"atom cell ATOM_{a:03d}: not centred on its origin")
-    if not np.array_equal(counts, want):
-        bad = np.flatnonzero(counts != want)
-        problem(f"per-atom pillar counts differ from the design for {bad.size} atoms (layout {int(counts.sum()):,}, "
-                f"design {int(want.sum()):,})")
+    return widths
+
+
+def _stream_drc(acc: _Totals, widths: np.ndarray, p_nm: int, rules: DesignRules) -> dict:
+    """The design rules on every placed pillar (its atom's width) and every neighbour pair (the gap of the
+    two atoms' centred rectangles), from the per-atom counts and the pair tables."""
+    n_atoms, counts = len(widths), acc.counts
     used = np.flatnonzero(counts)
     gap_x = p_nm - (widths[:, 0][:, None] + widths[:, 0][None, :]) / 2  # centred: the gap of a pair
     gap_y = p_nm - (widths[:, 1][:, None] + widths[:, 1][None, :]) / 2
-    ph, pv = ph.reshape(n_atoms, n_atoms), pv.reshape(n_atoms, n_atoms)
-    width_viol = int(counts[(widths < min_feature_nm).any(1)].sum())
-    space_viol = int(ph[gap_x < min_gap_nm].sum() + pv[gap_y < min_gap_nm].sum())
+    ph, pv = acc.ph.reshape(n_atoms, n_atoms), acc.pv.reshape(n_atoms, n_atoms)
+    width_viol = int(counts[(widths < rules.min_feature_nm).any(1)].sum())
+    space_viol = int(ph[gap_x < rules.min_gap_nm].sum() + pv[gap_y < rules.min_gap_nm].sum())
     min_gap = min(float(gap_x[ph > 0].min()) if (ph > 0).any() else np.inf,
                   float(gap_y[pv > 0].min()) if (pv > 0).any() else np.inf)
+    return {"rules": rules.limits(), "min_feature_nm": int(widths[used].min()) if used.size else None,
+            "min_gap_nm": None if not np.isfinite(min_gap) else round(min_gap, 1),
+            "pairs_checked": int(ph.sum() + pv.sum()), "width_violations": width_viol,
+            "space_violations": space_viol, "passed": width_viol == 0 and space_viol == 0}
+
+
+def verify_stream(path: str | Path, design_path: str | Path, rules: DesignRules = DESIGN_RULES,
+                  tile: int | None = None, run: Execution = SERIAL, max_problems: int = 20) -> dict:
+    """Read the OASIS file ``path`` and check it against the design ``design_path`` (see the module's
+    docstring) under ``rules``: one pass over the top-level records (names, the signature, the top and atom
+    cells, where each tile lies), then the stripes of tiles, each against its rows of the design, on
+    ``run``'s local workers or Dask scheduler (the same report whatever the count: sums, combined in stripe
+    order; ``run.progress`` counts the stripes).  ``tile``: the tiling's cells per tile side (default: the
+    side-car's, checked against the file's own record).  Returns the report: ``exact`` (every pillar as
+    designed, the file well-formed, its signature right), ``drc`` (``passed``), the counts and timings."""
+    path, design_path = Path(path), Path(design_path)
+    tile_size = tile_size_of(path, tile)
+    if tile_size is None:
+        raise InputError(f"{path}: no tile size (no side-car {path.name}.json): pass --tile")
+    t0 = time.perf_counter()
+    problem = _Problems(max_problems)
+    dmeta, ew, n, period = _read_design(design_path)
+    p_nm, x0 = layout_geometry(n, period)
+    g = _Grid(str(path), str(design_path), n, len(ew), p_nm, x0, tile_size, dmeta.get("empty_index"))
+
+    scan = scan_file(path, problem)
+    t_scan = time.perf_counter() - t0
+    by_row: dict[int, list] = {}
+    for name, r, c, off, ln in scan["tiles"]:
+        by_row.setdefault(r, []).append((name, c, off, ln))
+    for r in sorted(by_row):
+        if r * tile_size >= n:
+            problem(f"tile row {r} is outside the design's {n} rows")
+    acc = _run_stripes(g, by_row, run, problem)
+    _check_hierarchy(scan, tile_size, problem)
+    widths = _atom_widths(scan, acc.counts, ew, problem)
+    if not np.array_equal(acc.counts, acc.want):
+        bad = np.flatnonzero(acc.counts != acc.want)
+        problem(f"per-atom pillar counts differ from the design for {bad.size} atoms (layout "
+                f"{int(acc.counts.sum()):,}, design {int(acc.want.sum()):,})")
+    drc = _stream_drc(acc, widths, p_nm, rules)
+    tot = acc.tot
     return {"file": str(path), "design": str(design_path), "reader": "stream", "exact": not problem,
-            "problems": list(problem), "pillars": int(counts.sum()), "pillars_design": int(want.sum()),
+            "problems": list(problem), "pillars": int(acc.counts.sum()), "pillars_design": int(acc.want.sum()),
             "tiles": tot["tiles"], "tile_cells": tile_size, "mismatched_cells": tot["mismatched"],
             "duplicates": tot["duplicates"], "off_lattice": tot["off_lattice"],
             "signature": {"scheme": scan["scheme"], "ok": scan["signature_ok"]}, "unit_per_um": scan["unit"],
-            "bytes": scan["bytes"], "workers": workers,
-            "drc": {"rules": {"min_feature_nm": min_feature_nm, "min_gap_nm": min_gap_nm},
-                    "min_feature_nm": int(widths[used].min()) if used.size else None,
-                    "min_gap_nm": None if not np.isfinite(min_gap) else round(min_gap, 1),
-                    "pairs_checked": int(ph.sum() + pv.sum()), "width_violations": width_viol,
-                    "space_violations": space_viol, "passed": width_viol == 0 and space_viol == 0},
+            "bytes": scan["bytes"], "workers": run.workers, "drc": drc,
             "scan_seconds": t_scan, "seconds": time.perf_counter() - t0}

@@ -63,136 +63,161 @@ def tile_size_of(path: Path, given: int | None) -> int | None:
         return None
 
 
+class _Scan:
+    """The state of one pass over the top-level records: the cell names, the tile cells and where their
+    records lie (``(name, r, c, offset, length)``), the top cell's placements and its ``metadesign``
+    property, the atom cells' rectangles."""
+
+    def __init__(self, problem):
+        self.problem = problem
+        self.names: dict[int, str] = {}
+        self.tiles: list = []
+        self.atom_rects: dict[int, list] = {}
+        self.top: list = []
+        self.prov = None
+        self.cell = None
+        self.tile_at = None  # (name, r, c, offset) of the tile cell being skipped
+        self.modal = Modal()
+        self.next_ref = 0
+
+    def close_cell(self, at: int) -> None:
+        if self.tile_at is not None:
+            name, r, c, off = self.tile_at
+            self.tiles.append((name, r, c, off, at - off))
+            self.tile_at = None
+
+    def take(self, el: Element) -> None:
+        """An element of a cell that is not a tile: the top cell's placements and property, the atom cells'
+        rectangles (anything else where it does not belong is a problem)."""
+        problem = self.problem
+        name = self.names.get(self.cell, "")
+        if el.kind == "placement":
+            rep = len(el.rep[0]) if el.rep else 1
+            if name == TOP_CELL:
+                self.top.append((el.ref, el.x, el.y, rep))
+            else:
+                problem(f"cell {name or self.cell!r} places cell {el.ref}: only tiles and the top cell place cells")
+        elif el.kind == "rectangle":
+            if name.startswith("ATOM_"):
+                self.atom_rects.setdefault(int(name[5:]), []).append((el.w, el.h, el.x, el.y, el.rep))
+            else:
+                problem(f"cell {name or self.cell!r} holds a rectangle: pillars belong in atom cells")
+        elif el.kind == "property" and name == TOP_CELL and el.name == b"metadesign" and el.values:
+            try:
+                self.prov = json.loads(el.values[0])
+            except ValueError:
+                problem("the top cell's metadesign property is not JSON")
+
+    def open_cell(self, f: OasisFile, rid: int) -> None:
+        """A CELL record (its id byte read): by reference number (13) or by name (14)."""
+        if rid == 14:
+            nm = f.string().decode(errors="replace")
+            self.cell = next((k for k, v in self.names.items() if v == nm), nm)
+            self.names.setdefault(self.cell, nm)
+        else:
+            self.cell = f.uint()
+        self.modal = Modal()
+        name = self.names.get(self.cell, "")
+        if name.startswith("TILE_"):
+            try:
+                _, r, c = name.split("_")
+                self.tile_at = (name, int(r), int(c), f.tell())
+            except ValueError:
+                raise OasisError(f"tile cell name {name!r} is not TILE_<row>_<col>") from None
+
+    def record(self, f: OasisFile, rid: int, at: int) -> None:
+        """One top-level record other than END (its id byte ``rid``, at byte ``at``, read)."""
+        if rid == 0:
+            return
+        if rid in (3, 4):
+            nm = f.string().decode(errors="replace")
+            ref = f.uint() if rid == 4 else self.next_ref
+            self.next_ref = ref + 1
+            self.names[ref] = nm
+        elif rid in (5, 6, 7, 8, 9, 10):
+            f.string()
+            if rid % 2 == 0:
+                f.uint()
+        elif rid in (13, 14):
+            self.close_cell(at)
+            self.open_cell(f, rid)
+        elif self.tile_at is not None:  # a tile's records: the workers read them; here only their bytes
+            if rid == 34:
+                f.cblock(inflate=False)
+            else:
+                f.element(rid, self.modal)
+        elif rid == 34:
+            for el in f.cblock().elements(self.modal):
+                self.take(el)
+        else:
+            el = f.element(rid, self.modal)
+            if el is not None:
+                self.take(el)
+
+
+def _read_start(f: OasisFile, res: dict) -> None:
+    """The magic bytes and the START record: the database unit (an integer per micrometre) into ``res``."""
+    if f.read(len(MAGIC)) != MAGIC:
+        raise OasisError("not an OASIS file (no magic bytes)")
+    if f.byte() != 1:
+        raise OasisError("no START record after the magic bytes")
+    version = f.string()
+    if version != b"1.0":
+        raise OasisError(f"OASIS version {version!r}, expected '1.0'")
+    unit_type = f.uint()
+    if unit_type != 0:
+        raise OasisError(f"a database unit of real type {unit_type}, not an integer per micrometre as this "
+                         "project writes it: a file of another writer (use layout verify without --stream)")
+    res["unit"] = f.uint()
+    if f.uint() != 0:
+        raise OasisError("name tables at the end of the file are not supported (offset flag 1)")
+    for _ in range(12):
+        f.uint()
+
+
+def _read_end(f: OasisFile, at: int, res: dict, problem) -> None:
+    """The END record (its id byte, at byte ``at``, read): padding, validation scheme and signature, 256
+    bytes in all, the last of the file; the signature checked against every byte before it."""
+    f.string()
+    scheme = f.uint()
+    base_crc, base_sum = f.signature_base()
+    sig = int.from_bytes(f.read(4), "little")
+    if f.tell() - at != END_BYTES:
+        problem(f"END record of {f.tell() - at} bytes, expected {END_BYTES}")
+    if f.tell() != f.size:
+        problem(f"{f.size - f.tell()} bytes after the END record")
+    if scheme not in (0, 1, 2):
+        raise OasisError(f"validation scheme {scheme} unknown")
+    res["scheme"] = {0: None, 1: "crc32", 2: "checksum32"}[scheme]
+    res["signature_ok"] = None if scheme == 0 else sig == (base_crc if scheme == 1 else base_sum)
+    if res["signature_ok"] is False:
+        problem(f"the file's {res['scheme']} signature does not match its bytes (the file was changed "
+                "or damaged after it was written)")
+    res["ended"] = True
+
+
 def scan_file(path: Path, problem) -> dict:
     """One pass over the file's top-level records: the names, where each tile cell's records lie (their
     CBLOCK payloads read for the signature, not inflated), the top cell and the atom cells parsed, END and
     the signature checked."""
     f = OasisFile(path)
-    names: dict[int, str] = {}
-    tiles: list = []  # (name, r, c, offset, length)
-    atom_rects: dict[int, list] = {}
-    top: list = []
-    prov = None
-    cell = None
-    tile_at = None  # (name, r, c, offset) of the tile cell being skipped
-    modal = Modal()
+    scan = _Scan(problem)
     res = {"ended": False, "scheme": None, "signature_ok": None, "unit": None, "bytes": f.size}
-
-    def close_cell(at: int) -> None:
-        nonlocal tile_at
-        if tile_at is not None:
-            name, r, c, off = tile_at
-            tiles.append((name, r, c, off, at - off))
-            tile_at = None
-
-    def take(el: Element) -> None:
-        nonlocal prov
-        name = names.get(cell, "")
-        if el.kind == "placement":
-            rep = len(el.rep[0]) if el.rep else 1
-            if name == TOP_CELL:
-                top.append((el.ref, el.x, el.y, rep))
-            else:
-                problem(f"cell {name or cell!r} places cell {el.ref}: only tiles and the top cell place cells")
-        elif el.kind == "rectangle":
-            if name.startswith("ATOM_"):
-                atom_rects.setdefault(int(name[5:]), []).append((el.w, el.h, el.x, el.y, el.rep))
-            else:
-                problem(f"cell {name or cell!r} holds a rectangle: pillars belong in atom cells")
-        elif el.kind == "property" and name == TOP_CELL and el.name == b"metadesign" and el.values:
-            try:
-                prov = json.loads(el.values[0])
-            except ValueError:
-                problem("the top cell's metadesign property is not JSON")
-
     try:
-        if f.read(len(MAGIC)) != MAGIC:
-            raise OasisError("not an OASIS file (no magic bytes)")
-        if f.byte() != 1:
-            raise OasisError("no START record after the magic bytes")
-        version = f.string()
-        if version != b"1.0":
-            raise OasisError(f"OASIS version {version!r}, expected '1.0'")
-        unit_type = f.uint()
-        if unit_type != 0:
-            raise OasisError(f"a database unit of real type {unit_type}, not an integer per micrometre as this "
-                             "project writes it: a file of another writer (use layout verify without --stream)")
-        res["unit"] = f.uint()
-        if f.uint() != 0:
-            raise OasisError("name tables at the end of the file are not supported (offset flag 1)")
-        for _ in range(12):
-            f.uint()
-        next_ref = 0
+        _read_start(f, res)
         while True:
             at = f.tell()
             rid = f.byte()
-            if rid == 0:
-                continue
-            if rid == 2:  # END: padding, validation scheme, signature; 256 bytes in all
-                close_cell(at)
-                f.string()
-                scheme = f.uint()
-                base_crc, base_sum = f.signature_base()
-                sig = int.from_bytes(f.read(4), "little")
-                if f.tell() - at != END_BYTES:
-                    problem(f"END record of {f.tell() - at} bytes, expected {END_BYTES}")
-                if f.tell() != f.size:
-                    problem(f"{f.size - f.tell()} bytes after the END record")
-                if scheme not in (0, 1, 2):
-                    raise OasisError(f"validation scheme {scheme} unknown")
-                res["scheme"] = {0: None, 1: "crc32", 2: "checksum32"}[scheme]
-                res["signature_ok"] = None if scheme == 0 else sig == (base_crc if scheme == 1 else base_sum)
-                if res["signature_ok"] is False:
-                    problem(f"the file's {res['scheme']} signature does not match its bytes (the file was changed "
-                            "or damaged after it was written)")
-                res["ended"] = True
+            if rid == 2:
+                scan.close_cell(at)
+                _read_end(f, at, res, problem)
                 break
-            if rid in (3, 4):
-                nm = f.string().decode(errors="replace")
-                ref = f.uint() if rid == 4 else next_ref
-                next_ref = ref + 1
-                names[ref] = nm
-                continue
-            if rid in (5, 6, 7, 8, 9, 10):
-                f.string()
-                if rid % 2 == 0:
-                    f.uint()
-                continue
-            if rid in (13, 14):
-                close_cell(at)
-                if rid == 14:
-                    nm = f.string().decode(errors="replace")
-                    cell = next((k for k, v in names.items() if v == nm), nm)
-                    names.setdefault(cell, nm)
-                else:
-                    cell = f.uint()
-                modal = Modal()
-                name = names.get(cell, "")
-                if name.startswith("TILE_"):
-                    try:
-                        _, r, c = name.split("_")
-                        tile_at = (name, int(r), int(c), f.tell())
-                    except ValueError:
-                        raise OasisError(f"tile cell name {name!r} is not TILE_<row>_<col>") from None
-                continue
-            if tile_at is not None:  # a tile's records: the workers read them; here only their bytes
-                if rid == 34:
-                    f.cblock(inflate=False)
-                else:
-                    f.element(rid, modal)
-                continue
-            if rid == 34:
-                for el in f.cblock().elements(modal):
-                    take(el)
-                continue
-            el = f.element(rid, modal)
-            if el is not None:
-                take(el)
+            scan.record(f, rid, at)
     except OasisError as exc:
         problem(f"malformed file: {exc}")
     finally:
         f.close()
     if not res["ended"]:
         problem("the file has no END record (truncated?)")
-    res.update(names=names, tiles=tiles, atom_rects=atom_rects, top=top, prov=prov)
+    res.update(names=scan.names, tiles=scan.tiles, atom_rects=scan.atom_rects, top=scan.top, prov=scan.prov)
     return res

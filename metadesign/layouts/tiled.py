@@ -26,7 +26,6 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -37,10 +36,11 @@ from ..design.recipe import DesignRecipe
 from ..design.store import Design, check_library, design_meta, select_recipe_atoms
 from .. import __version__, jit
 from ..deflate import DeflatedArray, Piece, deflate_piece
+from ..execution import SERIAL, Execution
 from ..io import atomic_path, remove_stale_temps, atomic_write_text, json_array, read_npz, write_npz
 from ..library.store import load_library
 from ..outputs import Need
-from ..tasks import TaskFolder, content_key, run_resumable
+from ..tasks import TaskFolder, content_key
 from ..validation import ValidationError
 from . import oasis as O
 from .kernel import tile_records_kernel
@@ -221,11 +221,161 @@ def tiled_need(recipe: DesignRecipe, tile: int = DEFAULT_TILE, workers: int = 1)
                 what="a smaller aperture, fewer -j workers or a smaller --tile")
 
 
+def _check_tiling(recipe: DesignRecipe, tile: int, hierarchy: str) -> None:
+    """One-line ValidationErrors for a hierarchy or a tile size the build cannot use."""
+    if hierarchy not in HIERARCHIES:
+        raise ValidationError(f"--hierarchy: expected one of {', '.join(HIERARCHIES)}, got {hierarchy!r}")
+    if tile % recipe.tile_rows or tile % recipe.spec.supercell:
+        raise ValidationError(f"--tile: {tile} cells must be a multiple of the design's tile_rows "
+                              f"({recipe.tile_rows}) and of the supercell ({recipe.spec.supercell})")
+
+
+def _stripes_folder(out_dir: Path, key: str, log) -> TaskFolder:
+    """The folder of this job's stripes: named by its key, so a worker of an earlier (killed) job that
+    finishes its stripe late can never write into this one's; other jobs' folders go (the output's lock
+    keeps any other writer out)."""
+    root = out_dir / f".tiled-partial-{key[:16]}"
+    out_dir.mkdir(parents=True, exist_ok=True)  # the output's folder, not a scratch one (no marker in it)
+    for old in out_dir.glob(".tiled-partial*"):
+        if old != root and old.is_dir() and not old.is_symlink():
+            log(f"discarding {old} (made by another job: other inputs or version)")
+            shutil.rmtree(old, ignore_errors=True)
+    return TaskFolder(root, key, log)
+
+
+def _compute_stripes(plan: TiledPlan, key: str, out_dir: Path, run: Execution) -> tuple[TaskFolder, dict, int]:
+    """Phase one: every stripe not yet kept in this job's folder, on ``run``'s workers (local workers write
+    their stripe's file themselves); returns the folder, the stripes' names (by first row) and how many
+    were reused from an interrupted run."""
+    n, tile = plan.spec.n_cells, plan.tile
+    folder = _stripes_folder(out_dir, key, run.log)
+    names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
+    for nm in names.values():  # what killed writers left half-written
+        remove_stale_temps(folder.root / f"{nm}.npz")
+    if not run.distributed:
+        plan.save_dir = str(folder.root)
+    rows = {names[r0]: min(tile, n - r0) for r0 in names}  # a stripe's weight in the progress
+    _, computed = run.run(_stripe_task, {names[r0]: r0 for r0 in names}, folder, store="npz", compress=False,
+                          keep=False, shared=plan, weight=rows.__getitem__, unit="row")
+    return folder, names, len(names) - len(computed)
+
+
+@dataclass
+class _Assembly:
+    """Phase two: the kept stripes streamed in order into ``layout.oas`` and ``design.npz`` (the design's
+    error sums accumulated on the way into ``total``; its result, metrics included, in ``result``)."""
+
+    recipe: DesignRecipe
+    plan: TiledPlan
+    stream: DesignStream
+    meta: dict
+    prov: dict
+    opts: LayoutOptions
+    folder: TaskFolder
+    names: dict[int, str]
+    total: list = field(default_factory=list)
+    result: object = None
+    stream_seconds: float = 0.0
+
+    def __post_init__(self):
+        self.total = [np.zeros(2), np.zeros(2), np.zeros(2), 0, np.zeros(len(self.plan.atoms), np.int64)]
+
+    def write(self, out_dir: Path) -> Path:
+        """Both files, appearing together: the design goes to a hidden name first and replaces
+        ``design.npz`` once the layout is complete (a failure leaves neither, never a new design beside an
+        old layout).  Returns the layout's path."""
+        oas = out_dir / "layout.oas"
+        design_tmp = out_dir / ".design.npz.tiled-partial"
+        for target in (oas, design_tmp, out_dir / "layout.oas.json", out_dir / "metrics.json"):
+            # what a SIGKILLed run left half-written (the output's lock keeps any other writer out)
+            remove_stale_temps(target)
+        try:
+            with atomic_path(oas) as tmp, open(tmp, "wb") as fh:
+                w = O.OasisWriter(fh)
+                prov_json = self._head(w)
+                t_stream = time.perf_counter()
+                self._design(w, design_tmp)
+                self.stream_seconds = time.perf_counter() - t_stream
+                self._tail(w, prov_json)
+                w.close()
+            os.replace(design_tmp, out_dir / "design.npz")
+        finally:
+            design_tmp.unlink(missing_ok=True)
+        return oas
+
+    def _head(self, w: O.OasisWriter) -> bytes:
+        """The cell names (atoms, the top cell, the tiles), and a flat layout's top cell with its provenance
+        property (a tiled one's comes after the tiles); returns the provenance's JSON bytes."""
+        nt = self.plan.n_tiles
+        for a in range(len(self.plan.atoms)):
+            w.cellname(f"ATOM_{a:03d}")
+        w.cellname(TOP_CELL)
+        for r in range(nt):
+            for c in range(nt):
+                w.cellname(f"TILE_{r:03d}_{c:03d}")
+        prov_json = json.dumps(self.prov, sort_keys=True).encode()
+        if self.plan.hierarchy == "flat":
+            w.cell(TOP_CELL)
+            w.raw(O.property_record(b"metadesign", prov_json))
+        return prov_json
+
+    def _design(self, w: O.OasisWriter, target: Path) -> None:
+        """The design file, its index map the stripes' deflated pieces in order; each stripe's OASIS bytes
+        go to ``w`` as its piece is consumed, and its error sums into ``total``."""
+        plan, atoms, n = self.plan, self.plan.atoms, self.plan.spec.n_cells
+
+        def stripes():
+            for r0 in range(0, n, plan.tile):
+                res = _load_stripe(self.folder.root / f"{self.names[r0]}.npz")
+                w.raw(res["oasis"])
+                for st_part in res["stats"]:
+                    self.total[:] = accumulate(tuple(self.total), st_part)
+                yield res["design"]
+
+        def meta_array():
+            self.stream.finish(self.total)
+            self.result = self.stream.result()
+            self.meta["metrics"] = self.result.metrics
+            return json_array(self.meta)
+
+        write_npz(target, {
+            "index_map": DeflatedArray((n, n), np.dtype(self.stream.dtype), stripes()), "atom_wx_m": atoms.wx,
+            "atom_wy_m": atoms.wy, "atom_t": atoms.t, "atom_T0": atoms.T0, "atom_lib_index": atoms.lib_index,
+            "meta": meta_array})
+
+    def _tail(self, w: O.OasisWriter, prov_json: bytes) -> None:
+        """A tiled layout's top cell (its property, each tile placed once at the origin), the outline and the
+        labels, then the cells of the atoms placed (an unreferenced cell would be a top cell)."""
+        plan, opts, n, nt = self.plan, self.opts, self.plan.spec.n_cells, self.plan.n_tiles
+        tail = []
+        if plan.hierarchy == "tiles":
+            w.cell(TOP_CELL)
+            w.raw(O.property_record(b"metadesign", prov_json))
+            tail += [O.placement_head(plan.tile_ref(r, c), 0, 0, False) for r in range(nt) for c in range(nt)]
+        if opts.outline_layer is not None:
+            for poly in outline_polygons(plan.spec, plan.p_nm, opts):
+                pts = np.rint(poly.points).astype(np.int64)
+                tail.append(O.polygon_record(opts.outline_layer, opts.datatype, pts))
+        if opts.label_layer is not None:
+            half = (n * plan.p_nm) // 2
+            text = (opts.label or self.recipe.name).encode()
+            tail.append(O.text_record(text, opts.label_layer, 0, -half, -half - 5000))
+            tail.append(O.text_record(prov_json, opts.label_layer, 1, -half, -half - 10000))
+        w.records(b"".join(tail), opts.compression_level)
+        wx, _ = snap_widths(plan.atoms.wx, opts.grid_nm)
+        wy, _ = snap_widths(plan.atoms.wy, opts.grid_nm)
+        for a in np.flatnonzero(self.total[4]):
+            w.cell(f"ATOM_{a:03d}")
+            ww, hh = int(wx[a]), int(wy[a])
+            x0a, y0a = -(ww // 2) - (ww % 2), -(hh // 2) - (hh % 2)  # centred as the gdstk writer centres
+            w.raw(O.rectangle_record(opts.layer, opts.datatype, ww, hh, x0a, y0a))
+
+
 def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, hierarchy: str = "tiles",
-                opts: LayoutOptions = LayoutOptions(), workers: int = 1, scheduler: str | None = None,
-                progress: Callable[[int, int], None] | None = None, log=lambda s: None) -> dict:
+                opts: LayoutOptions = LayoutOptions(), run: Execution = SERIAL) -> dict:
     """Design ``recipe`` and write ``out_dir/design.npz`` and ``out_dir/layout.oas`` (+ ``.json``);
-    returns the report.
+    returns the report.  ``run``: the local workers or the Dask scheduler of the stripes, the progress (in
+    rows) and the log.
 
     Two phases, resumable after any interruption (SIGKILL included): the workers' stripes (index block,
     OASIS bytes, error sums) are kept, each written atomically, in ``out_dir/.tiled-partial-<key>/``
@@ -234,138 +384,47 @@ def build_tiled(recipe: DesignRecipe, out_dir: Path, tile: int = DEFAULT_TILE, h
     t0 = time.perf_counter()
     spec = recipe.spec
     n = spec.n_cells
-    if hierarchy not in HIERARCHIES:
-        raise ValidationError(f"--hierarchy: expected one of {', '.join(HIERARCHIES)}, got {hierarchy!r}")
-    if tile % recipe.tile_rows or tile % spec.supercell:
-        raise ValidationError(f"--tile: {tile} cells must be a multiple of the design's tile_rows "
-                              f"({recipe.tile_rows}) and of the supercell ({spec.supercell})")
+    _check_tiling(recipe, tile, hierarchy)
     out_dir = Path(out_dir)
     lib = load_library(recipe.library_path)
     check_library(recipe, lib)
     atoms = select_recipe_atoms(recipe, lib)
     st = DesignStream(spec, atoms, recipe.metric, recipe.optimise_offsets, recipe.tile_rows)
     p_nm, x0 = layout_geometry(n, spec.period)
-    nt = -(-n // tile)
-    A = len(atoms)
     plan = TiledPlan(spec, atoms, recipe.metric, st.offsets, np.dtype(st.dtype).str, st.empty, recipe.tile_rows,
                      tile, p_nm, x0, hierarchy, opts.compression_level, DESIGN_DEFLATE_LEVEL,
                      _mapper=st.mapper)  # the stream's look-up tables (pickled once to each worker)
+    nt = plan.n_tiles
     meta = design_meta(recipe, lib, atoms, st.offsets, st.empty, None, out_dir)
-    shell = Design(spec, atoms, None, st.offsets, {}, meta, st.empty)
-    prov = provenance_of(shell, opts)
+    prov = provenance_of(Design(spec, atoms, None, st.offsets, {}, meta, st.empty), opts)
     prov["library_path"] = meta["library"]["path"]
     prov["tiling"] = {"tile_cells": tile, "hierarchy": hierarchy, "tiles": nt * nt}
-    wx, ex = snap_widths(atoms.wx, opts.grid_nm)
-    wy, ey = snap_widths(atoms.wy, opts.grid_nm)
-    total = [np.zeros(2), np.zeros(2), np.zeros(2), 0, np.zeros(A, np.int64)]
     key = content_key({"recipe": recipe.raw, "library": lib.identity, "tile": tile, "hierarchy": hierarchy,
                        "compression": opts.compression_level, "design_level": DESIGN_DEFLATE_LEVEL,
                        "stripe": 2, "version": __version__})
-    # the stripes of this job only: the folder is named by its key, so a worker of an earlier (killed) job
-    # that finishes its stripe late can never write into this one's; other jobs' folders go (the output's
-    # lock keeps any other writer out), and what killed writers left half-written with them
-    root = out_dir / f".tiled-partial-{key[:16]}"
-    for old in out_dir.glob(".tiled-partial*"):
-        if old != root and old.is_dir() and not old.is_symlink():
-            log(f"discarding {old} (made by another job: other inputs or version)")
-            shutil.rmtree(old, ignore_errors=True)
-    folder = TaskFolder(root, key, log)
-    names = {r0: f"stripe-{r0:07d}" for r0 in range(0, n, tile)}
-    for nm in names.values():
-        remove_stale_temps(folder.root / f"{nm}.npz")
-    if scheduler is None:
-        plan.save_dir = str(folder.root)
-    rows = {names[r0]: min(tile, n - r0) for r0 in names}  # a stripe's weight in the progress
     t_stripes = time.perf_counter()
-    _, computed = run_resumable(_stripe_task, {names[r0]: r0 for r0 in names}, folder, store="npz", compress=False,
-                                keep=False, workers=workers, shared=plan, scheduler=scheduler,
-                                weight=rows.__getitem__, progress=progress,
-                                log=log, unit="row")
-    reused = len(names) - len(computed)
+    folder, names, reused = _compute_stripes(plan, key, out_dir, run)
     t_stripes = time.perf_counter() - t_stripes
-    oas = out_dir / "layout.oas"
-    design_tmp = out_dir / ".design.npz.tiled-partial"
-    for target in (oas, design_tmp, out_dir / "layout.oas.json", out_dir / "metrics.json"):
-        # what a SIGKILLed run left half-written (the output's lock keeps any other writer out)
-        remove_stale_temps(target)
-    state = {}
-    # both files appear together: the design goes to a hidden name first and replaces design.npz once the
-    # layout is complete (a failure leaves neither, never a new design beside an old layout)
-    try:
-        with atomic_path(oas) as tmp, open(tmp, "wb") as fh:
-            w = O.OasisWriter(fh)
-            for a in range(A):
-                w.cellname(f"ATOM_{a:03d}")
-            w.cellname(TOP_CELL)
-            for r in range(nt):
-                for c in range(nt):
-                    w.cellname(f"TILE_{r:03d}_{c:03d}")
-            prov_json = json.dumps(prov, sort_keys=True).encode()
-            if hierarchy == "flat":
-                w.cell(TOP_CELL)
-                w.raw(O.property_record(b"metadesign", prov_json))
-
-            def stripes():
-                for r0 in range(0, n, tile):
-                    res = _load_stripe(folder.root / f"{names[r0]}.npz")
-                    w.raw(res["oasis"])
-                    for st_part in res["stats"]:
-                        total[:] = accumulate(tuple(total), st_part)
-                    yield res["design"]
-
-            def meta_array():
-                st.finish(total)
-                res = st.result()
-                meta["metrics"] = res.metrics
-                state["result"] = res
-                return json_array(meta)
-
-            t_stream = time.perf_counter()
-            write_npz(design_tmp, {
-                "index_map": DeflatedArray((n, n), np.dtype(st.dtype), stripes()), "atom_wx_m": atoms.wx,
-                "atom_wy_m": atoms.wy, "atom_t": atoms.t, "atom_T0": atoms.T0, "atom_lib_index": atoms.lib_index,
-                "meta": meta_array})
-            t_stream = time.perf_counter() - t_stream
-            used = total[4]
-            tail = []
-            if hierarchy == "tiles":
-                w.cell(TOP_CELL)
-                w.raw(O.property_record(b"metadesign", prov_json))
-                tail += [O.placement_head(plan.tile_ref(r, c), 0, 0, False) for r in range(nt) for c in range(nt)]
-            if opts.outline_layer is not None:
-                for poly in outline_polygons(spec, p_nm, opts):
-                    pts = np.rint(poly.points).astype(np.int64)
-                    tail.append(O.polygon_record(opts.outline_layer, opts.datatype, pts))
-            if opts.label_layer is not None:
-                half = (n * p_nm) // 2
-                text = (opts.label or recipe.name).encode()
-                tail.append(O.text_record(text, opts.label_layer, 0, -half, -half - 5000))
-                tail.append(O.text_record(prov_json, opts.label_layer, 1, -half, -half - 10000))
-            w.records(b"".join(tail), opts.compression_level)
-            for a in np.flatnonzero(used):  # only the atoms placed: an unreferenced cell would be a top cell
-                w.cell(f"ATOM_{a:03d}")
-                ww, hh = int(wx[a]), int(wy[a])
-                x0a, y0a = -(ww // 2) - (ww % 2), -(hh // 2) - (hh % 2)  # centred as the gdstk writer centres
-                w.raw(O.rectangle_record(opts.layer, opts.datatype, ww, hh, x0a, y0a))
-            w.close()
-        os.replace(design_tmp, out_dir / "design.npz")
-    finally:
-        design_tmp.unlink(missing_ok=True)
+    job = _Assembly(recipe, plan, st, meta, prov, opts, folder, names)
+    oas = job.write(out_dir)
     folder.remove()
-    atomic_write_text(out_dir / "metrics.json", json.dumps(state["result"].metrics, indent=2, sort_keys=True))
+    metrics = job.result.metrics
+    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2, sort_keys=True))
     seconds = time.perf_counter() - t0
-    pillars = int(total[3])
+    pillars = int(job.total[3])
+    wx, ex = snap_widths(atoms.wx, opts.grid_nm)
+    wy, ey = snap_widths(atoms.wy, opts.grid_nm)
     report = {
         "design": str(out_dir / "design.npz"), "file": str(oas), "format": "oas", "bytes": oas.stat().st_size,
-        "pillars": pillars, "atoms": A, "tiles": nt * nt, "tile_cells": tile, "hierarchy": hierarchy,
+        "pillars": pillars, "atoms": len(atoms), "tiles": nt * nt, "tile_cells": tile, "hierarchy": hierarchy,
         "snapping": {"grid_nm": opts.grid_nm, "max_error_nm": max(ex, ey),
                      "odd_width_atoms": int(np.sum((wx % 2) | (wy % 2)))},
-        "options": asdict(opts), "provenance": prov, "metrics": state["result"].metrics,
+        "options": asdict(opts), "provenance": prov, "metrics": metrics,
     }
     side = {k: v for k, v in report.items() if k not in ("metrics",)}
     atomic_write_text(oas.with_suffix(".oas.json"), json.dumps(side, indent=2, sort_keys=True))
     report["seconds"] = seconds
-    report["stream_seconds"] = t_stream
+    report["stream_seconds"] = job.stream_seconds
     report["stripe_seconds"] = t_stripes
     report["stripes_reused"] = reused
     report["pillars_per_second"] = pillars / seconds
