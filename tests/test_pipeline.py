@@ -94,6 +94,12 @@ sensor = "{REPO / 'sensing' / 'paper.toml'}"
 model = "{REPO / 'sensing' / 'models' / 'demo-refine.safetensors'}"
 """
 
+DATASET = f"""[train]
+model = "{REPO / 'sensing' / 'models' / 'demo-refine.safetensors'}"
+[dataset]
+samples = 8
+tensor_size = 64
+"""
 
 import pytest  # noqa: E402
 
@@ -112,7 +118,14 @@ import pytest  # noqa: E402
     (BEACONS.replace("layouts/paper-5mm.toml", "sensing/paper.toml"), "beacons.design"),
     (BEACONS.replace("sensing/paper.toml", "layouts/paper-5mm.toml"), "beacons.sensor"),
     (BEACONS.replace("sensing/models/demo-refine.safetensors", "sensing/paper.toml"), "no such model"),
-    (BEACONS + "[dataset]\nsamples = 4\n[train]\nrecipe = 'no-such.toml'\n", "train.recipe"),
+    (BEACONS + "[dataset]\nsamples = 64\n[train]\nrecipe = 'no-such.toml'\n", "train.recipe"),
+    # ... and a dataset the build, or an evaluation the evaluate stage, would refuse
+    (DATASET + "rytov_min = 0.7\n", "dataset.rytov_min"),
+    (DATASET + "split = [0.5, 0.6, 0.1]\n", "dataset.split"),
+    (DATASET + "split = [0.5, 0.5, 0.0]\n", "the test split of the dataset is empty"),
+    (DATASET.replace("tensor_size = 64", "tensor_size = 128"), "does not match the dataset's tensors"),
+    (DATASET + "[evaluate]\nnoise_percent = []\n", "evaluate.noise_percent"),
+    (DATASET + "[evaluate]\nnoise_percent = [nan]\n", "evaluate.noise_percent"),
 ])
 def test_bad_pipeline_recipes_are_one_line_and_write_nothing(tmp_path, capsys, body, words):
     rc = main(["run", str(_recipe(tmp_path, body)), "-o", str(tmp_path / "out")])

@@ -20,7 +20,7 @@ from ..design.recipe import load_design_recipe
 from ..design.store import check_library
 from ..library.recipe import load_recipe
 from ..library.store import load_library
-from ..reconstruction.dataset import received_crop
+from ..reconstruction.dataset import dataset_recipe_from_dict, received_crop, split_labels
 from ..reconstruction.model import MODEL_FORMAT, UNetConfig, check_sizes
 from ..reconstruction.refine import REFINER_FORMAT, is_refiner
 from ..reconstruction.train import load_train_recipe
@@ -31,6 +31,8 @@ from ..turbulence.scenario import load_scenario
 from ..validation import ValidationError
 from .pipeline_recipe import PipelineRecipe
 
+SPLITS = ("train", "val", "test")  # the dataset's split labels 0, 1, 2
+
 __all__ = ["check_inputs", "check_cells", "card_config"]
 
 
@@ -40,8 +42,8 @@ def check_inputs(rec: PipelineRecipe) -> None:
     scenario = _named("pipeline.turbulence", p.turbulence, load_scenario)
     crop = received_crop(scenario)[1]
     if p.library_recipe is not None:
-        stack = _named("pipeline.library_recipe", p.library_recipe, load_recipe).stack
-        grid = None
+        lr = _named("pipeline.library_recipe", p.library_recipe, load_recipe)
+        stack, grid = lr.stack, (len(lr.widths), len(lr.widths))
     else:
         lib = load_library(p.library)
         stack, grid = lib, (len(lib.wx), len(lib.wy))
@@ -52,8 +54,9 @@ def check_inputs(rec: PipelineRecipe) -> None:
                                                                                   period=stack.period))
         check_wavelengths(dr.spec.wavelength, scenario.wavelength, f"turbulence {p.turbulence}")
         _named(f"{section}.sensor", sensor, load_sensing_recipe)
-    if p.library_recheck and grid is not None:  # cells of the table (a built library is checked when built)
-        check_cells(grid, p.library_recheck)
+    check_cells(grid, p.library_recheck)
+    if rec.dataset is not None:
+        _check_dataset(rec)
     if t is not None and t.recipe is not None:
         _named("train.recipe", t.recipe, load_train_recipe)
     if t is not None and t.model is not None:  # a given model must fit the dataset it will be evaluated on
@@ -61,6 +64,17 @@ def check_inputs(rec: PipelineRecipe) -> None:
     if b is not None:  # the beacons' model: its output the scenario's crop (its input sets the sensor's tensor)
         c = card_config(b.model)
         check_sizes(c, c.input_size, crop, f"[beacons] model {b.model}")
+
+
+def _check_dataset(rec: PipelineRecipe) -> None:
+    """The ``[dataset]`` section as the dataset build reads it, and the split ``[evaluate]`` reads not empty."""
+    d, p = rec.dataset, rec.pipeline
+    dr = dataset_recipe_from_dict(d.document(p.design.with_suffix(".oas"), p.sensor, p.turbulence), "dataset")
+    if rec.evaluate.split != "all":
+        n = int((split_labels(dr.seed, dr.samples, dr.split) == SPLITS.index(rec.evaluate.split)).sum())
+        if n == 0:
+            raise ValidationError(f"evaluate.split: the {rec.evaluate.split} split of the dataset is empty "
+                                  f"(dataset.split {list(d.split)} of {d.samples} samples)")
 
 
 def _named(field: str, path: Path, load):

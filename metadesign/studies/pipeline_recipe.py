@@ -120,6 +120,12 @@ class DatasetSection:
                 "split": list(self.split), "seed": self.seed, "tensor_size": self.tensor_size,
                 "shard_size": self.shard_size}
 
+    def document(self, layout: Path, sensor: Path, turbulence: Path) -> dict:
+        """The dataset recipe (as :func:`~metadesign.reconstruction.dataset.dataset_recipe_from_dict` reads
+        it) of this section on ``layout``, ``sensor`` and ``turbulence``."""
+        return {"dataset": {"layout": str(Path(layout).resolve()), "sensor": str(Path(sensor).resolve()),
+                            "turbulence": str(Path(turbulence).resolve()), **self.content}}
+
 
 @dataclass(frozen=True)
 class TrainSection:
@@ -230,5 +236,7 @@ def load_pipeline_recipe(path: str | Path) -> PipelineRecipe:
         if not getattr(p, k).exists():
             raise ValidationError(f"{path}: pipeline.{k}: {getattr(p, k)}: no such file")
     beacons = _beacons_section(v["beacons"], rel, path) if "beacons" in v else None
+    if has and not v["evaluate"]["noise_percent"]:
+        raise ValidationError(f"{path}: evaluate.noise_percent: expected at least one level (0: a clean camera)")
     return PipelineRecipe(name=path.stem, source=path, pipeline=p, evaluate=EvaluateSection(**v["evaluate"]),
                           dataset=DatasetSection(**v["dataset"]) if has else None, train=train, beacons=beacons)

@@ -287,8 +287,7 @@ def turbulence(run: "Run", key: str) -> None:
 def dataset(run: "Run", key: str) -> None:
     """The dataset (PSF tensors and received fields) through the pipeline's layout, sensor and turbulence."""
     p, d = run.rec.pipeline, run.rec.dataset
-    ds_raw = {"dataset": {"layout": str(run.lay.resolve()), "sensor": str(p.sensor.resolve()),
-                          "turbulence": str(p.turbulence.resolve()), **d.content}}
+    ds_raw = d.document(run.lay, p.sensor, p.turbulence)
     ds = run.stage("dataset", key, [run.dsdir / "zarr.json"], lambda: {
         k: v for k, v in build_dataset(dataset_recipe_from_dict(ds_raw, "dataset"), run.dsdir, workers=d.workers,
                                        overwrite=True, progress=progress_bar("dataset", "sample")).items()
