@@ -75,3 +75,34 @@ def test_a_design_with_a_broken_atom_table_is_refused_by_every_reader(name, dama
     for argv in (["design", "show", f], ["design", "plot", f, "-o", tmp_path / "p.png"],
                  ["layout", "write", f, "-o", tmp_path / "l.oas"]):
         _refused(argv, capsys, match, tmp_path)
+
+
+GOOD_DIVERSITY = {"focal_length_mm": [[50.0, 50.5, 51.0, 51.5], [49.0, 49.5, 52.0, 52.5]], "zernike_noll": [4, 5],
+                  "zernike_rad": [[[0.1, 0.0]] * 4, [[0.0, -0.2]] * 4]}
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"focal_length_mm": [[float("nan"), 50.5, 51.0, 51.5], [49.0, 49.5, 52.0, 52.5]]}, "focal_length_mm"),
+    ({"focal_length_mm": [[-50.0, 50.5, 51.0, 51.5], [49.0, 49.5, 52.0, 52.5]]}, "focal_length_mm"),
+    ({"focal_length_mm": [[50.0, 50.5, 51.0], [49.0, 49.5, 52.0]]}, "focal_length_mm"),
+    ({"zernike_noll": [4, 4]}, "zernike_noll"),
+    ({"zernike_noll": [1, 5]}, "zernike_noll"),
+    ({"zernike_rad": [[[float("inf"), 0.0]] * 4, [[0.0, -0.2]] * 4]}, "zernike_rad"),
+    ({"zernike_rad": [[[0.1]] * 4, [[0.0]] * 4]}, "zernike_rad"),
+])
+def test_a_codesign_diversity_a_design_build_would_refuse_is_refused_where_it_is_read(change, match, tmp_path):
+    """codesign reads diversity.json, evaluation a card's record: both refuse, in one line, what `design build`
+    would refuse later (a NaN, negative or duplicated diversity) or what would evaluate to NaN."""
+    from metadesign.reconstruction.codesign import check_diversity
+    from metadesign.studies.codesign import read_diversity
+    from metadesign.validation import ValidationError
+
+    assert check_diversity(dict(GOOD_DIVERSITY)) == GOOD_DIVERSITY
+    bad = {**GOOD_DIVERSITY, **change}
+    with pytest.raises(ValidationError, match=match):
+        check_diversity(bad)
+    import json
+
+    (tmp_path / "diversity.json").write_text(json.dumps(bad).replace("NaN", "NaN"))
+    with pytest.raises(ValidationError, match=match):
+        read_diversity(tmp_path)

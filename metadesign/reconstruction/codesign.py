@@ -134,9 +134,37 @@ def scaled_ladder(f0, scale: float, wavelength: float, radius: float):
     return focal_to_defocus(1.0 / (pm + scale * (p0 - pm)), f0, wavelength, radius)
 
 
+def check_diversity(rec, where: str = "diversity") -> dict:
+    """A recorded diversity (``diversity.json``, a card's ``codesign``) as a design recipe would take it: per
+    polarisation four finite focal lengths in (0, 1e5] mm, distinct Noll indices 2..66, and a finite Zernike
+    coefficient in [-1000, 1000] rad per lens and index; one line naming the field otherwise."""
+    if not isinstance(rec, dict):
+        raise ValidationError(f"{where}: expected a record with focal_length_mm, zernike_noll, zernike_rad")
+    try:
+        f = np.asarray(rec["focal_length_mm"], dtype=np.float64)
+        noll = list(rec["zernike_noll"])
+        a = np.asarray(rec["zernike_rad"], dtype=np.float64)
+    except KeyError as exc:
+        raise ValidationError(f"{where}: lacks {exc.args[0]}") from None
+    except (TypeError, ValueError) as exc:
+        raise ValidationError(f"{where}: expected numbers ({exc})") from None
+    if f.shape != (2, 4) or not np.isfinite(f).all() or (f <= 0).any() or (f > 1e5).any():
+        raise ValidationError(f"{where}: focal_length_mm must be 2 x 4 finite lengths in (0, 1e5] mm, got "
+                              f"{f.tolist() if f.size <= 8 else f.shape}")
+    if (not all(isinstance(j, int) and not isinstance(j, bool) and 2 <= j <= 66 for j in noll)
+            or len(set(noll)) != len(noll)):
+        raise ValidationError(f"{where}: zernike_noll must be distinct Noll indices (integers 2..66), got {noll}")
+    if a.shape != (2, 4, len(noll)) or not np.isfinite(a).all() or (np.abs(a) > 1000).any():
+        raise ValidationError(f"{where}: zernike_rad must be 2 x 4 x {len(noll)} finite coefficients in "
+                              f"[-1000, 1000] rad, got shape {a.shape}")
+    return rec
+
+
 def apply_diversity(twin: DiversityTwin, rec: dict | None) -> DiversityTwin:
     """The twin at a recorded diversity (``diversity.json`` / a card's ``codesign``; None: the device as
     built)."""
+    if rec is not None:
+        check_diversity(rec)
     with torch.no_grad():
         twin.defocus_waves.zero_()
         twin.zernike_rad.zero_()

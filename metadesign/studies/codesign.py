@@ -25,7 +25,7 @@ from ..config import load_toml
 from ..io import atomic_write_text
 from ..outputs import RECIPE_HEADER
 from ..plotting import pyplot, save_figure
-from ..reconstruction.codesign import apply_diversity, diversity_design_recipe
+from ..reconstruction.codesign import apply_diversity, check_diversity, diversity_design_recipe
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device, open_dataset
 from ..sensing.diversity import defocus_to_power, diversity_operators, lens_table
@@ -48,7 +48,7 @@ def read_diversity(path: str | Path) -> dict:
         _ = rec["focal_length_mm"], rec["zernike_noll"], rec["zernike_rad"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{path}: not a co-design run or diversity.json ({type(exc).__name__}: {exc})") from None
-    return rec
+    return check_diversity(rec, str(p))
 
 
 def random_diversity(tw: DiversityTwin, seed: int, waves: float, rad: float) -> dict:
