@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..execution import SERIAL, Execution
 from ..io import atomic_write_text
 from ..plotting import save_figure
 from ..tasks import content_key, file_key
@@ -281,6 +282,11 @@ class ImportOptions:
     seed: int = 0
     threshold: float = 0.1
     shard_size: int = 64
+    overwrite: bool = False  # replace an existing output (how the import runs: not in the recipe hash)
+
+    def hashed(self) -> dict:
+        """The options that shape the store's bytes (its recipe hash): all but ``overwrite``."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "overwrite"}
 
 
 def _phase(path: Path, crop, per_count: float, extent_m: float | None = None) -> np.ndarray:
@@ -349,19 +355,19 @@ def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None):
 
 
 def import_captures(folder: str | Path, out: str | Path, calibration: str | Path, reference: str | Path,
-                    darks: list | None = None, options: ImportOptions = ImportOptions(), overwrite: bool = False,
-                    progress=None, log=lambda s: None) -> dict:
-    """Import a capture folder into a dataset at ``out`` (see the module docstring); returns a report."""
-    t0 = time.perf_counter()
+                    darks: list | None = None, options: ImportOptions = ImportOptions(),
+                    run: Execution = SERIAL) -> dict:
+    """Import a capture folder into a dataset at ``out`` (see the module docstring); returns a report.
+    ``run``: its progress (per sample) and log; ``options.overwrite`` replaces an existing ``out``."""
     folder, out = Path(folder), Path(out)
     if options.saturated not in ("flag", "drop", "error"):
         raise ValidationError(f"--saturated: expected flag, drop or error, got {options.saturated!r}")
-    if out.exists() and not overwrite:
+    if out.exists() and not options.overwrite:
         raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
     with product(out, "dataset", {"captures": folder, "--calibration": calibration, "--reference": reference,
                                   **{f"--dark {d}": d for d in (darks or [])}},
                  scratch=(out.with_name(out.name + ".partial"),)):
-        return _import(folder, out, calibration, reference, darks, options, progress, log, t0)
+        return _import(folder, out, calibration, reference, darks, options, run)
 
 
 def _split_column(rows: list[dict], manifest: Path, options: "ImportOptions") -> np.ndarray:
@@ -424,8 +430,116 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
     return fr, sat
 
 
-def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, progress, log,
-            t0: float) -> dict:
+@dataclass
+class _Camera:
+    """What every frame of an import goes through: the sensor's (rows, columns), the mean dark frame and
+    the hot pixels (None without darks), the negative counts clipped so far, the fitted alignment."""
+
+    shape: tuple[int, int]
+    dark: np.ndarray | None
+    hot: np.ndarray | None
+    neg: dict
+    alignment: object
+
+
+@dataclass
+class _Converted:
+    """Pass 1 of an import: the manifest rows kept, the saturated samples, the kept rows' tensors, powers,
+    SLM fields and Rytov numbers, and the largest fraction of a quadrant window outside the frame."""
+
+    kept: list
+    flagged: list
+    psf: list
+    power: list
+    rec: list
+    rytov: np.ndarray
+    outside_max: float
+
+
+def _convert(rows: list[dict], manifest: Path, ref, tensor_size: int, cam: _Camera, options: ImportOptions,
+             progress) -> _Converted:
+    """Pass 1: every frame read, checked, converted (a failure writes nothing)."""
+    rytov_all, slm_extent = _manifest_numbers(rows, manifest)
+    ap = ref.crop.aperture_mask()
+    kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
+    for j, r in enumerate(rows):
+        fr, sat = _sample_frames(r, cam.shape, options, cam.dark, cam.hot, cam.neg)
+        if sat:
+            if options.saturated == "error":
+                raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "
+                                      f"(--saturated error)")
+            flagged.append(r["sample"])
+            if options.saturated == "drop":
+                continue
+        phi = _phase(r["slm_phase"], ref.crop, options.phase_per_count, slm_extent[j])
+        t, outside = aligned_tensor(np.stack(fr), ref.sensor, cam.alignment, tensor_size)
+        outside_max = max(outside_max, outside)
+        x, pw = normalise_psf(t)
+        if not pw > 0:
+            raise ValidationError(f"{r['frame_x']}: sample {r['sample']}: no light after dark subtraction")
+        psf.append(x)
+        power.append(pw)
+        rec.append(np.where(ap, np.cos(phi) + 1j * np.sin(phi), 0).astype(np.complex64))
+        kept.append(j)
+        if progress:
+            progress(j + 1, len(rows))
+    if not kept:
+        raise ValidationError(f"{manifest}: every sample is saturated (--saturated drop left none)")
+    return _Converted(kept, flagged, psf, power, rec, np.array([rytov_all[j] for j in kept], np.float32),
+                      outside_max)
+
+
+def _store_attrs(name: str, parts: dict, conv: _Converted, split: np.ndarray, ref_info, options: ImportOptions,
+                 sources: dict) -> dict:
+    """The imported store's attributes: ``parts`` (what its recipe hash covers), the reference's scenario,
+    sensor and crop, the saturated samples; ``sources``: the captures' and the reference's paths."""
+    n, rytov = len(conv.kept), conv.rytov
+    prov_ref = ref_info.attrs["provenance"]
+    return {
+        "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": content_key(parts),
+        "name": name, "samples": n, "shard_size": options.shard_size,
+        "n_shards": (n + options.shard_size - 1) // options.shard_size, "tensor_size": ref_info.tensor_size,
+        "root_seed": options.seed,
+        "split_fractions": [float(np.mean(split == v)) for v in range(3)],
+        "rytov": {"range": [float(np.nanmin(rytov)), float(np.nanmax(rytov))] if np.isfinite(rytov).any() else None,
+                  "values": None, "unknown": int(np.isnan(rytov).sum())},
+        "propagation": "slm",
+        "provenance": {**parts, **sources,
+                       "scenario": prov_ref["scenario"], "sensor": prov_ref["sensor"],
+                       "pupil_grid": prov_ref.get("pupil_grid"), "layout_sha256": prov_ref.get("layout_sha256"),
+                       "library_sha256": prov_ref.get("library_sha256"), "perturbation": None,
+                       "saturated": conv.flagged, "saturated_policy": options.saturated},
+        "received_crop": ref_info.attrs["received_crop"],
+        "normalisation": "psf: each sample's 8 channels sum to 8 (psf_power holds the raw total, dark-subtracted "
+                         "counts)",
+        "seeds": "captured data: no screens; the SLM phase is the receiver-plane screen (propagation = slm)",
+        "split_labels": {"0": "train", "1": "val", "2": "test"},
+    }
+
+
+def _fill_store(path: Path, conv: _Converted, rows: list[dict]) -> None:
+    """Pass 2: the converted samples into the created store at ``path``, with each one's saturation flag and
+    manifest row; marked complete."""
+    n = len(conv.kept)
+    g = open_store(path, "r+")
+    g["psf"][:] = np.stack(conv.psf)
+    g["received"][:] = np.stack(conv.rec)
+    g["psf_power"][:] = np.array(conv.power, np.float32)
+    g["rytov"][:] = conv.rytov  # NaN: unknown (no rytov in the manifest)
+    g["rytov_measured"][:] = conv.rytov
+    g["seed"][:] = np.arange(n, dtype=np.int64)
+    fl = g.create_array("flags", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=0,
+                        dimension_names=("sample",))
+    flagged_set = set(conv.flagged)
+    fl[:] = np.array([rows[j]["sample"] in flagged_set for j in conv.kept], np.uint8)
+    nm = g.create_array("manifest_row", shape=(n,), chunks=(max(n, 1),), dtype="int64", fill_value=-1,
+                        dimension_names=("sample",))
+    nm[:] = np.array(conv.kept, np.int64)  # row of the manifest
+    g.attrs.update({"complete": True})
+
+
+def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, run: Execution) -> dict:
+    t0 = time.perf_counter()
     manifest = folder / "manifest.csv" if folder.is_dir() else folder
     rows = read_manifest(manifest, ("sample", "frame_x", "frame_y", "slm_phase"))
     names = [r["sample"] for r in rows]
@@ -458,91 +572,30 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
             "a wrong reference?)")
 
     split_all = _split_column(rows, manifest, options)
-    rytov_all, slm_extent = _manifest_numbers(rows, manifest)
-
-    # pass 1: every frame read, checked, converted (a failure writes nothing)
-    ap = ref.crop.aperture_mask()
-    kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
-    for j, r in enumerate(rows):
-        fr, sat = _sample_frames(r, shape, options, dark, hot, neg)
-        if sat:
-            if options.saturated == "error":
-                raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "
-                                      f"(--saturated error)")
-            flagged.append(r["sample"])
-            if options.saturated == "drop":
-                continue
-        phi = _phase(r["slm_phase"], ref.crop, options.phase_per_count, slm_extent[j])
-        t, outside = aligned_tensor(np.stack(fr), sensor, al, S)
-        outside_max = max(outside_max, outside)
-        x, pw = normalise_psf(t)
-        if not pw > 0:
-            raise ValidationError(f"{r['frame_x']}: sample {r['sample']}: no light after dark subtraction")
-        psf.append(x)
-        power.append(pw)
-        rec.append(np.where(ap, np.cos(phi) + 1j * np.sin(phi), 0).astype(np.complex64))
-        kept.append(j)
-        if progress:
-            progress(j + 1, len(rows))
-    if not kept:
-        raise ValidationError(f"{manifest}: every sample is saturated (--saturated drop left none)")
+    conv = _convert(rows, manifest, ref, S, _Camera(shape, dark, hot, neg, al), options, run.progress)
     if neg:
-        log(f"warning: {neg['pixels']} negative counts in {len(neg['frames'])} frame(s) (first: {neg['frames'][0]}) "
-            "clipped at zero: a camera counts photo-electrons (a signed or BZERO-less FITS file?)")
+        run.log(f"warning: {neg['pixels']} negative counts in {len(neg['frames'])} frame(s) (first: "
+                f"{neg['frames'][0]}) clipped at zero: a camera counts photo-electrons (a signed or BZERO-less FITS "
+                "file?)")
     for line in notes:  # only once every input is known good (an error is one line)
-        log(line)
+        run.log(line)
 
     # pass 2: the store, written aside and renamed
-    n = len(kept)
-    split = split_all[kept]
-    rytov = np.array([rytov_all[j] for j in kept], np.float32)
-    msha = file_key(manifest)
+    n = len(conv.kept)
+    split = split_all[conv.kept]
     calib = {"alignment": al.to_dict(), "fit": options.fit, "residuals_px": [float(v) for v in res],
              "reference_centres_px": c_ref.tolist(), "measured_centres_px": c_meas.tolist(),
              "flat_captures": len(flats), "dark_frames": len(darks or []),
-             "hot_pixels": int(hot.sum()) if hot is not None else None, "window_outside_frame_max": outside_max}
-    prov_ref = ref_info.attrs["provenance"]
-    parts = {"format": DATASET_FORMAT, "source": "captures", "manifest_sha256": msha, "calibration": calib,
-             "options": {k: getattr(options, k) for k in options.__dataclass_fields__}}
-    rhash = content_key(parts)
-    attrs = {
-        "format": DATASET_FORMAT, "version": __version__, "complete": False, "recipe_hash": rhash,
-        "name": out.name, "samples": n, "shard_size": options.shard_size,
-        "n_shards": (n + options.shard_size - 1) // options.shard_size, "tensor_size": S, "root_seed": options.seed,
-        "split_fractions": [float(np.mean(split == v)) for v in range(3)],
-        "rytov": {"range": [float(np.nanmin(rytov)), float(np.nanmax(rytov))] if np.isfinite(rytov).any() else None,
-                  "values": None, "unknown": int(np.isnan(rytov).sum())},
-        "propagation": "slm",
-        "provenance": {**parts, "captures": str(folder), "reference": str(reference),
-                       "scenario": prov_ref["scenario"], "sensor": prov_ref["sensor"],
-                       "pupil_grid": prov_ref.get("pupil_grid"), "layout_sha256": prov_ref.get("layout_sha256"),
-                       "library_sha256": prov_ref.get("library_sha256"), "perturbation": None,
-                       "saturated": flagged, "saturated_policy": options.saturated},
-        "received_crop": ref_info.attrs["received_crop"],
-        "normalisation": "psf: each sample's 8 channels sum to 8 (psf_power holds the raw total, dark-subtracted "
-                         "counts)",
-        "seeds": "captured data: no screens; the SLM phase is the receiver-plane screen (propagation = slm)",
-        "split_labels": {"0": "train", "1": "val", "2": "test"},
-    }
+             "hot_pixels": int(hot.sum()) if hot is not None else None, "window_outside_frame_max": conv.outside_max}
+    parts = {"format": DATASET_FORMAT, "source": "captures", "manifest_sha256": file_key(manifest),
+             "calibration": calib, "options": options.hashed()}
+    attrs = _store_attrs(out.name, parts, conv, split, ref_info, options,
+                         {"captures": str(folder), "reference": str(reference)})
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         create_store(tmp, n, S, options.shard_size, a, attrs, split, rytov_fill=-1.0)
-        g = open_store(tmp, "r+")
-        g["psf"][:] = np.stack(psf)
-        g["received"][:] = np.stack(rec)
-        g["psf_power"][:] = np.array(power, np.float32)
-        g["rytov"][:] = rytov  # NaN: unknown (no rytov in the manifest)
-        g["rytov_measured"][:] = rytov
-        g["seed"][:] = np.arange(n, dtype=np.int64)
-        fl = g.create_array("flags", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=0,
-                            dimension_names=("sample",))
-        flagged_set = set(flagged)
-        fl[:] = np.array([rows[j]["sample"] in flagged_set for j in kept], np.uint8)
-        nm = g.create_array("manifest_row", shape=(n,), chunks=(max(n, 1),), dtype="int64", fill_value=-1,
-                            dimension_names=("sample",))
-        nm[:] = np.array(kept, np.int64)  # row of the manifest
-        g.attrs.update({"complete": True})
+        _fill_store(tmp, conv, rows)
         consolidate(tmp)  # before the calibration files beside the arrays (zarr would warn of them)
 
         atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
@@ -554,9 +607,9 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     info = open_dataset(out)
-    return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(flagged),
+    return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(conv.flagged),
             "negative_counts_clipped": neg.get("pixels", 0), "negative_count_frames": len(neg.get("frames", [])),
-            "saturated_samples": flagged[:20], "saturated_policy": options.saturated, "calibration": calib,
+            "saturated_samples": conv.flagged[:20], "saturated_policy": options.saturated, "calibration": calib,
             "seconds": time.perf_counter() - t0, **info.summary()}
 
 

@@ -8,6 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..execution import Execution
 from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, progress_bar, workers_arg
 from ..outputs import product, zarr_input
 
@@ -217,9 +218,10 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
         raise ValidationError(f"--split: expected three fractions [train val test] summing to 1, got {a.split}")
     opt = ImportOptions(fit=a.fit, hot_sigma=a.hot_sigma, saturation=a.saturation, saturated=a.saturated,
-                        phase_per_count=a.phase_per_count, split=tuple(a.split or (0.9, 0.05, 0.05)), seed=a.seed)
-    rep = import_captures(a.folder, out, a.calibration, a.reference, a.dark, opt, overwrite=a.overwrite,
-                          progress=progress_bar("import", unit="sample"), log=log_to(a.json))
+                        phase_per_count=a.phase_per_count, split=tuple(a.split or (0.9, 0.05, 0.05)), seed=a.seed,
+                        overwrite=a.overwrite)
+    rep = import_captures(a.folder, out, a.calibration, a.reference, a.dark, opt,
+                          Execution(progress=progress_bar("import", unit="sample"), log=log_to(a.json)))
     al = rep["calibration"]["alignment"]
     text = (f"wrote {out}: {rep['samples']} of {rep['listed']} samples (8 x {rep['tensor'][1]}^2), split "
             + "/".join(str(v) for v in rep["split_counts"].values())

@@ -31,7 +31,8 @@ from ..config import ConfigError, Param, Section, load_toml, parse
 from .madewith import dataset_record, made_with, recipe_record
 from ..io import atomic_write_text
 from ..plotting import pyplot, save_figure
-from ..reconstruction.captures import import_captures
+from ..execution import Execution
+from ..reconstruction.captures import ImportOptions, import_captures
 from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict, open_dataset
 from ..reconstruction.evaluate import evaluate_model
 from ..reconstruction.losses import LOSSES
@@ -156,7 +157,7 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
     def do_import():
         log("3/4 import ...")
         rep_imp = import_captures(cap, imp, cap / "flat.csv", recipe.reference, sorted((cap / "dark").glob("*")),
-                                  overwrite=True, log=log)
+                                  ImportOptions(overwrite=True), Execution(log=log))
         imp_rep = {k: rep_imp[k] for k in ("samples", "listed", "saturated", "calibration", "split_counts")}
         atomic_write_text(out / "import.json", json.dumps(imp_rep, indent=1))
         return imp_rep
