@@ -46,8 +46,7 @@ class Execution:
     """How a long job runs (never what it computes: the same seed gives the same bytes under any
     :class:`Execution`).
 
-    ``workers``: local worker processes (one thread each); ``scheduler``: a Dask scheduler address (or
-    ``"local"``) instead; ``client`` / ``pool``: an open Dask client or
+    ``workers``: local worker processes (one thread each); ``scheduler``: a Dask scheduler address instead; ``client`` / ``pool``: an open Dask client or
     :class:`~metadesign.parallel.WorkerPool` to reuse; ``progress(done, total)``; ``log(line)``;
     ``stop_after``: raise KeyboardInterrupt after that many new tasks (tests of resumption)."""
 
@@ -133,7 +132,9 @@ def _refuse_foreign(path: Path, what: str = "use or remove") -> None:
 def make_scratch(folder: str | Path, **manifest) -> Path:
     """Create the scratch folder ``folder`` (and each missing folder above it) carrying the marker from its
     first moment: each is made under a hidden temporary name, the marker written, then renamed into place,
-    so a job killed at any point (SIGKILL included) leaves either no folder or a marked one.  ``manifest``:
+    so a job killed at any point (SIGKILL included) leaves either no folder or a marked one.  A hidden
+    folder (``OUT/.steps``, ``OUT/.shards``: a job's scratch inside its product folder) makes the folders
+    above it plain (they are the product's).  ``manifest``:
     further fields of the marker (a job's ``key``...).  An existing folder is returned as it is (a folder
     that is not one is refused: InputError)."""
     from .io import _check_claimed, _umask
@@ -143,7 +144,9 @@ def make_scratch(folder: str | Path, **manifest) -> Path:
         _refuse_foreign(folder, "use or replace")
     if folder.is_dir():
         return folder
-    if not folder.parent.is_dir():
+    if folder.name.startswith("."):  # a job's hidden scratch inside its product folder: that folder is the product's
+        folder.parent.mkdir(parents=True, exist_ok=True)
+    elif not folder.parent.is_dir():  # a step's folder inside a resume folder: the folders above are scratch too
         make_scratch(folder.parent)
     _check_claimed(folder / SCRATCH_MARK)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
