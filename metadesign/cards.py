@@ -8,8 +8,10 @@ header's metadata names the format) and the card ``NAME.safetensors.json``, a JS
 * ``trained_on``: what the weights were fitted to (a dataset's path, recipe hash and layout, a supercell
   table's path and sha256),
 
-and whatever the model adds (its architecture, metrics, provenance).  :func:`save_card_model` writes
-both atomically; :func:`read_card` and :func:`load_weights` turn every damaged file into one line (a card
+and whatever the model adds (its architecture, metrics, provenance).  A model whose parameters are a few
+numbers (the PEDS supercell model) is its card alone, one JSON file (:func:`save_card`): the same ``format``
+and ``trained_on``, the parameters in the card, no ``weights``.  :func:`save_card_model` writes both
+atomically; :func:`read_card` and :func:`load_weights` turn every damaged file into one line (a card
 that is not a JSON object, of another format, whose sha256 differs from the weights', weights that are
 unreadable or hold NaN/infinity).  Coupling models written before the card's name settled carry
 ``NAME.json``: still read.
@@ -25,7 +27,8 @@ from .io import atomic_path, atomic_write_text
 from .tasks import file_key
 from .validation import ValidationError
 
-__all__ = ["card_path", "find_card", "save_card_model", "read_card", "load_weights", "load_into"]
+__all__ = ["card_path", "find_card", "save_card_model", "save_card", "read_card", "card_format", "load_weights",
+           "load_into"]
 
 
 def card_path(weights: str | Path) -> Path:
@@ -60,11 +63,60 @@ def save_card_model(path: str | Path, state: dict, fmt: str, card: dict, trained
     return path, cp
 
 
+def save_card(path: str | Path, fmt: str, card: dict, trained_on: dict | None = None, indent: int = 1) -> Path:
+    """Write a model held entirely in its card (no weights file) at ``path``: ``{"format": fmt, **card}`` (the
+    keys in ``card``'s order), plus ``trained_on`` when given, as indented JSON, atomically."""
+    full = {"format": fmt, **{k: v for k, v in card.items() if k != "format"}}
+    if trained_on is not None:
+        full["trained_on"] = trained_on
+    atomic_write_text(path, json.dumps(full, indent=indent, default=float))
+    return Path(path)
+
+
+def _card_only(path: Path) -> dict | None:
+    """The card of a model held in its card alone (a JSON object without ``weights``) at ``path``, else None."""
+    if path.suffix == ".safetensors" or not path.is_file():
+        return None
+    try:
+        card = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError, OSError):
+        return None
+    return card if isinstance(card, dict) and "weights" not in card and "format" in card else None
+
+
+def card_format(path: str | Path, what: str = "model") -> str:
+    """The ``format`` of the model file at ``path`` (its weights, its card, or a card-only model), unchecked
+    otherwise; one-line ValidationError when there is no readable card."""
+    path = Path(path)
+    card = _card_only(path)
+    if card is not None:
+        return str(card["format"])
+    w = path
+    if path.suffix == ".json":
+        w = path.with_suffix("") if path.with_suffix("").suffix == ".safetensors" else path.with_suffix(".safetensors")
+    cp = find_card(w)
+    try:
+        card = json.loads(cp.read_text())
+    except (ValueError, UnicodeDecodeError, OSError):
+        card = None
+    if not isinstance(card, dict) or not isinstance(card.get("format"), str):
+        raise ValidationError(f"{path}: not a metadesign {what} (no readable card: neither a JSON model card nor "
+                              f"weights with {card_path(w).name} beside them)")
+    return card["format"]
+
+
 def read_card(path: str | Path, formats: str | Iterable[str], what: str = "model") -> tuple[Path, Path, dict]:
     """``(weights, card file, card)`` of the model at ``path`` (the weights or the card), its card checked:
-    a JSON object of one of ``formats`` whose sha256 is the weights'.  One-line ValidationError else."""
+    a JSON object of one of ``formats`` whose sha256 is the weights'.  A model held in its card alone
+    (:func:`save_card`): ``(path, path, card)``, its format checked.  One-line ValidationError else."""
     formats = (formats,) if isinstance(formats, str) else tuple(formats)
     path = Path(path)
+    card = _card_only(path)
+    if card is not None:
+        if card.get("format") not in formats:
+            raise ValidationError(f"{path}: not a metadesign {what} (format {card.get('format')!r}, expected "
+                                  f"{' or '.join(formats)})")
+        return path, path, card
     if path.suffix == ".json":
         path = path.with_suffix("") if path.with_suffix("").suffix == ".safetensors" else \
             path.with_suffix(".safetensors")

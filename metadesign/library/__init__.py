@@ -1,22 +1,35 @@
-"""Stage 1: the RCWA unit-cell library (rectangular pillars, both polarisations)."""
+"""Stage 1: the RCWA unit-cell library (rectangular pillars, both polarisations), and the supercell surrogate
+protocol with its resolver (the models themselves: :mod:`metadesign.library.surrogates`)."""
 
-from ..lazy import lazy_exports
+from __future__ import annotations
+
+import importlib
 
 #: each name -> the submodule that defines it (imported on first use, PEP 562)
 _EXPORTS = {
     "CellResult": "rcwa", "Factorization": "rcwa", "SolverSettings": "rcwa", "Stack": "rcwa", "Truncation": "rcwa",
     "fabry_perot_t": "rcwa", "solve_cell": "rcwa", "UnitCellLibrary": "store", "export_csv": "store",
     "load_library": "store", "save_library": "store",
-    # the supercell coupling model: numpy side (no torch) and the network (torch)
-    "CouplingConfig": "coupling", "lpa_t": "coupling", "relative_error": "coupling", "save_coupling": "coupling",
-    "tuple_t": "coupling", "coupling_card": "coupling", "is_coupling": "coupling", "transpose_supercells": "coupling", "Coupling": "coupling_net", "build_coupling": "coupling_net",
-    "coupling_t": "coupling_net", "find_coupling": "coupling_net", "fit_coupling": "coupling_net",
-    "load_coupling": "coupling_net", "pair_tables": "coupling_net", "pillar_terms": "coupling_net",
-    # the certified supercell surrogate (cheap solves, calibrated; numpy)
-    "PedsModel": "peds", "certified_t": "peds", "fit_peds": "peds", "find_peds": "peds", "load_peds": "peds",
-    "save_peds": "peds", "low_fidelity_couplings": "peds", "peds_t": "peds",
-    # its differentiable, batched torch twin
-    "peds_t_torch": "peds_torch", "couplings_torch": "peds_torch", "solve_symmetric_t": "peds_torch",
+    # every supercell model behind one protocol, chosen by name or model file
+    "SupercellSurrogate": "surrogates.base", "surrogate": "surrogates.registry",
 }
+#: the supercell models' kernels, exported here before they moved to :mod:`metadesign.library.surrogates`:
+#: still resolved (``metadesign.library.lpa_t``), no longer listed
+_MOVED = ("CouplingConfig", "lpa_t", "relative_error", "save_coupling", "tuple_t", "coupling_card", "is_coupling",
+          "transpose_supercells", "Coupling", "build_coupling", "coupling_t", "find_coupling", "fit_coupling",
+          "load_coupling", "pair_tables", "pillar_terms", "PedsModel", "certified_t", "fit_peds", "find_peds",
+          "load_peds", "save_peds", "low_fidelity_couplings", "peds_t", "peds_t_torch", "couplings_torch",
+          "solve_symmetric_t")
 __all__ = list(_EXPORTS)
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    if name in _MOVED:
+        return getattr(importlib.import_module(f"{__name__}.surrogates"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(_EXPORTS)

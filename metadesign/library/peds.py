@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
-from ..io import atomic_write_text
+from ..cards import read_card, save_card
 from ..paths import repo_root
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import ValidationError
@@ -182,22 +182,24 @@ def window_ring(t_windows: np.ndarray, t_self: np.ndarray) -> np.ndarray:
 
 
 def save_peds(path: str | Path, model: PedsModel) -> Path:
-    """The model as one JSON file (levels, coefficients, library, card)."""
-    rec = {"format": PEDS_FORMAT, "harmonics": list(model.harmonics),
+    """The model as one JSON file, a card-only model of :mod:`metadesign.cards` (:func:`~metadesign.cards.save_card`:
+    format, levels, coefficients, library, the card's entries; ``trained_on``: the card's ``table``)."""
+    rec = {"harmonics": list(model.harmonics),
            "coef": [[float(complex(a).real), float(complex(a).imag)] for a in model.coef],
-           "library": {"sha256": model.library_sha256}, **model.card}
-    atomic_write_text(path, json.dumps(rec, indent=1))
-    return Path(path)
+           "library": {"sha256": model.library_sha256}, **{k: v for k, v in model.card.items() if k != "trained_on"}}
+    return save_card(path, PEDS_FORMAT, rec, trained_on=model.card.get("trained_on", model.card.get("table")))
 
 
 def load_peds(path: str | Path, lib: UnitCellLibrary | None = None) -> PedsModel:
-    """A saved model; with ``lib``, checked to be calibrated against that library."""
+    """A saved model (:func:`~metadesign.cards.read_card`; files written before ``trained_on`` read the same);
+    with ``lib``, checked to be calibrated against that library."""
     try:
         rec = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
         raise ValidationError(f"{path}: not a PEDS supercell model ({e})") from None
     if not isinstance(rec, dict) or rec.get("format") != PEDS_FORMAT:
         raise ValidationError(f"{path}: not a PEDS supercell model ({PEDS_FORMAT})")
+    _, _, rec = read_card(path, PEDS_FORMAT, "PEDS supercell model")
     try:
         sha = str((rec.get("library") or {}).get("sha256", ""))
         harmonics = tuple(int(h) for h in rec["harmonics"])
