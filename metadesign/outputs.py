@@ -50,7 +50,7 @@ import numpy as np
 from .execution import is_scratch
 from .io import atomic_write_text, claim, output_lock
 from .plotting import PNG_KEY
-from .validation import MEMORY_FRACTION, InputError, available_memory
+from .validation import MEMORY_FRACTION, InputError, ValidationError, available_memory
 
 __all__ = ["path_fields", "zarr_input", "temporary", "write_marker", "check_need", "MARKER", "KINDS", "Input", "Need", "product", "check_output", "identify", "kind_of_format",
            "PNG_KEY", "free_disk"]
@@ -98,6 +98,7 @@ KINDS: dict[str, tuple[str, bool]] = {
     "demo": ("demo folder", True),
     "pipeline": ("pipeline run folder", True),
     "captures": ("capture folder", True),
+    "crosscheck": ("cross-check report folder", True),
 }
 
 #: folder kinds whose content identifies them (no marker file: a zarr store's ``zarr.json`` carries the
@@ -149,6 +150,7 @@ _LEGACY_SUMMARIES: dict[str, tuple[str, set]] = {
     "transfer": ("transfer.json", {"fitted_alignment", "truth_alignment", "rows"}),
     "table-s2": ("table-s2.json", {"rows", "rytov", "epochs"}),
     "pipeline": ("pipeline-state.json", set()),
+    "crosscheck": ("crosscheck.json", {"script", "arguments", "report"}),
 }
 
 #: the CSV header ``library export`` writes
@@ -492,7 +494,10 @@ def product(out: str | Path, kind: str, inputs: Mapping[str, str | Path | Input 
             scratch: tuple[str | Path, ...] = ()) -> Iterator[Path]:
     """Open output ``out`` of ``kind`` for writing (see the module's docstring): checks, then the lock,
     then (a folder) the marker; the block writes inside ``out``, ``also`` and ``scratch``.  A folder this
-    call created is removed again if the block fails before writing anything but the marker."""
+    call created is removed again if the block fails before writing anything but the marker, and whatever it
+    holds if the block ends in a refusal (a ValidationError: an input found bad after the work began leaves
+    nothing behind); so are the scratch folders the call created (marked ones only).  An interruption keeps
+    them (the job resumes)."""
     out = check_output(out, kind, inputs, also, need, scratch)
     folder = KINDS[kind][1]
     with output_lock(out, _what(kind)):
@@ -501,16 +506,25 @@ def product(out: str | Path, kind: str, inputs: Mapping[str, str | Path | Input 
         if folder:
             created = not out.exists()
             out.mkdir(exist_ok=True)
+        new_scratch = [Path(s) for s in scratch if not (Path(s).exists() or Path(s).is_symlink())]
         with claim(out, *also, *scratch):
-            ok = False
+            ok = refused = False
             try:
                 if folder and kind not in INTRINSIC and _marker_kind(out) != kind:
                     write_marker(out, kind)
                 yield out
                 ok = True
+            except ValidationError:
+                refused = True
+                raise
             finally:
-                if not ok and created and out.is_dir() and {p.name for p in out.iterdir()} <= {MARKER}:
+                if not ok and created and out.is_dir() and (refused or {p.name for p in out.iterdir()} <= {MARKER}):
                     shutil.rmtree(out, ignore_errors=True)
+                if refused:
+                    from .execution import remove_scratch
+
+                    for s in new_scratch:
+                        remove_scratch(s)
 
 
 @contextlib.contextmanager

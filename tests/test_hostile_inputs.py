@@ -106,3 +106,41 @@ def test_a_codesign_diversity_a_design_build_would_refuse_is_refused_where_it_is
     (tmp_path / "diversity.json").write_text(json.dumps(bad).replace("NaN", "NaN"))
     with pytest.raises(ValidationError, match=match):
         read_diversity(tmp_path)
+
+
+def test_a_refusal_after_the_work_began_leaves_nothing_behind(tmp_path):
+    """A product folder (and its scratch folder) made by this call is removed when the work ends in a
+    refusal (an input found bad late: NaN labels, a wrong kind); an interruption keeps both (it resumes), and
+    a folder that existed before the call is never removed."""
+    from metadesign.execution import make_scratch, scratch_path
+    from metadesign.outputs import product
+    from metadesign.validation import ValidationError
+
+    out = tmp_path / "report"
+
+    def work(exc):
+        with product(out, "codesign", scratch=(scratch_path(out),)):
+            (out / "design.toml").write_text("written before the refusal\n")
+            make_scratch(scratch_path(out, "solves"))
+            raise exc
+
+    with pytest.raises(ValidationError):
+        work(ValidationError("labels hold NaN"))
+    assert not out.exists() and not scratch_path(out).exists()
+    with pytest.raises(KeyboardInterrupt):
+        work(KeyboardInterrupt())
+    assert (out / "design.toml").exists() and scratch_path(out, "solves").is_dir()
+    with pytest.raises(ValidationError):  # a resumed run refused: what the earlier run made stays
+        work(ValidationError("labels hold NaN"))
+    assert (out / "design.toml").exists() and scratch_path(out, "solves").is_dir()
+
+
+def test_codesign_checks_its_base_recipe_and_dataset_before_writing(tmp_path, capsys):
+    """codesign with a --base that is not a design recipe, or a --dataset that is not a dataset, is refused in
+    one line with no report folder left (it wrote the design recipe first, then refused)."""
+    run = REPO / "sensing" / "codesign-demo" / "diversity-demo-x2-adapted.json"
+    base = REPO / "layouts" / "paper-5mm.toml"
+    _refused(["codesign", run, "--dataset", tmp_path, "--base", base, "-o", tmp_path / "cd"], capsys,
+             "not a metadesign dataset", tmp_path)
+    _refused(["codesign", run, "--dataset", tmp_path, "--base", REPO / "sensing" / "demo.toml", "-o",
+              tmp_path / "cd"], capsys, "not a design recipe", tmp_path)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -34,7 +35,7 @@ from ..sensing.twin import normalise
 from ..sensing.twin_diversity import DiversityTwin
 from ..validation import InputError
 
-__all__ = ["read_diversity", "random_diversity", "fisher_spectra", "run_codesign_report",
+__all__ = ["FisherSettings", "read_diversity", "random_diversity", "fisher_spectra", "run_codesign_report",
            "write_design_recipe", "toml_text"]
 
 
@@ -98,13 +99,26 @@ def toml_text(d: dict) -> str:
     return "\n".join(lines)
 
 
+def design_recipe_of(rec: dict, base: str | Path) -> tuple[dict, dict]:
+    """(the co-designed device's design recipe as a dict, the base recipe's): ``base`` must be a design recipe
+    and the result one that ``design build`` takes (checked here, before anything is written)."""
+    from ..design.recipe import design_recipe_from_dict
+
+    base = Path(base)
+    base_raw = load_toml(base)
+    if not isinstance(base_raw.get("design"), dict):
+        raise InputError(f"--base {base}: not a design recipe (no [design] section)")
+    new = diversity_design_recipe(base_raw, rec)
+    design_recipe_from_dict(new, base.stem, base)  # what design build would refuse, refused now
+    return new, base_raw
+
+
 def write_design_recipe(rec: dict, base: str | Path, path: Path, run: str | Path) -> Path:
     """The co-designed device's design recipe at ``path``: ``base`` with each lens's learned focal length
     and Zernike terms; its library named relative to ``path``'s folder (so it can be committed beside the
     other design recipes)."""
     base = Path(base)
-    base_raw = load_toml(base)
-    new = diversity_design_recipe(base_raw, rec)
+    new, base_raw = design_recipe_of(rec, base)
     lib = base_raw.get("design", {}).get("library", "../library/paper.npz")
     lib_abs = (base.parent / lib).resolve() if not Path(lib).is_absolute() else Path(lib)
     new["design"]["library"] = os.path.relpath(lib_abs, path.parent.resolve())
@@ -116,20 +130,35 @@ def write_design_recipe(rec: dict, base: str | Path, path: Path, run: str | Path
     return path
 
 
-def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, out: Path, modes: int = 21,
-                        samples: int = 4, photons: float = 1e6, read_noise_e: float = 0.0, random: int = 2,
-                        recipe: Path | None = None, log: Callable[[str], None] = print) -> dict:
-    """See the module docstring; ``modes``: Zernike modes 2..modes+1 of the received wavefront (tilt
-    first), ``samples``: received fields of the test split (and a flat wavefront) the information is
-    averaged over; ``recipe``: where the design recipe goes besides ``out/design.toml``."""
+@dataclass(frozen=True)
+class FisherSettings:
+    """The Fisher study of :func:`run_codesign_report`: ``modes`` Zernike modes 2..modes+1 of the received
+    wavefront (tilt first), averaged over ``samples`` received fields of the test split (and a flat
+    wavefront), at ``photons`` per frame with ``read_noise_e``, beside ``random`` random diversities."""
+
+    modes: int = 21
+    samples: int = 4
+    photons: float = 1e6
+    read_noise_e: float = 0.0
+    random: int = 2
+
+
+def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, out: Path,
+                        fisher: FisherSettings = FisherSettings(), recipe: Path | None = None,
+                        log: Callable[[str], None] = print) -> dict:
+    """See the module docstring; ``fisher``: the Fisher study's settings; ``recipe``: where the design recipe
+    goes besides ``out/design.toml``."""
+    modes, samples, photons, read_noise_e, random = (fisher.modes, fisher.samples, fisher.photons,
+                                                     fisher.read_noise_e, fisher.random)
     rec = read_diversity(run)
+    design_recipe_of(rec, base)  # every input checked before anything is written
+    dev = load_device(dataset)
     out.mkdir(parents=True, exist_ok=True)
     # 1. the device recipe
     write_design_recipe(rec, base, out / "design.toml", run)
     if recipe is not None:
         write_design_recipe(rec, base, Path(recipe), run)
     # 2. the diversity and its PSFs
-    dev = load_device(dataset)
     lenses = lens_table(open_dataset(dataset).attrs["provenance"]["channels"])
     ops = diversity_operators(dev.pupil, dev.sensor, lenses, dev.geometry, modes=tuple(rec["zernike_noll"]))
     tw = DiversityTwin(ops)
