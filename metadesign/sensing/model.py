@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import library as stage1  # its coupling network is imported on first use (torch: the learn extra)
 from ..config import ConfigError, InputError, Param, Section, load_toml, parse
 from ..design.phase import LensChannel, cell_coordinates, polygon_mask
 from ..design.recipe import design_recipe_from_dict
@@ -22,8 +21,12 @@ from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
-__all__ = ["SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics",
+__all__ = ["COUPLINGS", "SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics",
            "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "read_tiled_contents"]
+
+#: the supercell models a device's pupil can take (``"coupling"``: the coupling network, ``"supercell"`` its
+#: historic name, which records keep)
+COUPLINGS = ("lpa", "supercell", "coupling", "peds")
 
 SENSING_SECTIONS = (
     Section("sensor", (
@@ -36,9 +39,12 @@ SENSING_SECTIONS = (
     ), optional=True),
     Section("pupil", (
         Param("grid", int, 256, lo=8, hi=8192),
-        Param("coupling", str, "lpa", choices=("lpa", "supercell"),
-              help="lpa: every pillar as in an infinite array of itself; supercell: plus the coupling model"),
-        Param("coupling_model", str, None, help="the coupling model (default: the one fitted to the library)"),
+        Param("coupling", str, "lpa", choices=COUPLINGS,
+              help="the supercell model (metadesign.library.surrogates): lpa, every pillar as in an infinite "
+                   "array of itself; supercell (or coupling): plus the coupling network's terms; peds: the "
+                   "certified surrogate, which a whole device cannot afford (sampled: library coupling-check "
+                   "--certified)"),
+        Param("coupling_model", str, None, help="the supercell model's file (default: the one fitted to the library)"),
     ), optional=True),
     Section("noise", (
         Param("gaussian_percent", float, 0.0, lo=0, hi=100),
@@ -55,7 +61,7 @@ class SensingRecipe:
     sensor: SensorSpec
     pupil_grid: int
     noise: NoiseSpec
-    coupling: str = "lpa"  # "lpa" | "supercell"
+    coupling: str = "lpa"  # "lpa" | "supercell" (the coupling network; "coupling" in a recipe) | "peds"
     coupling_model: Path | None = None  # None: the model fitted against the device's library
 
 
@@ -74,9 +80,10 @@ def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
     noise = NoiseSpec(nz["gaussian_percent"] / 100, nz["photons_at_peak"] or None, nz["read_noise_e"],
                       nz["bit_depth"] or None, nz["seed"])
     pu = v["pupil"]
-    if pu["coupling_model"] is not None and pu["coupling"] != "supercell":
-        raise ConfigError("pupil.coupling_model", 'needs pupil.coupling = "supercell"')
-    return SensingRecipe(sensor, pu["grid"], noise, pu["coupling"],
+    kind = "supercell" if pu["coupling"] == "coupling" else pu["coupling"]  # one spelling downstream
+    if pu["coupling_model"] is not None and kind == "lpa":
+        raise ConfigError("pupil.coupling_model", 'needs pupil.coupling = "supercell" (or "coupling", "peds")')
+    return SensingRecipe(sensor, pu["grid"], noise, kind,
                          None if pu["coupling_model"] is None else Path(pu["coupling_model"]))
 
 
@@ -101,18 +108,30 @@ class AsFabricated:
     aperture: dict | None = None  # clear-aperture record of the layout (None: the full square)
     path: Path | None = None  # the layout file
     fab_lib: UnitCellLibrary | None = None  # library with height / sidewall axes (for those perturbations)
-    coupling: object | None = None  # a supercell coupling model (None: the LPA)
-    coupling_card: dict | None = None
+    coupling: object | None = None  # the coupling network of the pillars (None: the LPA)
+    coupling_card: dict | None = None  # its file's card
+    surrogate: object | None = None  # the supercell model chosen (metadesign.library.surrogates; None: the LPA)
 
-    def with_coupling(self, kind: str = "supercell", model: str | Path | None = None) -> "AsFabricated":
-        """This device with the pillars' supercell coupling (``kind`` "supercell": the model at ``model``,
-        default the one fitted against the device's library) or without it ("lpa")."""
-        if kind == "lpa":
-            return replace(self, coupling=None, coupling_card=None)
-        if kind != "supercell":
-            raise ValueError(f"coupling must be 'lpa' or 'supercell', got {kind!r}")
-        m, card, _ = stage1.find_coupling(self.lib, model)
-        return replace(self, coupling=m, coupling_card=card)
+    def with_coupling(self, kind="supercell", model: str | Path | None = None) -> "AsFabricated":
+        """This device under the supercell model ``kind``: a name of :data:`COUPLINGS` ("lpa": no coupling;
+        "supercell" or "coupling": the coupling network at ``model``, default the one fitted against the
+        device's library) or a supercell surrogate already made
+        (:func:`metadesign.library.surrogates.surrogate`).  "peds" is refused (one line): its
+        transmissions cost RCWA solves per supercell, which a whole device cannot afford; a device under
+        it is estimated by sampling (``metadesign library coupling-check --certified N``)."""
+        from ..library.surrogates import CouplingNet
+
+        name = kind if isinstance(kind, str) else getattr(kind, "name", None)
+        if name not in COUPLINGS:
+            raise ConfigError("pupil.coupling", f"expected one of {', '.join(map(repr, COUPLINGS))}, got {kind!r}")
+        if name == "lpa":
+            return replace(self, coupling=None, coupling_card=None, surrogate=None)
+        if name == "peds":
+            raise ConfigError("pupil.coupling", "'peds' solves RCWA per supercell (0.1 core-s; a device has millions): "
+                                                "no whole device under it; sample it with metadesign library "
+                                                "coupling-check DESIGN --certified N")
+        s = kind if isinstance(kind, CouplingNet) else CouplingNet(self.lib, model)
+        return replace(self, coupling=s.model, coupling_card=s.file_card, surrogate=s)
 
     @property
     def coupling_name(self) -> str:

@@ -31,7 +31,7 @@ from ..library.store import UnitCellLibrary, interpolate_t
 from ..validation import ValidationError, check_int, check_number
 
 __all__ = ["Perturbation", "interpolate_t", "interpolate_t_fab", "perturb_widths", "pillar_transmission",
-           "couple_supercells", "unit_t_as_made"]
+           "couple_supercells", "coupling_model", "unit_t_as_made"]
 
 
 @dataclass(frozen=True)
@@ -176,10 +176,12 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     with axes, and otherwise a correction from a (possibly coarser) fab library on top of the design's own
     library, which the nominal device keeps exactly.
 
-    ``coupling`` (a :mod:`metadesign.library.coupling` model; None = the LPA, unchanged): every pillar of a
-    complete 2 x 2 supercell gets its coupling term from its neighbours' perturbed widths and looked-up
+    ``coupling`` (a :mod:`metadesign.library.coupling` model, or any supercell surrogate of
+    :mod:`metadesign.library.surrogates` that gives per-pillar terms; None = the LPA, unchanged): every pillar
+    of a complete 2 x 2 supercell gets its coupling term from its neighbours' perturbed widths and looked-up
     ``t`` (:func:`couple_supercells`); ``rows`` must then start on a supercell row."""
     im = index_map if rows is None else index_map[rows]
+    coupling = coupling_model(coupling)
     want = coupling is not None
     if want and rows is not None and (rows.start or 0) % 2:
         raise ValueError("coupled transmission needs row tiles that start on a supercell (even) row")
@@ -193,6 +195,32 @@ def pillar_transmission(index_map: np.ndarray, atom_widths_nm: np.ndarray, lib: 
     return t, clamped
 
 
+class _SurrogateTerms:
+    """A supercell surrogate's per-pillar terms in the coupling network's calling convention."""
+
+    cfg = None
+
+    def __init__(self, s):
+        self.surrogate = s
+
+    def terms(self, widths, t_units, batch: int = 65536):
+        return self.surrogate.pillar_terms(widths, t_units)
+
+
+def coupling_model(coupling):
+    """What the pupil runs for ``coupling``: None (the LPA) and a coupling network as they are; a supercell
+    surrogate (:mod:`metadesign.library.surrogates`): none for the LPA, its network for the coupling network
+    (pair tables included), else its :meth:`pillar_terms` (a model without them refuses, one line)."""
+    if coupling is None or hasattr(coupling, "cfg"):
+        return coupling
+    if getattr(coupling, "name", None) == "lpa":
+        return None
+    net = getattr(coupling, "model", None)
+    if hasattr(net, "cfg") and hasattr(net, "terms"):
+        return net
+    return _SurrogateTerms(coupling)
+
+
 def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batch: int = 65536,
                       atoms: tuple | None = None) -> np.ndarray:
     """``t`` (R, C, 2) of pillars with widths ``w`` (R, C, 2) m, plus each pillar's coupling term where its
@@ -201,6 +229,9 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     ``atoms = (index (R, C), widths (A, 2), t (A, 2))``: the pillars are drawn from a finite table (no
     jitter), so a pair model's terms are table look-ups (:func:`metadesign.library.coupling_net.pair_tables`,
     the same numbers without running the network per supercell)."""
+    model = coupling_model(model)
+    if model is None:
+        return t
     R2, C2 = t.shape[0] // 2, t.shape[1] // 2
 
     def blocks(a):  # (R, C, ...) -> (R2 * C2, 2, 2, ...) as [supercell, r, c]
@@ -212,7 +243,7 @@ def couple_supercells(t: np.ndarray, w: np.ndarray, has: np.ndarray, model, batc
     if not len(idx):
         return t
     terms = np.zeros((R2 * C2, 2, 2, 2), np.complex64)
-    if atoms is not None and getattr(model.cfg, "interaction", None) == "pair":
+    if atoms is not None and getattr(getattr(model, "cfg", None), "interaction", None) == "pair":
         k_at, w_at, t_at = atoms
         tab = _pair_table_cache(model, w_at, t_at)
         ab = blocks(np.asarray(k_at))[idx]  # (n, 2, 2) atom of each pillar
