@@ -217,7 +217,7 @@ class Run:
             sec["figures"].append((title, Path(path), caption))
             self.report["figures"][title] = Path(path)
 
-    def _previous(self, name: str) -> dict:
+    def previous(self, name: str) -> dict:
         """What the step ``name`` recorded when it last ran (empty: never)."""
         m = self.steps.marked(name) or {}
         return m.get("result") or {}

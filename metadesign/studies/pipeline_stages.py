@@ -245,7 +245,7 @@ def turbulence(run: "Run", key: str) -> None:
                            for x in res["levels"]],
                 "structure_function_ratio": [float(r) for r in res["structure_function"]["ratio"]]}
 
-    figs = [out / Path(f).name for f in run._previous("turbulence").get("figures", [])]
+    figs = [out / Path(f).name for f in run.previous("turbulence").get("figures", [])]
     tu = run.stage("turbulence", key, figs or [out / "__none__"], do_turb)
     sf, top = tu.get("structure_function_ratio") or [float("nan")], tu["levels"][-1]
     run.say("turbulence", f"structure function / theory {min(sf):.3f}..{max(sf):.3f}; Rytov nominal -> measured "
@@ -342,7 +342,7 @@ def evaluate(run: "Run", key: str) -> None:
                                                                              r["phase_conjugate"]))
         return {"figures": [str(f) for f in figs], "summary": summary}
 
-    figs = [ev_dir / Path(f).name for f in run._previous("evaluate").get("figures", [])]
+    figs = [ev_dir / Path(f).name for f in run.previous("evaluate").get("figures", [])]
     ev = run.stage("evaluate", key, figs or [ev_dir / "__none__"], do_eval)
     levels = sorted(ev["summary"], key=_noise_value)  # numerically: 0, 2, 5, 10 (not as strings)
     refines = any("start" in v for v in ev["summary"].values())
