@@ -175,3 +175,85 @@ def test_the_verify_command_streams(small, capsys):
     assert rc == 0 and rep["passed"] and rep["reader"] == "stream"
     rc, _, err = run_main(["layout", "verify", str(lay), "--stream", "--tile", "0"], capsys)
     assert rc == 2 and len(err) == 1 and "--tile" in err[0]
+
+
+def test_one_entry_point_chooses_the_method_and_returns_one_report(small, monkeypatch, capsys):
+    """``layouts.verify``: a tiled layout takes KLayout's sampled path while KLayout's read fits in memory,
+    the stream when it would not (the 2.5 cm case: ~11 GB through KLayout), and an explicit method is
+    run as asked; every method gives a VerifyReport, and the command prints which one ran and why."""
+    from metadesign.layouts import VerifyOptions, VerifyReport, verify
+    from metadesign.layouts import verification as V
+
+    tmp, _ = small
+    lay = tmp / "good" / "layout.oas"
+    lines = []
+    rep = verify(lay, run=Execution(log=lines.append))
+    assert isinstance(rep, VerifyReport) and rep.method == "tiled" and rep.passed
+    assert lines == [f"layout verify: tiled ({rep.reason})"] and "KLayout" in rep.reason
+    assert rep.pillars == rep.pillars_design and 0 < rep.pillars_checked <= rep.pillars
+    d = rep.to_dict()
+    assert d["method"] == "tiled" and d["passed"] and d["sampled_tiles"] == rep.details["sampled_tiles"]
+    # a machine on which KLayout's read of this file would not fit: every pillar streamed instead
+    need = V.klayout_memory(lay)
+    monkeypatch.setattr(V, "available_memory", lambda: int(need / V.MEMORY_FRACTION) - 1)
+    rep = verify(lay)
+    assert rep.method == "stream" and rep.passed and "more than" in rep.reason
+    assert rep.pillars_checked == rep.pillars == rep.details["pillars"] == rep.pillars_design
+    rc, out, err = run_main(["layout", "verify", str(lay)], capsys)
+    assert rc == 0 and out.splitlines()[0].startswith("layout verify: stream (a tiled layout whose KLayout read")
+    assert "PASS (streamed:" in out.splitlines()[1]
+    rc, out, _ = run_main(["layout", "verify", str(lay), "--json"], capsys)
+    assert rc == 0 and json.loads(out)["method"] == "stream"
+    # asked for: run as asked, whatever the memory
+    for method, options in (("tiled", VerifyOptions(sample_tiles=2)), ("readback", VerifyOptions())):
+        rep = verify(lay, method=method, options=options)
+        assert rep.method == method and rep.passed and rep.reason == "asked for", method
+    assert rep.pillars_checked == rep.pillars == rep.pillars_design  # the read-back checks every pillar
+
+
+def _run_verify(args, capsys):
+    rc, out, err = run_main(["layout", "verify", *map(str, args)], capsys)
+    assert not any("Traceback" in e for e in err), err
+    return rc, out, err
+
+
+def test_bad_paths_are_one_line_errors_before_the_work(small, tmp_path, capsys):
+    tmp, _ = small
+    good = tmp / "good"
+    text = tmp_path / "notes.oas"
+    text.write_text("not a layout at all\n")
+    gds = tmp_path / "layout.gds"
+    gds.write_bytes(b"\x00\x06\x00\x02\x02\x58" + bytes(100))  # a GDSII HEADER record
+    shutil.copy(good / "layout.oas.json", tmp_path / "layout.gds.json")
+    for args in ([good, "--stream"], [good, "--stream", "--tile", "64"], [good], [text, "--stream"], [text],
+                 [gds, "--stream", "--design", good], [tmp_path / "missing.oas", "--stream"]):
+        before = sorted(p.name for p in tmp_path.iterdir())
+        rc, out, err = _run_verify(args, capsys)
+        assert rc == 2 and len(err) == 1 and not out, (args, err, out)
+        assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+    assert "is a folder" in _run_verify([good, "--stream"], capsys)[2][0]
+    assert "not an OASIS" in _run_verify([text, "--stream"], capsys)[2][0]
+    assert "GDSII" in _run_verify([gds, "--stream", "--design", good], capsys)[2][0]
+
+
+def test_a_damaged_file_never_passes_any_method(small, tmp_path, capsys):
+    """Truncated, or one byte flipped (in the tiles, in the middle, in the top cell's records at the end):
+    exit 1 (verification failed) or 2 (not a readable OASIS file), never 0, from every method."""
+    tmp, _ = small
+    lay, des = tmp / "good" / "layout.oas", tmp / "good" / "design.npz"
+    data = lay.read_bytes()
+    cases = {"cut-half": data[:len(data) // 2], "cut-end": data[:-10]}
+    for at in (len(data) // 3, len(data) // 2, 2 * len(data) // 3, len(data) - 1000, len(data) - 300):
+        b = bytearray(data)
+        b[at] ^= 0x10
+        cases[f"flip-{at}"] = bytes(b)
+    for name, raw in cases.items():
+        f = tmp_path / f"{name}.oas"
+        f.write_bytes(raw)
+        shutil.copy(lay.with_suffix(".oas.json"), tmp_path / f"{name}.oas.json")
+        for extra in ([], ["--stream"], ["--all"], ["--sample-tiles", "3"]):
+            rc, out, err = _run_verify([f, "--design", des, *extra], capsys)
+            assert rc in (1, 2), (name, extra, rc, out)
+            assert rc == 1 or len(err) == 1, (name, extra, err)
+            if rc == 1:
+                assert "FAIL" in out, (name, extra, out)

@@ -21,17 +21,6 @@ DEFAULT = "write"
 MAX_PREVIEW_CELLS = 256
 
 
-def _find_design_for(layout: Path, given: str | None):
-    from ..design.store import load_design
-
-    if given:
-        return load_design(given)
-    cand = layout.parent / "design.npz"
-    if not cand.exists():
-        raise InputError(f"{layout}: no design.npz beside it; pass --design DESIGN")
-    return load_design(cand)
-
-
 def _cmd_write(a: argparse.Namespace) -> int:
     from ..design.store import design_file, load_design
     from . import write_layout
@@ -69,96 +58,49 @@ def _cmd_write(a: argparse.Namespace) -> int:
     return 0
 
 
-def _design_beside(a: argparse.Namespace, path: Path) -> Path:
-    """The design a tiled layout is verified against: --design, else the design.npz beside it."""
-    from ..design.store import design_file
-
-    design = design_file(a.design if a.design else path.parent)
-    if not design.exists():
-        raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
-    return design
-
-
-def _cmd_verify_tiled(a: argparse.Namespace, path: Path) -> int:
-    from .reader import verify_tiled
-
-    design = _design_beside(a, path)
-    run = Execution(progress=None if a.json else progress_bar("verify: design stripes", unit="row"))
-    rep = verify_tiled(path, design, a.sample_tiles, a.seed, _rules(a), run)
-    ok = rep["exact"] and rep["drc"]["passed"]
-    rep["passed"] = ok
-    d = rep["drc"]
+def _text_tiled(r) -> str:
+    """The text report of the tiled method (KLayout's count of every pillar, sampled tiles)."""
+    rep, d, rules = r.details, r.drc, r.rules
     viol = sum(w["width_violations"] + w["space_violations"] for w in d["windows"])
-    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'} (tiled: {rep['tiles']:,} tiles)",
+    lines = [f"verify {r.file}: {'PASS' if r.passed else 'FAIL'} (tiled: {rep['tiles']:,} tiles)",
              f"  KLayout count of every pillar: {rep['pillars_klayout']:,} (design {rep['pillars_design']:,}), "
              f"per atom {'equal' if not any('per-atom' in p for p in rep['problems']) else 'DIFFERENT'} "
              f"(read {rep['read_seconds']:.1f} s)",
              f"  exact read-back of {len(rep['sampled_tiles'])} tiles drawn with seed {rep['seed']}: "
              f"{rep['sampled_pillars']:,} pillars ({100 * rep['sampled_fraction']:.2f} % of the device), "
              f"{rep['mismatched_cells']} cells differ",
-             f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm): atom table min feature "
-             f"{d['from_atom_table']['min_feature_nm']} nm; KLayout on a {a.drc_window_cells}x{a.drc_window_cells} "
-             f"window of each sampled tile: {viol} violations -> {'pass' if d['passed'] else 'FAIL'}"]
+             f"  design rules (min feature {rules.min_feature_nm} nm, min gap {rules.min_gap_nm} nm): atom table min "
+             f"feature {d['from_atom_table']['min_feature_nm']} nm; KLayout on a {rules.window_cells}x"
+             f"{rules.window_cells} window of each sampled tile: {viol} violations -> "
+             f"{'pass' if d['passed'] else 'FAIL'}"]
     lines += [f"    - {p}" for p in rep["problems"]]
-    emit(rep, a.json, "\n".join(lines))
-    return 0 if ok else 1
+    return "\n".join(lines)
 
 
-def _cmd_verify_stream(a: argparse.Namespace, path: Path) -> int:
-    from .stream import verify_stream
-
-    design = _design_beside(a, path)
-    run = Execution(workers=a.workers, scheduler=a.scheduler,
-                    progress=None if a.json else progress_bar("verify: stripes of tiles", unit="stripe"))
-    rep = verify_stream(path, design, _rules(a), a.tile, run)
-    d = rep["drc"]
-    ok = rep["exact"] and d["passed"]
-    rep["passed"] = ok
+def _text_stream(r) -> str:
+    """The text report of the stream method (every pillar, record, signature and neighbour pair)."""
+    rep, d, rules = r.details, r.drc, r.rules
     sig = rep["signature"]
-    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'} (streamed: {rep['bytes'] / 1e6:,.1f} MB in "
+    lines = [f"verify {r.file}: {'PASS' if r.passed else 'FAIL'} (streamed: {rep['bytes'] / 1e6:,.1f} MB in "
              f"{rep['seconds']:.1f} s on {rep['workers']} worker{'s' if rep['workers'] > 1 else ''})",
              f"  every pillar against the design: {rep['pillars']:,} (design {rep['pillars_design']:,}) in "
              f"{rep['tiles']:,} tiles; {rep['mismatched_cells']} cells differ, {rep['duplicates']} duplicates, "
              f"{rep['off_lattice']} off the lattice",
              f"  file: records well-formed {'yes' if not any('malformed' in p for p in rep['problems']) else 'NO'}, "
              f"{sig['scheme'] or 'no'} signature {'matches' if sig['ok'] else 'DOES NOT MATCH' if sig['ok'] is False else '-'}",
-             f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm) on every placed pillar and "
-             f"each of {d['pairs_checked']:,} neighbour pairs: min feature {d['min_feature_nm']} nm, min gap "
-             f"{d['min_gap_nm']} nm; {d['width_violations']} width, {d['space_violations']} space violations -> "
+             f"  design rules (min feature {rules.min_feature_nm} nm, min gap {rules.min_gap_nm} nm) on every placed "
+             f"pillar and each of {d['pairs_checked']:,} neighbour pairs: min feature {d['min_feature_nm']} nm, min "
+             f"gap {d['min_gap_nm']} nm; {d['width_violations']} width, {d['space_violations']} space violations -> "
              f"{'pass' if d['passed'] else 'FAIL'}"]
     lines += [f"    - {p}" for p in rep["problems"]]
-    emit(rep, a.json, "\n".join(lines))
-    return 0 if ok else 1
+    return "\n".join(lines)
 
 
-def _rules(a: argparse.Namespace) -> DesignRules:
-    """The design rules of ``layout verify``'s options."""
-    return DesignRules(a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
-
-
-def _cmd_verify(a: argparse.Namespace) -> int:
-    from . import drc_check, read_layout, read_layout_klayout, verify_against_design
-    from .reader import layout_tiling
-
-    path = Path(a.layout)
-    if a.stream:
-        return _cmd_verify_stream(a, path)
-    tiling = layout_tiling(path)
-    if a.sample_tiles is not None or (tiling and tiling.get("hierarchy") == "tiles" and not a.all):
-        if a.sample_tiles is None:
-            a.sample_tiles = 8
-        return _cmd_verify_tiled(a, path)
-    lc = read_layout(path)
-    d = _find_design_for(path, a.design)
-    grid = int(lc.provenance.get("grid_nm", 1)) if "grid_nm" in lc.provenance else 1
-    rep = {"file": str(path), "gdstk": verify_against_design(lc, d, grid)}
-    if a.klayout:
-        rep["klayout"] = verify_against_design(read_layout_klayout(path), d, grid)
-    rep["drc"] = drc_check(lc, a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
-    ok = rep["gdstk"]["exact"] and rep["drc"]["passed"] and rep.get("klayout", {"exact": True})["exact"]
-    rep["passed"] = ok
+def _text_readback(r) -> str:
+    """The text report of the read-back method (gdstk, and KLayout when asked)."""
+    rep, rules = r.details, r.rules
     g = rep["gdstk"]
-    lines = [f"verify {path}: {'PASS' if ok else 'FAIL'}",
+    lines = [f"verify {r.file}: {'PASS' if r.passed else 'FAIL'}",
              f"  gdstk read-back: {g['pillars']:,} pillars, exact {g['exact']} ({g['read_seconds']:.1f} s)"
              + "".join(f"\n    - {p}" for p in g["problems"])]
     if "klayout" in rep:
@@ -166,13 +108,38 @@ def _cmd_verify(a: argparse.Namespace) -> int:
         lines.append(f"  KLayout read-back: {k['pillars']:,} pillars, exact {k['exact']}, per-atom counts "
                      f"{'agree' if k['counts_per_atom'] == g['counts_per_atom'] else 'DIFFER'} "
                      f"({k['read_seconds']:.1f} s)" + "".join(f"\n    - {p}" for p in k["problems"]))
-    t, w = rep["drc"]["from_atom_table"], rep["drc"]["geometric_window"]
-    lines.append(f"  design rules (min feature {a.min_feature_nm} nm, min gap {a.min_gap_nm} nm): atom table min "
-                 f"feature {t['min_feature_nm']} nm, min gap x {t['min_gap_x_nm']} / y {t['min_gap_y_nm']} nm; "
-                 f"KLayout window {w['window_cells']}x{w['window_cells']} cells: {w['width_violations']} width, "
-                 f"{w['space_violations']} space violations -> {'pass' if rep['drc']['passed'] else 'FAIL'}")
-    emit(rep, a.json, "\n".join(lines))
-    return 0 if ok else 1
+    t, w = r.drc["from_atom_table"], r.drc["geometric_window"]
+    lines.append(f"  design rules (min feature {rules.min_feature_nm} nm, min gap {rules.min_gap_nm} nm): atom "
+                 f"table min feature {t['min_feature_nm']} nm, min gap x {t['min_gap_x_nm']} / y {t['min_gap_y_nm']} "
+                 f"nm; KLayout window {w['window_cells']}x{w['window_cells']} cells: {w['width_violations']} width, "
+                 f"{w['space_violations']} space violations -> {'pass' if r.drc['passed'] else 'FAIL'}")
+    return "\n".join(lines)
+
+
+def _rules(a: argparse.Namespace) -> DesignRules:
+    """The design rules of ``layout verify``'s options."""
+    return DesignRules(a.min_feature_nm, a.min_gap_nm, a.drc_window_cells)
+
+
+#: the progress bar of each method that reports progress
+_VERIFY_BARS = {"stream": ("verify: stripes of tiles", "stripe"), "tiled": ("verify: design stripes", "row")}
+
+
+def _cmd_verify(a: argparse.Namespace) -> int:
+    from .verification import VerifyOptions, choose_method, verify
+
+    path = Path(a.layout)
+    method = "stream" if a.stream else "tiled" if a.sample_tiles is not None else "readback" if a.all else "auto"
+    options = VerifyOptions(a.sample_tiles, a.seed, a.tile, a.klayout)
+    choice = choose_method(path, method, options)  # one-line errors for a bad path, before any work
+    bar = _VERIFY_BARS.get(choice.method)
+    run = Execution(workers=a.workers, scheduler=a.scheduler,
+                    progress=progress_bar(*bar) if bar and not a.json else None,
+                    log=(lambda line: None) if a.json else (lambda line: print(line, flush=True)))
+    rep = verify(path, a.design, choice, _rules(a), options, run)
+    text = {"readback": _text_readback, "tiled": _text_tiled, "stream": _text_stream}[rep.method](rep)
+    emit(rep.to_dict(), a.json, text)
+    return 0 if rep.passed else 1
 
 
 def _options(a: argparse.Namespace):

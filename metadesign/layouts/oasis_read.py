@@ -16,12 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAGIC", "END_BYTES", "CHUNK", "OasisError", "gdelta_decode", "Modal", "Element", "RecordReader", "Block",
+__all__ = ["MAGIC", "END_BYTES", "CHUNK", "MAX_COPIES", "DECODE_ERRORS", "OasisError", "gdelta_decode", "Modal", "Element", "RecordReader", "Block",
            "OasisFile"]
 
 MAGIC = b"%SEMI-OASIS\r\n"
 END_BYTES = 256
 CHUNK = 1 << 24  # bytes read at a time
+#: the most copies a repetition may have (a tile of the project's layouts holds ~1e6 pillars)
+MAX_COPIES = 1 << 31
+#: what decoding a damaged file may raise besides :class:`OasisError` (a count or a value out of any
+#: range, a property of the wrong type): the verifier reports each as a malformed file
+DECODE_ERRORS = (ValueError, IndexError, OverflowError, ZeroDivisionError, MemoryError, TypeError)
 
 
 class OasisError(ValueError):
@@ -186,6 +191,13 @@ class RecordReader:
         d = np.array([self.gdelta() for _ in range(count)], np.int64).reshape(-1, 2)
         return d[:, 0], d[:, 1]
 
+    def _copies(self, count: int) -> int:
+        """A repetition's count of copies, refused beyond :data:`MAX_COPIES` (a damaged count would ask for
+        arrays of any size)."""
+        if count > MAX_COPIES:
+            raise OasisError(f"a repetition of {count} copies ({self.where()}): more than any layout holds")
+        return count
+
     def repetition(self, modal: Modal) -> tuple:
         """A repetition as ``(dx, dy)``: every copy's offset from the first (int64 arrays)."""
         t = self.uint()
@@ -198,6 +210,7 @@ class RecordReader:
             ny = self.uint() + 2 if t in (1, 3) else 1
             sx = self.uint() if t in (1, 2) else 0
             sy = self.uint() if t in (1, 3) else 0
+            self._copies(nx * ny)
             jy, jx = np.divmod(np.arange(nx * ny, dtype=np.int64), nx)
             rep = (jx * sx, jy * sy)
         elif t in (8, 9):
@@ -205,10 +218,11 @@ class RecordReader:
             m = self.uint() + 2 if t == 8 else 1
             ndx, ndy = self.gdelta()
             mdx, mdy = self.gdelta() if t == 8 else (0, 0)
+            self._copies(n * m)
             jm, jn = np.divmod(np.arange(n * m, dtype=np.int64), n)
             rep = (jn * ndx + jm * mdx, jn * ndy + jm * mdy)
         elif t in (10, 11):
-            n = self.uint() + 2
+            n = self._copies(self.uint() + 2)
             grid = self.uint() if t == 11 else 1
             dx, dy = self.gdeltas(n - 1)
             ox = np.zeros(n, np.int64)

@@ -19,25 +19,41 @@ from .rules import DESIGN_RULES, DesignRules
 from .writer import PROPERTY, TOP_CELL, layout_geometry, snap_widths
 
 __all__ = ["open_layout", "IndexRows", "read_tiled_contents", "LayoutContents", "read_layout", "read_layout_klayout",
-           "verify_against_design", "drc_check", "check_file", "verify_tiled", "layout_tiling"]
+           "verify_against_design", "drc_check", "check_file", "layout_format", "verify_tiled", "layout_tiling"]
 
 _OASIS_MAGIC = b"%SEMI-OASIS\r\n"
 _GDS_MAGIC = b"\x00\x06\x00\x02"
+
+
+def layout_format(path: Path) -> str:
+    """``"oas"`` or ``"gds"``: the format of a layout file by its first bytes, before anything reads it
+    (one-line InputError for a missing path, a folder or a file of neither format)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such layout file")
+    if not path.is_file():
+        raise InputError(f"{path}: is a folder, expected a layout file (.oas or .gds)")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the layout file ({exc.strerror or exc})") from None
+    if head.startswith(_OASIS_MAGIC):
+        return "oas"
+    if head.startswith(_GDS_MAGIC):
+        return "gds"
+    raise InputError(f"{path}: not an OASIS or GDSII file")
 
 
 def check_file(path: Path) -> str:
     """Format of a layout file after integrity checks; one-line InputError otherwise."""
     import gdstk
 
-    if not path.exists():
-        raise InputError(f"{path}: no such layout file")
-    if not path.is_file():
-        raise InputError(f"{path}: is a folder, expected a layout file (.oas or .gds)")
+    fmt = layout_format(path)
     with open(path, "rb") as fh:
-        head = fh.read(16)
         fh.seek(max(0, path.stat().st_size - 4))
         tail = fh.read(4)
-    if head.startswith(_OASIS_MAGIC):
+    if fmt == "oas":
         ok, _sig = gdstk.oas_validate(str(path))
         if ok is None:
             raise InputError(f"{path}: OASIS file without a validation signature (truncated, or not written "
@@ -45,11 +61,9 @@ def check_file(path: Path) -> str:
         if not ok:
             raise InputError(f"{path}: OASIS file is corrupt (CRC32 mismatch)")
         return "oas"
-    if head.startswith(_GDS_MAGIC):
-        if tail != b"\x00\x04\x04\x00":  # ENDLIB record
-            raise InputError(f"{path}: GDSII file is truncated (no ENDLIB record)")
-        return "gds"
-    raise InputError(f"{path}: not an OASIS or GDSII file")
+    if tail != b"\x00\x04\x04\x00":  # ENDLIB record
+        raise InputError(f"{path}: GDSII file is truncated (no ENDLIB record)")
+    return "gds"
 
 
 @dataclass

@@ -35,9 +35,9 @@ import numpy as np
 from ..execution import SERIAL, Execution
 from ..io import NpzRows, from_json_array
 from ..validation import InputError
-from .oasis_read import OasisError, OasisFile, gdelta_decode
+from .oasis_read import DECODE_ERRORS, OasisError, OasisFile, gdelta_decode
 from .rules import DESIGN_RULES, DesignRules
-from .stream_scan import scan_file, tile_placements, tile_size_of
+from .stream_scan import decode_error, scan_file, tile_placements, tile_size_of
 from .writer import layout_geometry, snap_widths
 
 __all__ = ["verify_stream", "gdelta_decode", "OasisError"]
@@ -144,11 +144,15 @@ def _stripe_job(g: _Grid, job: tuple) -> dict:
             covered[c0:c0 + w] = True
             try:
                 placed = tile_placements(f, offset, length, problem)
-            except OasisError as exc:
-                problem(f"malformed file: {name}: {exc}")
+            except DECODE_ERRORS as exc:
+                problem(f"malformed file: {name}: {decode_error(exc, f)}")
                 placed = []
             out["tiles"] += 1
-            got = _tile_map(name, placed, g, (r0, c0, h, w), out)
+            try:
+                got = _tile_map(name, placed, g, (r0, c0, h, w), out)
+            except DECODE_ERRORS as exc:  # a position or an atom beyond any range: a damaged file
+                problem(f"malformed file: {name}: {type(exc).__name__}: {exc}")
+                got = np.full((h, w), -1, g.itype)
             ref = block[:, c0:c0 + w]
             mm = int(np.count_nonzero(got != ref))
             if mm:
@@ -305,6 +309,7 @@ def _check_hierarchy(scan: dict, tile_size: int, problem) -> None:
     """The tiling the file records, and the top cell placing every tile cell once at the origin."""
     names = scan["names"]
     prov, tiling = scan["prov"], (scan["prov"] or {}).get("tiling") or {}
+    tiling = tiling if isinstance(tiling, dict) else {"tiling": tiling}
     if prov is None:
         problem("the top cell has no metadesign property: not a file of this project")
     elif tiling.get("tile_cells") != tile_size or tiling.get("hierarchy") != "tiles":

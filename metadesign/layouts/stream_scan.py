@@ -11,10 +11,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .oasis_read import END_BYTES, MAGIC, Element, Modal, OasisError, OasisFile
+from .oasis_read import DECODE_ERRORS, END_BYTES, MAGIC, Element, Modal, OasisError, OasisFile
 from .writer import TOP_CELL
 
-__all__ = ["scan_file", "tile_placements", "tile_size_of"]
+__all__ = ["scan_file", "tile_placements", "tile_size_of", "decode_error"]
+
+
+def decode_error(exc: Exception, f: OasisFile) -> str:
+    """What decoding a damaged file raised, in one line: an :class:`OasisError`'s own message (it names
+    its byte), any other with the byte the reader had reached."""
+    if isinstance(exc, OasisError):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc} (near byte {f.tell()})"
 
 
 def tile_placements(f: OasisFile, offset: int, length: int, problem) -> list:
@@ -104,9 +112,14 @@ class _Scan:
                 problem(f"cell {name or self.cell!r} holds a rectangle: pillars belong in atom cells")
         elif el.kind == "property" and name == TOP_CELL and el.name == b"metadesign" and el.values:
             try:
-                self.prov = json.loads(el.values[0])
-            except ValueError:
+                prov = json.loads(el.values[0])
+            except (TypeError, ValueError):
                 problem("the top cell's metadesign property is not JSON")
+            else:
+                if isinstance(prov, dict):
+                    self.prov = prov
+                else:
+                    problem("the top cell's metadesign property is not a JSON object")
 
     def open_cell(self, f: OasisFile, rid: int) -> None:
         """A CELL record (its id byte read): by reference number (13) or by name (14)."""
@@ -121,9 +134,12 @@ class _Scan:
         if name.startswith("TILE_"):
             try:
                 _, r, c = name.split("_")
-                self.tile_at = (name, int(r), int(c), f.tell())
+                r, c = int(r), int(c)
+                if r < 0 or c < 0:
+                    raise ValueError
             except ValueError:
                 raise OasisError(f"tile cell name {name!r} is not TILE_<row>_<col>") from None
+            self.tile_at = (name, r, c, f.tell())
 
     def record(self, f: OasisFile, rid: int, at: int) -> None:
         """One top-level record other than END (its id byte ``rid``, at byte ``at``, read)."""
@@ -213,8 +229,8 @@ def scan_file(path: Path, problem) -> dict:
                 _read_end(f, at, res, problem)
                 break
             scan.record(f, rid, at)
-    except OasisError as exc:
-        problem(f"malformed file: {exc}")
+    except DECODE_ERRORS as exc:
+        problem(f"malformed file: {decode_error(exc, f)}")
     finally:
         f.close()
     if not res["ended"]:
