@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..execution import fresh_scratch, publish_scratch, remove_scratch, scratch_path
 from ..io import atomic_path, atomic_write_text
 from ..outputs import product, write_marker, zarr_input
 from ..reconstruction.data import PSFDataset
@@ -37,7 +38,7 @@ def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alig
     if final.exists() and (not final.is_dir() or any(final.iterdir())):
         raise ValidationError(f"-o/--output {final}: exists and is not empty (captures are written into a new folder)")
     with product(final, "captures", {"PHASES": zarr_input(phases), "--device": device},
-                 scratch=(final.with_name(final.name + ".partial"),)):
+                 scratch=(scratch_path(final),)):
         return _synth_captures(phases, device, final, alignment, camera, samples, split, fmt, flats, darks, saturate,
                                seed, progress)
 
@@ -53,17 +54,16 @@ def _synth_captures(phases, device, final: Path, alignment, camera, samples, spl
     if n == 0:
         raise ValidationError(f"{phases}: the {split} split is empty (no samples to capture)")
     ext = {"png": ".png", "tiff": ".tif", "npy": ".npy", "fits": ".fits"}[fmt]
-    out = final.with_name(final.name + ".partial")  # renamed when complete: a failure leaves no capture folder
-    shutil.rmtree(out, ignore_errors=True)
+    out = fresh_scratch(final)  # OUT.partial, renamed when complete: a failure leaves no capture folder
     try:
         rep = _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed,
                      phases, device, progress)
         write_marker(out, "captures")
         if final.exists():  # empty but for the marker (refused otherwise, above)
             shutil.rmtree(final)
-        out.rename(final)
+        publish_scratch(out, final)
     except BaseException:
-        shutil.rmtree(out, ignore_errors=True)
+        remove_scratch(out)
         raise
     return {**rep, "output": str(final)}
 

@@ -81,7 +81,7 @@ def _cmd_coupling_sweep(a: argparse.Namespace) -> int:
         if not isinstance(rep, dict) or "cases" not in rep:
             raise InputError(f"{folder}: not a coupling-check output (no cases)")
         reports.append(rep)
-        inputs[f"report {i + 1}"] = path
+        inputs[f"report {i + 1}"] = path.parent if path.name == "coupling-check.json" else path  # its folder
     designs = {(r.get("design") or {}).get("sha256") for r in reports} - {None}
     if len(designs) > 1:
         raise InputError("the reports are of different designs (their design sha256 differ): one design per sweep")
