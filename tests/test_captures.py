@@ -26,7 +26,7 @@ def _perturbed_device(base, layout):
 
     rec = load_dataset_recipe(tiny_dataset_recipe(base, layout, samples=2, shard=2, extra=(
         "\n[fabrication]\nbias_x_nm = 10\nbias_y_nm = -10\njitter_nm = 3\nseed = 1\n")))
-    build_dataset(rec, base / "device", workers=1)
+    build_dataset(rec, base / "device")
     return base / "device"
 
 

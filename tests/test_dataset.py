@@ -15,6 +15,7 @@ import pytest
 from conftest import REPO, tiny_dataset_recipe
 
 from metadesign.cli import main
+from metadesign.execution import Execution
 from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe, open_dataset
 
 ARRAYS = ("psf", "psf_power", "received", "rytov", "rytov_measured", "seed", "split")
@@ -43,7 +44,7 @@ def test_same_arrays_for_one_worker_two_workers_and_a_dask_cluster(tiny_dataset,
     from dask.distributed import LocalCluster
 
     rec = load_dataset_recipe(tiny_dataset_recipe(tmp_path, demo_products["layout"]))
-    build_dataset(rec, tmp_path / "j2", workers=2)
+    build_dataset(rec, tmp_path / "j2", run=Execution(workers=2))
     _same(tiny_dataset, tmp_path / "j2")  # tiny_dataset: the same recipe built with -j 1
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                       env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}) as cl:
@@ -102,7 +103,7 @@ def test_sigkilled_build_resumes_to_the_same_bytes(tiny_dataset, demo_products, 
     assert (out / ".shards" / "000000.json").exists() and not (out / ".shards" / "000002.json").exists()
     with pytest.raises(Exception, match="incomplete"):
         open_dataset(out)
-    rep = build_dataset(load_dataset_recipe(rec), out, workers=1)
+    rep = build_dataset(load_dataset_recipe(rec), out)
     assert rep["resumed_shards"] >= 1
     _same(tiny_dataset, out)
 

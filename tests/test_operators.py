@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from conftest import REPO  # noqa: F401  (sys.path)
 
+from metadesign.execution import Execution
+
 torch = pytest.importorskip("torch")
 
 
@@ -20,7 +22,7 @@ def with_ops(tiny_dataset, tmp_path_factory):
 
     d = tmp_path_factory.mktemp("ops") / "ds"
     shutil.copytree(tiny_dataset, d)
-    rep = build_operators(d, ("train",), workers=1)
+    rep = build_operators(d, ("train",))
     return d, rep
 
 
@@ -62,7 +64,7 @@ def test_same_bytes_on_two_workers_and_after_an_interrupted_run(with_ops, tmp_pa
     d, _ = with_ops
     two = tmp_path / "two"
     shutil.copytree(tiny_dataset, two)
-    build_operators(two, ("train",), workers=2)
+    build_operators(two, ("train",), run=Execution(workers=2))
     assert np.array_equal(_ops(two), _ops(d))
     # interrupted after the first shard (the progress callback raises: a kill between shards), then resumed
     cut = tmp_path / "cut"
@@ -75,15 +77,15 @@ def test_same_bytes_on_two_workers_and_after_an_interrupted_run(with_ops, tmp_pa
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        build_operators(cut, ("train",), workers=1, progress=boom)
+        build_operators(cut, ("train",), run=Execution(progress=boom))
     from metadesign.reconstruction.data import PSFDataset
 
     with pytest.raises(Exception, match="no stored bucket operators"):
         PSFDataset(cut, "train", operators=True)  # unfinished: not usable
-    rep = build_operators(cut, ("train",), workers=1)
+    rep = build_operators(cut, ("train",))
     assert rep["resumed_shards"] == 1 and 0 < rep["computed_samples"] < rep["samples"]
     assert np.array_equal(_ops(cut), _ops(d))
-    again = build_operators(cut, ("train", "train"), workers=1)
+    again = build_operators(cut, ("train", "train"))
     assert again["computed_samples"] == 0
 
 

@@ -23,8 +23,9 @@ def _cmd_build(a: argparse.Namespace) -> int:
     if a.samples is not None:
         rec = rec.with_samples(a.samples)
     out = out_dir(a.output or rec.default_output())
-    rep = build_dataset(rec, out, workers=a.workers, scheduler=a.scheduler, overwrite=a.overwrite,
-                        progress=progress_bar("dataset", unit="sample"), log=log_to(a.json))
+    rep = build_dataset(rec, out, a.overwrite, Execution(workers=a.workers, scheduler=a.scheduler,
+                                                         progress=progress_bar("dataset", unit="sample"),
+                                                         log=log_to(a.json)))
     ps = rep["per_sample_seconds"]
     text = (f"wrote {out}: {rep['samples']} samples (8 x {rep['tensor'][1]}^2), split "
             + "/".join(str(v) for v in rep["split_counts"].values())
@@ -40,8 +41,9 @@ def _cmd_build(a: argparse.Namespace) -> int:
 def _cmd_operators(a: argparse.Namespace) -> int:
     from .operators import build_operators
 
-    rep = build_operators(a.dataset, a.splits, workers=a.workers, scheduler=a.scheduler, overwrite=a.overwrite,
-                          progress=progress_bar("operators", unit="sample"), log=log_to(a.json))
+    rep = build_operators(a.dataset, a.splits, a.overwrite, Execution(workers=a.workers, scheduler=a.scheduler,
+                                                                       progress=progress_bar("operators", unit="sample"),
+                                                                       log=log_to(a.json)))
     text = (f"{rep['output']}: bucket operators of {'/'.join(rep['splits'])} ({rep['samples']} samples, "
             f"{rep['bucket_pixels']} x {rep['aperture_pixels']} complex64, {rep['bytes_per_operator'] / 1e3:.0f} kB "
             f"each, {rep['bytes_on_disk'] / 1e9:.2f} GB on disk); {rep['computed_samples']} computed "
@@ -154,13 +156,13 @@ def _cmd_evaluate(a: argparse.Namespace) -> int:
     import json as _json
 
     from ..io import atomic_write_text
-    from .evaluate import evaluate_model, plot_fig3, summarise, write_results
+    from .evaluate import evaluate_model, noise_levels_of, plot_fig3, summarise, write_results
 
     out = out_dir(a.output or Path(a.dataset) / "evaluation")
     from ..cliutil import json_safe
 
     with product(out, "evaluation", {"model": a.model, "dataset": zarr_input(a.dataset)}):
-        res = evaluate_model(a.model, a.dataset, a.split, a.noise, a.photons, limit=a.limit,
+        res = evaluate_model(a.model, a.dataset, a.split, noise_levels_of(a.noise, a.photons), limit=a.limit,
                              progress=progress_bar("evaluate", unit="sample"))
         files = write_results(res, out)
         figs = plot_fig3(res, out)

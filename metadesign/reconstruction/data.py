@@ -88,14 +88,14 @@ class PSFDataset:
     "seed", "index"}`` as torch tensors, plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
     operator) when asked.  Works with ``DataLoader(num_workers > 0)``: nothing but small
     metadata is read in the constructor; each worker opens the store on first use.  Noise levels are
-    numbers or ``(lo, hi)`` ranges (:class:`NoiseRange`)."""
+    numbers or ``(lo, hi)`` ranges (:class:`NoiseRange`): ``noise`` holds its keywords
+    (``gaussian_percent``, ``photons_at_peak``, ``read_noise_e``)."""
 
-    def __init__(self, path: str | Path, split: str = "train", gaussian_percent=0.0,
-                 photons_at_peak=None, read_noise_e: float = 0.0, noise_seed: int = 0,
-                 limit: int | None = None, screens: bool = False, operators: bool = False):
+    def __init__(self, path: str | Path, split: str = "train", noise_seed: int = 0, limit: int | None = None,
+                 screens: bool = False, operators: bool = False, **noise):
         if split not in ("train", "val", "test", "all"):
             raise ValidationError(f"split: expected train, val, test or all, got {split!r}")
-        self.noise = NoiseRange(gaussian_percent, photons_at_peak, read_noise_e)
+        self.noise = NoiseRange(**noise)
         check_int("noise_seed", noise_seed, 0, 2**63 - 1)
         self.info = open_dataset(path)
         self.path = str(path)

@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
+from ..execution import SERIAL, Execution
 from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..outputs import Need, product
@@ -38,7 +39,19 @@ from .dataset_store import (DATASET_FORMAT, consolidate, create_store, open_data
                             read_store_pupil, write_store_pupil)
 
 __all__ = ["build_dataset", "ShardContext", "make_sample", "measured_rytov", "normalise_psf", "make_shard",
-           "shard_folder", "shard_name", "run_shards", "ensure_layout"]
+           "shard_folder", "shard_name", "run_shards", "ensure_layout", "execution_of"]
+
+#: the execution keywords long jobs took before :class:`~metadesign.execution.Execution` (still accepted)
+LEGACY_EXECUTION = ("workers", "scheduler", "client", "progress", "log")
+
+
+def execution_of(run: Execution, legacy: dict, what: str) -> Execution:
+    """``run`` with the execution keywords of the older signatures (``workers=``, ``scheduler=``, ``client=``,
+    ``progress=``, ``log=``) that callers still pass; any other keyword is Python's TypeError."""
+    bad = [k for k in legacy if k not in LEGACY_EXECUTION]
+    if bad:
+        raise TypeError(f"{what}() got an unexpected keyword argument {bad[0]!r}")
+    return run.replace(**legacy) if legacy else run
 
 
 @dataclass
@@ -182,23 +195,22 @@ def _make_shard(ctx, i: int) -> tuple[str, dict]:
     return shard_name(i), ctx.make(i)
 
 
-def run_shards(ctx, shards: dict[str, int], folder: TaskFolder, workers: int, scheduler: str | None = None,
-               client=None, weight=lambda name: 1, progress=None, log=lambda s: None):
+def run_shards(ctx, shards: dict[str, int], folder: TaskFolder, run: Execution = SERIAL, weight=lambda name: 1):
     """``ctx.make(i)`` for every shard not yet marked done in ``folder`` (a :class:`ShardContext` or the
-    operators' context), on the resumable engine (:func:`metadesign.tasks.run_resumable`): the context goes
-    to each worker once; returns ``(results by name, names computed now)``."""
-    return run_resumable(_make_shard, shards, folder, store="marker", workers=workers, shared=ctx, client=client,
-                         scheduler=scheduler, dask_key=f"metadesign-{ctx.kind}-{ctx.out}", weight=weight,
-                         progress=progress, log=log, unit="sample")
+    operators' context), on the resumable engine (:func:`metadesign.tasks.run_resumable`) under ``run``: the
+    context goes to each worker once; returns ``(results by name, names computed now)``."""
+    return run.run(_make_shard, shards, folder, store="marker", shared=ctx,
+                   dask_key=f"metadesign-{ctx.kind}-{ctx.out}", weight=weight, unit="sample")
 
 
-def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int = 1, scheduler: str | None = None,
-                  overwrite: bool = False, progress: Callable[[int, int], None] | None = None,
-                  log: Callable[[str], None] = lambda s: None, client=None) -> dict:
+def build_dataset(recipe: DatasetRecipe, out: Path | None = None, overwrite: bool = False,
+                  run: Execution = SERIAL, **legacy) -> dict:
     """Build (or resume) the dataset of ``recipe`` into ``out``; returns a report.
 
-    ``scheduler``: address of a running Dask scheduler (or ``client``, a ``dask.distributed.Client``);
-    default: a local pool of ``workers`` spawned processes."""
+    ``run``: a local pool of ``run.workers`` spawned processes, or ``run.scheduler`` (the address of a running
+    Dask scheduler) or ``run.client`` (a ``dask.distributed.Client``); its progress and log.  The older
+    keywords ``workers=``, ``scheduler=``, ``client=``, ``progress=``, ``log=`` are still accepted."""
+    run = execution_of(run, legacy, "build_dataset")
     out = Path(out or recipe.default_output())
     if out.exists() and not out.is_dir():
         raise ValidationError(f"-o/--output {out}: exists and is not a folder")
@@ -215,17 +227,18 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, workers: int =
                                   "fabrication.coupling_model": resolve_against(base, f["coupling_model"]),
                                   "fabrication.fab_library": resolve_against(base, f["fab_library"])}, need=need):
         own = None
-        if scheduler is not None and client is None:  # an unreachable scheduler fails before anything is written
-            client = own = dask_client(scheduler)
+        if run.scheduler is not None and run.client is None:  # an unreachable scheduler fails before anything is written
+            own = dask_client(run.scheduler)
+            run = run.replace(client=own)
         try:
-            return _build_dataset(recipe, out, workers, client is not None, overwrite, progress, log, client)
+            return _build_dataset(recipe, out, overwrite, run)
         finally:
             if own is not None:
                 own.close()
 
 
-def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, overwrite: bool, progress, log,
-                   client) -> dict:
+def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execution) -> dict:
+    log = run.log
     existing = read_attrs(out) if (out / "zarr.json").exists() else None  # (a foreign folder: refused already)
     scenario = load_scenario(recipe.turbulence)
     for r in ([*recipe.rytov_values] if recipe.rytov_values else list(recipe.rytov_range)):
@@ -273,7 +286,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
                      "spawn_key=(0, i)) & (2^63-1); Rytov from SeedSequence(root, spawn_key=(1, i))",
             "split_labels": {"0": "train", "1": "val", "2": "test"},
         }
-        create_store(out, n, recipe.tensor_size, shard, a, attrs, split_labels(recipe.seed, n, recipe.split))
+        create_store(out, attrs, split_labels(recipe.seed, n, recipe.split))
     cp = _device_pupil(fab, sensing, pert, out, layout_sha)  # after the store (mode "w")
     folder = shard_folder(out)
     shards = {shard_name(i): i for i in range(n_shards)}
@@ -285,8 +298,8 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
         f"tensor 8x{recipe.tensor_size}^2 -> {out}")
     timings: dict = {}
     t_sweep = time.perf_counter()
-    results, computed_now = run_shards(ctx, shards, folder, workers, client=client, weight=size.__getitem__,
-                                       progress=progress)
+    results, computed_now = run_shards(ctx, shards, folder, run.replace(scheduler=None, log=lambda s: None),
+                                       weight=size.__getitem__)
     for nm in computed_now:
         for k, v in results[nm]["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
@@ -299,6 +312,6 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, workers: int, dask: bool, o
     return {"output": str(out), "samples": n, "shards": n_shards, "resumed_shards": len(done),
             "computed_samples": computed, "seconds": time.perf_counter() - t_start, "sweep_seconds": sweep,
             "per_sample_seconds": {k: v / max(computed, 1) for k, v in timings.items()},
-            "workers": "dask" if dask else workers, **info.summary()}
+            "workers": "dask" if run.client is not None else run.workers, **info.summary()}
 
 

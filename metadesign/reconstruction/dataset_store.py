@@ -187,12 +187,15 @@ CF_ATTRS = {
 }
 
 
-def create_store(out: Path, n: int, s: int, shard: int, a: int, attrs: dict, split: np.ndarray,
-                  rytov_fill: float = float("nan")):
-    """The store's arrays and attributes.  ``rytov_fill``: imported captures store an unknown Rytov number as
-    NaN, so their fill value is another (-1) and NaN chunks are written."""
+def create_store(out: Path, attrs: dict, split: np.ndarray, rytov_fill: float = float("nan")):
+    """The store's arrays and attributes; the arrays' sizes are the attributes' (``samples``, ``tensor_size``,
+    ``shard_size``, ``received_crop.size``), so the two cannot disagree.  ``rytov_fill``: imported captures
+    store an unknown Rytov number as NaN, so their fill value is another (-1) and NaN chunks are written."""
     import zarr
     from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    n, s, shard = int(attrs["samples"]), int(attrs["tensor_size"]), int(attrs["shard_size"])
+    a = int(attrs["received_crop"]["size"])
 
     g = zarr.open_group(str(out), mode="w")
     # every sample's chunk carries a CRC-32C (zarr checks it on each read: a flipped bit is an error, not a

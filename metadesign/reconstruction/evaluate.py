@@ -59,10 +59,30 @@ def training_noise(card: dict) -> str:
     return f"{v[0]:g}-{v[1]:g} %" if isinstance(v, list) else f"{v:g} %" if isinstance(v, (int, float)) else f"{v} %"
 
 
-def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,), photons=None,
-                   limit: int | None = None, batch: int = 16, device: str | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> dict:
-    """Per-sample results for every noise level (``photons``: shot + read noise instead of Gaussian)."""
+#: samples per evaluation batch
+EVAL_BATCH = 16
+
+
+def noise_levels_of(gaussian_percent=(0.0,), photons=None) -> list:
+    """The ``noise_levels`` of :func:`evaluate_model` from the CLI's lists: Gaussian levels (% of peak),
+    then shot + read noise levels (photo-electrons at the peak) as ``("photons", level)`` pairs."""
+    return [*gaussian_percent, *(("photons", p) for p in (photons or []))]
+
+
+def _levels(noise_levels) -> list[tuple[str, float]]:
+    """``(kind, level)`` of each noise level: a number is a Gaussian level, a pair names its kind."""
+    out = [(str(x[0]), float(x[1])) if isinstance(x, (tuple, list)) else ("gaussian", float(x)) for x in noise_levels]
+    bad = next((k for k, _ in out if k not in ("gaussian", "photons")), None)
+    if bad is not None:
+        raise ValidationError(f"noise level kind {bad!r}: expected gaussian or photons")
+    return out
+
+
+def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,), limit: int | None = None,
+                   device: str | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Per-sample results for every noise level: a number is Gaussian sensor noise (% of each channel's
+    peak), a pair ``("photons", n)`` shot + read noise instead (``n`` photo-electrons at the peak;
+    :func:`noise_levels_of`)."""
     import torch
 
     dev = torch.device(device) if device else pick_device()
@@ -70,12 +90,12 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     refines = "refine" in card  # rows: "unet" the refiner's estimate, "start" its U-Net's
     cd = None
     if card.get("codesign"):  # a co-design U-Net: its PSFs rendered by its own diversity from the received fields
-        if photons:
+        if any(kind == "photons" for kind, _ in _levels(noise_levels)):
             raise ValidationError(f"{model_path}: a co-design model is evaluated with Gaussian sensor noise only "
                                   "(its twin renders the noise the datasets draw); leave out --photons")
         cd = codesign_for_evaluation(model, card["codesign"], dataset, dev)
     rows: dict = {}
-    levels = [("gaussian", float(x)) for x in noise_levels] + [("photons", float(p)) for p in (photons or [])]
+    levels = _levels(noise_levels)
     total = 0
     base = PSFDataset(dataset, split, limit=limit, screens=True)
     if len(base) == 0:
@@ -94,7 +114,7 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
                         photons_at_peak=level if kind == "photons" else None,
                         read_noise_e=3.0 if kind == "photons" else 0.0, noise_seed=EVAL_NOISE_SEED, limit=limit,
                         screens=True)
-        loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, collate_fn=_collate)
+        loader = torch.utils.data.DataLoader(ds, batch_size=EVAL_BATCH, shuffle=False, collate_fn=_collate)
         acc = {k: [] for k in ("index", "rytov", "rytov_measured", "none", "unet", "phase_conjugate",
                                "complex_conjugate", "residual_rms", "residual_tiptilt_rms", "vortex_free",
                                "branch_points")

@@ -23,10 +23,11 @@ from typing import Callable
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
 from ..outputs import Need, check_need, product
 from ..validation import ValidationError, check_memory
 from .data import PSFDataset
-from .dataset_build import run_shards, shard_folder, shard_name
+from .dataset_build import execution_of, run_shards, shard_folder, shard_name
 from .dataset_store import OPERATOR_ARRAY as ARRAY
 from .dataset_store import consolidate, has_operators, open_dataset, open_store, operator_info
 from .losses import PiB
@@ -81,16 +82,19 @@ class OperatorContext:
                 "timings": {"operator": time.perf_counter() - t0}}
 
 
-def build_operators(path: str | Path, splits=("train",), workers: int = 1, scheduler: str | None = None,
-                    overwrite: bool = False, progress: Callable[[int, int], None] | None = None,
-                    log: Callable[[str], None] = lambda s: None, client=None) -> dict:
-    """Compute (or resume) the stored bucket operators of ``splits`` of the dataset at ``path``."""
+def build_operators(path: str | Path, splits=("train",), overwrite: bool = False, run: Execution = SERIAL,
+                    **legacy) -> dict:
+    """Compute (or resume) the stored bucket operators of ``splits`` of the dataset at ``path`` under ``run``
+    (local workers or Dask; its progress and log; the older keywords ``workers=``, ``scheduler=``,
+    ``client=``, ``progress=``, ``log=`` are still accepted)."""
+    run = execution_of(run, legacy, "build_operators")
     open_dataset(path)  # a missing or damaged dataset: one line, before the lock
     with product(path, "dataset"):  # the operators are written into the dataset itself
-        return _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client)
+        return _build_operators(path, splits, overwrite, run)
 
 
-def _build_operators(path, splits, workers, scheduler, overwrite, progress, log, client) -> dict:
+def _build_operators(path, splits, overwrite: bool, run: Execution) -> dict:
+    log = run.log
     splits = tuple(dict.fromkeys(splits))
     bad = [s for s in splits if s not in SPLITS]
     if bad or not splits:
@@ -130,7 +134,7 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
                 "seconds": time.perf_counter() - t0,
                 "per_sample_seconds": {"operator": seconds_computing / computed} if computed else {},
                 "bytes_per_operator": nb * n_ap * 8, "bytes_on_disk": on_disk,
-                "workers": workers if scheduler is None and client is None else "dask", **want_attrs}
+                "workers": run.workers if not run.distributed else "dask", **want_attrs}
 
     if old is not None and old.get("complete"):
         log(f"{out}: operators of {'/'.join(want_attrs['splits'])} are up to date")
@@ -147,8 +151,8 @@ def _build_operators(path, splits, workers, scheduler, overwrite, progress, log,
     todo = int(sum(per_shard[shards[nm]] for nm in shards if nm not in done))
     log(f"operators of {out} ({'/'.join(want_attrs['splits'])}): {total} samples, "
         f"{nb} x {n_ap} complex64 each ({nb * n_ap * 8 / 1e3:.0f} kB); {len(shards) - len(done)} shards to compute")
-    results, computed = run_shards(ctx, shards, folder, workers, scheduler, client,
-                                   weight=lambda nm: int(per_shard[shards[nm]]), progress=progress)
+    results, computed = run_shards(ctx, shards, folder, run.replace(log=lambda s: None),
+                                   weight=lambda nm: int(per_shard[shards[nm]]))
     tim = sum(results[nm]["timings"]["operator"] for nm in computed)
     g = open_store(out, "r+")
     g.attrs.update({ARRAY: {**want_attrs, "complete": True}})
