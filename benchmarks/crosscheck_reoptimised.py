@@ -8,15 +8,15 @@ rms residual ``|t - target|`` under PEDS and at convergence, before and after, a
 with its standard error.  Not run by CI (~12 min on 2 workers):
 
     python benchmarks/crosscheck_reoptimised.py [layouts/paper-5mm-compensated] [--supercells 96] [-K 5] [-j 2] [--json]
+        [-o FOLDER]
 
-The design folder: `metadesign design compensate layouts/paper-5mm` (from the paper design)."""
+The design folder: `metadesign design compensate layouts/paper-5mm` (from the paper design).  ``-o FOLDER``:
+the report also written to FOLDER/crosscheck.json (the solves in FOLDER.partial: a rerun after a kill reuses
+them)."""
 
 import argparse
-import json
 import os
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,21 +25,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
-from _paper_design import paper_device  # noqa: E402
+from _paper_design import crosscheck, has_design, output_arguments, paper_device  # noqa: E402
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("design", nargs="?", default=str(REPO / "layouts" / "paper-5mm-compensated"))
-    ap.add_argument("-j", "--workers", type=int, default=2)
-    ap.add_argument("--json", action="store_true")
-    ap.add_argument("--supercells", type=int, default=96)
-    ap.add_argument("-K", "--neighbours", type=int, default=5)
-    ap.add_argument("--seed", type=int, default=7)
-    a = ap.parse_args(argv)
-    fab = paper_device(a.design)
-    if fab is None:
-        return 2
+def reoptimised_report(a, scratch) -> dict:
+    """The report: the starting and the re-chosen atoms' residuals to target under PEDS, the LPA and at
+    convergence (solves under ``scratch``)."""
     from metadesign.design.compensate import atom_neighbours, descend_under, sampled_supercells
     from metadesign.design.store import load_design
     from metadesign.library.coupling import lpa_t, unit_rms
@@ -48,30 +39,28 @@ def main(argv=None) -> int:
     from metadesign.library.supercells import solve_table
     from metadesign.sensing.sampled import eligible_supercells
 
+    fab = paper_device(a.design)
     d, lib = load_design(a.design), fab.lib
     ids = eligible_supercells(fab)
     pick = ids[np.random.default_rng(a.seed).integers(0, len(ids), a.supercells)]
     at, S = sampled_supercells(d, pick)
     aw = np.stack([d.atoms.wx, d.atoms.wy], 1)
-    scratch = Path(tempfile.mkdtemp(prefix="crosscheck-reoptimised-"))
-    try:
-        def peds(tuples):
-            return certified_t(lib, aw[tuples], scratch / "peds", workers=a.workers)
 
-        t_start = peds(at)
-        gamma = (np.conj(S) * t_start).sum(0) / (np.abs(S) ** 2).sum(0)
-        target = S * gamma
-        new = at.copy()
-        t0 = time.perf_counter()
-        t_new = descend_under(new, target, atom_neighbours(d.atoms.phase, a.neighbours), peds, 1, t=t_start)
-        t_desc = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        conv = {}
-        for name, tup in (("start", at), ("re-chosen", new)):
-            conv[name] = solve_table(aw[tup], lib.stack, 800, scratch / f"converged-{name}", workers=a.workers)[0]
-        t_conv = time.perf_counter() - t0
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+    def peds(tuples):
+        return certified_t(lib, aw[tuples], scratch / "peds", workers=a.workers)
+
+    t_start = peds(at)
+    gamma = (np.conj(S) * t_start).sum(0) / (np.abs(S) ** 2).sum(0)
+    target = S * gamma
+    new = at.copy()
+    t0 = time.perf_counter()
+    t_new = descend_under(new, target, atom_neighbours(d.atoms.phase, a.neighbours), peds, 1, t=t_start)
+    t_desc = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    conv = {}
+    for name, tup in (("start", at), ("re-chosen", new)):
+        conv[name] = solve_table(aw[tup], lib.stack, 800, scratch / f"converged-{name}", workers=a.workers)[0]
+    t_conv = time.perf_counter() - t0
     tu = interpolate_t(lib, aw[at][..., 0], aw[at][..., 1])[0]
     rms = unit_rms(tu)
     res = {("PEDS", "start"): t_start, ("PEDS", "re-chosen"): t_new,
@@ -88,9 +77,11 @@ def main(argv=None) -> int:
                                "improved_fraction": float(((dc.sum(1)) < 0).mean())}
     pe = np.abs(t_new - conv["re-chosen"]) / rms, np.abs(t_start - conv["start"]) / rms
     rep["peds_error"] = {"re-chosen": float(pe[0].mean()), "start": float(pe[1].mean())}
-    if a.json:
-        print(json.dumps(rep, indent=2))
-        return 0
+    return rep
+
+
+def show(a, rep) -> None:
+    t_desc, t_conv = rep["descent_seconds"], rep["converged_seconds"]
     print(f"{a.supercells} supercells of {a.design}, K = {a.neighbours}: {100 * rep['pillars_changed_fraction']:.0f} % of "
           f"pillars re-chosen (descent {t_desc:.0f} s, converged solves {t_conv:.0f} s on {a.workers} workers)")
     print("  rms |t - target| / rms|t|         x       y")
@@ -101,7 +92,22 @@ def main(argv=None) -> int:
           f"y {c['mean'][1]:+.4f} +- {c['se'][1]:.4f}; improved at convergence: {100 * c['improved_fraction']:.0f} %")
     print(f"  PEDS vs converged (mean / rms|t|): start {rep['peds_error']['start']:.3f}, "
           f"re-chosen {rep['peds_error']['re-chosen']:.3f}")
-    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("design", nargs="?", default=str(REPO / "layouts" / "paper-5mm-compensated"))
+    ap.add_argument("-j", "--workers", type=int, default=2)
+    ap.add_argument("--json", action="store_true")
+    output_arguments(ap)
+    ap.add_argument("--supercells", type=int, default=96)
+    ap.add_argument("-K", "--neighbours", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=7)
+    a = ap.parse_args(argv)
+    if not has_design(a.design):
+        return 2
+    return crosscheck(a, Path(__file__).name, {"design": a.design}, lambda scratch: reoptimised_report(a, scratch),
+                      lambda rep: show(a, rep))
 
 
 if __name__ == "__main__":
