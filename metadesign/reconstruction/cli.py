@@ -239,6 +239,19 @@ def _cmd_import(a: argparse.Namespace) -> int:
 
 def register(sub) -> dict:
     """Add the stage-6 commands; returns the ``dataset`` action group (studies add theirs to it)."""
+    _register_export(sub)
+    _register_evaluate(sub)
+    _register_train(sub)
+    dsub = _register_dataset(sub)
+    _register_build(dsub)
+    _register_operators(dsub)
+    _register_inspect(dsub)
+    _register_import(dsub)
+    return {"dataset": dsub}
+
+
+def _register_export(sub) -> None:
+    """``export``: a model as ONNX."""
     ex = sub.add_parser("export", help="stage 6: export a model for deployment (ONNX, dynamic batch)",
                         description="Export the U-Net as ONNX with a dynamic batch axis and check it against "
                         "torch in onnxruntime.")
@@ -250,6 +263,9 @@ def register(sub) -> dict:
     ex.add_argument("--json", action="store_true", help="print the report as JSON")
     ex.set_defaults(func=_cmd_export)
 
+
+def _register_evaluate(sub) -> None:
+    """``evaluate``: a model on a dataset split."""
     ev = sub.add_parser(
         "evaluate", help="stage 6: NPiB of a model on a dataset split (Fig. 3b-d), residual phase, gains",
         description="Stage 6c. Per sample: NPiB uncorrected, U-Net, phase conjugate and complex conjugate (the "
@@ -268,6 +284,9 @@ def register(sub) -> dict:
     ev.add_argument("--json", action="store_true", help="print the summary as JSON")
     ev.set_defaults(func=_cmd_evaluate)
 
+
+def _register_train(sub) -> None:
+    """``train``: a recipe into a run folder."""
     tr = sub.add_parser(
         "train", help="stage 6: train the U-Net, or a learned refinement on top of one ([refine] recipes); resumable, DDP under torchrun",
         description="Stage 6b. Train the U-Net of a recipe on a dataset: AdamW, step schedule, noise at load; "
@@ -284,6 +303,9 @@ def register(sub) -> dict:
     tr.add_argument("--json", action="store_true", help="print the report as JSON")
     tr.set_defaults(func=_cmd_train)
 
+
+def _register_dataset(sub):
+    """``dataset``: the group of its actions (returned)."""
     ds = sub.add_parser(
         "dataset", help="stage 6: training data: dataset build RECIPE | operators | show | plot | import CAPTURES | "
         "synth-captures",
@@ -293,6 +315,11 @@ def register(sub) -> dict:
         "Rytov histogram.")
     dsub = ds.add_subparsers(dest="dataset_command", metavar="ACTION")
     dsub.required = True
+    return dsub
+
+
+def _register_build(dsub) -> None:
+    """``dataset build``."""
     b = dsub.add_parser("build", help="build (or resume) a dataset from a recipe")
     b.add_argument("recipe", help="dataset recipe (TOML), e.g. sensing/dataset-demo.toml")
     b.add_argument("-o", "--output", help="dataset folder (default: a folder named after the recipe, beside it)")
@@ -303,6 +330,10 @@ def register(sub) -> dict:
     b.add_argument("--overwrite", action="store_true", help="replace a dataset built from a different recipe")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.set_defaults(func=_cmd_build)
+
+
+def _register_operators(dsub) -> None:
+    """``dataset operators``."""
     op = dsub.add_parser(
         "operators", help="store each sample's bucket operator: the end-to-end loss as a small matrix product",
         description="Compute each sample's bucket operator A (the bucket pixels' rows of the back-propagation "
@@ -318,6 +349,10 @@ def register(sub) -> dict:
     op.add_argument("--overwrite", action="store_true", help="recompute operators stored for other splits")
     op.add_argument("--json", action="store_true", help="print the report as JSON")
     op.set_defaults(func=_cmd_operators)
+
+
+def _register_inspect(dsub) -> None:
+    """``dataset show``, ``verify`` and ``plot``."""
     s = dsub.add_parser("show", help="summarise a dataset")
     s.add_argument("dataset", help="dataset folder")
     s.add_argument("--json", action="store_true", help="print as JSON")
@@ -334,6 +369,10 @@ def register(sub) -> dict:
     p.add_argument("-o", "--output", help="PNG path (default: DATASET/fig-dataset.png)")
     limit_arg(p, "at most this many samples drawn (1..8, default 3)", type=integer(1, 8), default=3)
     p.set_defaults(func=_cmd_plot)
+
+
+def _register_import(dsub) -> None:
+    """``dataset import``: camera captures into a dataset."""
     im = dsub.add_parser(
         "import", help="camera captures (frames + SLM phases + manifest) -> a dataset (propagation = slm)",
         description="Import captured frames: fit the relay misalignment from flat captures against the reference "
@@ -361,4 +400,3 @@ def register(sub) -> dict:
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     im.add_argument("--json", action="store_true", help="print the report as JSON")
     im.set_defaults(func=_cmd_import)
-    return {"dataset": dsub}
