@@ -47,9 +47,8 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
-from .scratch import is_scratch
+from .execution import is_scratch
 from .io import atomic_write_text, claim, output_lock
-from .scratch import remove_scratch
 from .plotting import PNG_KEY
 from .validation import MEMORY_FRACTION, InputError, ValidationError, available_memory
 
@@ -522,6 +521,8 @@ def product(out: str | Path, kind: str, inputs: Mapping[str, str | Path | Input 
                 if not ok and created and out.is_dir() and (refused or {p.name for p in out.iterdir()} <= {MARKER}):
                     shutil.rmtree(out, ignore_errors=True)
                 if refused:
+                    from .execution import remove_scratch
+
                     for s in new_scratch:
                         remove_scratch(s)
 
