@@ -210,13 +210,13 @@ def test_table_resumes_after_sigkill(tmp_path):
 
 
 def test_table_rows_are_prefix_stable_and_hold_out_the_same_rows():
-    from metadesign.studies.supercells import sample_rows
+    from metadesign.studies.supercells import RowDraw, sample_rows
 
     aw = np.random.default_rng(0).uniform(0.1e-6, 0.5e-6, size=(16, 2))
     im = np.random.default_rng(1).integers(0, 16, size=(20, 20)).astype(np.uint8)
     mix = (0.4, 0.0, 0.3, 0.3)
-    a = sample_rows(30, 7, mix, (aw, im), None, (0.1e-6, 0.5e-6), 10e-9, 5)
-    b = sample_rows(12, 7, mix, (aw, im), None, (0.1e-6, 0.5e-6), 10e-9, 5)
+    a = sample_rows(30, RowDraw(7, mix, 10e-9, 5), (aw, im), None, (0.1e-6, 0.5e-6))
+    b = sample_rows(12, RowDraw(7, mix, 10e-9, 5), (aw, im), None, (0.1e-6, 0.5e-6))
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x[:12], y)
     assert list(np.flatnonzero(a[2])) == [4, 9, 14, 19, 24, 29]
@@ -391,6 +391,7 @@ def test_active_learning_picks_the_most_uncertain_and_resumes(paper_library, tmp
     from metadesign.library.coupling_net import coupling_t
     from metadesign.library.store import interpolate_t
     from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
+    from metadesign.execution import Execution
     from metadesign.studies.active import ActiveConfig, active_learning, ensemble_spread
 
     st = Stack()
@@ -404,7 +405,7 @@ def test_active_learning_picks_the_most_uncertain_and_resumes(paper_library, tmp
     cfg = ActiveConfig(start=8, batch=4, rounds=1, members=2, steps=30,
                        model=CouplingConfig(hidden=8, layers=2, interaction="environment"))
     logs = []
-    rep = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, log=logs.append)
+    rep = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, Execution(log=logs.append))
     assert [r["solves"] for r in rep["active"]] == [8, 12] and [r["solves"] for r in rep["random"]] == [8, 12]
     assert len(list((tmp_path / "part").glob("chunk-*.npz"))) == 1  # the batch, one chunk
     # the batch was the round-0 ensemble's top-4 spread: refit round 0 (deterministic) and rank independently
@@ -421,7 +422,7 @@ def test_active_learning_picks_the_most_uncertain_and_resumes(paper_library, tmp
     _, spread = ensemble_spread(members, pool, tu_pool)
     assert set(np.argsort(-spread)[:4].tolist()) == top == set(rep["active"][0]["picked"])
     logs.clear()
-    again = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, log=logs.append)
+    again = active_learning(table, table, paper_library, pool, tmp_path / "part", cfg, Execution(log=logs.append))
     assert any("resuming: 1/1 tasks" in s for s in logs), logs  # the batch's solves kept, none redone
     drop = lambda c: [{k: v for k, v in r.items() if k != "fit_seconds"} for r in c]  # noqa: E731
     assert drop(again["active"]) == drop(rep["active"]) and drop(again["random"]) == drop(rep["random"])

@@ -64,14 +64,15 @@ def test_calibrated_on_one_of_its_levels_it_is_that_level(paper_library, tmp_pat
     holds them): the fit gives that level coefficient 1 and the other 0, and the held-out error is round-off;
     the report's learning curve, levels and cost are there."""
     from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
-    from metadesign.studies.supercells import certify_peds
+    from metadesign.studies.supercells import PedsSettings, certify_peds
 
     w = _widths(8, 4)
     ns, nu = matched_unit_harmonics(LEVELS[1], paper_library.stack)
     t, nG, _, t_unit = solve_table(w, paper_library.stack, ns, tmp_path / "labels", unit_harmonics=nu)
     test = np.arange(8) % 2 == 1
     table = SupercellTable(w, t, np.zeros(8, int), test, {"n_harmonics": nG}, t_unit)
-    m, rep = certify_peds(table, paper_library, LEVELS, (2, 4), tmp_path / "p", probe_rows=1, probe_label=False)
+    m, rep = certify_peds(table, paper_library, PedsSettings(LEVELS, (2, 4), probe_rows=1, probe_label=False),
+                          tmp_path / "p")
     np.testing.assert_allclose(m.coef, [0, 1], atol=1e-8)
     assert rep["mean_both"] < 1e-8 and rep["passed"]
     assert [c["supercells"] for c in rep["learning_curve"]] == [2, 4]
@@ -127,15 +128,15 @@ def test_selected_model_is_what_the_report_says(paper_library, tmp_path):
     fit's, and its cost is the chosen levels' (labels solved at the top candidate: every subset holding it
     is exact, the cheapest of them, the top level alone, is kept)."""
     from metadesign.library.supercells import SupercellTable, matched_unit_harmonics, solve_table
-    from metadesign.studies.supercells import certify_peds
+    from metadesign.studies.supercells import PedsSettings, certify_peds
 
     levels = (25, 33, 41)
     w = _widths(10, 6)
     ns, nu = matched_unit_harmonics(levels[-1], paper_library.stack)
     t, nG, _, t_unit = solve_table(w, paper_library.stack, ns, tmp_path / "labels", unit_harmonics=nu)
     table = SupercellTable(w, t, np.zeros(10, int), np.arange(10) % 2 == 1, {"n_harmonics": nG}, t_unit)
-    m, rep = certify_peds(table, paper_library, levels, (5,), tmp_path / "p", probe_rows=1, probe_label=False,
-                          select=True)
+    m, rep = certify_peds(table, paper_library, PedsSettings(levels, (5,), select=True, probe_rows=1,
+                                                             probe_label=False), tmp_path / "p")
     assert m.harmonics == (levels[-1],) and rep["selection"]["chosen"] == [2]
     np.testing.assert_allclose(np.array(m.coef), [complex(*c) for c in rep["learning_curve"][-1]["coef"]])
     np.testing.assert_allclose(m.coef, [1], atol=1e-8)

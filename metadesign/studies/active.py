@@ -20,10 +20,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
 from ..library.coupling import CouplingConfig, relative_error, unit_rms
 from ..library.coupling_net import coupling_t, fit_coupling
 from ..library.store import interpolate_t
@@ -69,14 +69,14 @@ def _fit_members(lib, widths, labels, cfg: ActiveConfig) -> list:
 
 
 def active_learning(table: SupercellTable, reference: SupercellTable, lib, pool_widths: np.ndarray,
-                    partial: str | Path, cfg: ActiveConfig = ActiveConfig(), *, workers: int = 1,
-                    scheduler: str | None = None, log: Callable[[str], None] = lambda s: None) -> dict:
+                    partial: str | Path, cfg: ActiveConfig = ActiveConfig(), run: Execution = SERIAL) -> dict:
     """Run the loop (module docstring) from ``table``'s fitting rows, candidates ``pool_widths`` (m, 2, 2, 2)
     solved at ``table``'s truncation into ``partial`` (resumable); returns the two learning curves
     (active, random) certified on ``reference``'s held-out rows."""
     import torch
 
     torch.set_num_threads(1)
+    log = run.log
     stack = lib.stack
     nG = int(table.meta["n_harmonics"])
     ns, nu = matched_unit_harmonics(nG + 1, stack)
@@ -109,7 +109,7 @@ def active_learning(table: SupercellTable, reference: SupercellTable, lib, pool_
         spread[chosen] = -np.inf
         pick = np.sort(np.argsort(-spread, kind="stable")[:cfg.batch])
         chosen[pick] = True
-        t, _, _, t_unit = solve_table(pool_widths[pick], stack, ns, partial, workers=workers, scheduler=scheduler,
+        t, _, _, t_unit = solve_table(pool_widths[pick], stack, ns, partial, workers=run.workers, scheduler=run.scheduler,
                                       chunk_size=25, unit_harmonics=unit, log=log)
         new = SupercellTable(pool_widths[pick], t, np.zeros(len(pick), np.int8), np.zeros(len(pick), bool),
                              table.meta, t_unit)

@@ -43,7 +43,30 @@ class CertifiedSettings:
     ``replicates`` replicates through ``peds`` (a :class:`~metadesign.library.peds.PedsModel`, its file, or
     None: the one calibrated against the library), tapered in ``taper_slices`` slices under a sloped wall;
     ``ring_supercells``: also the neighbour ring on that many of them (0: none); ``reoptimise``: also the
-    sampled supercells' atoms re-chosen among each atom's K nearest (0: none), ``reoptimise_sweeps`` times."""
+    sampled supercells' atoms re-chosen among each atom's K nearest (0: none), ``reoptimise_sweeps`` times.
+
+    ``ring_supercells``: also the neighbour ring, by overlapping windows
+    (:func:`~metadesign.library.peds.window_ring`): each of the first ``ring_supercells / replicates``
+    supercells of every replicate gets its ring term from the certified model on its three windows that
+    straddle towards +x, +y and +x+y (with its neighbours as made; solved like the supercells: at the etched
+    height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
+    without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
+    none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
+    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``).
+
+    ``reoptimise = K`` (``device.design`` the device's own, nominal widths only): the sampled
+    supercells' atoms re-chosen under the certified model, as the compensating discretizer chooses them
+    under the pair model (:func:`~metadesign.design.compensate.descend_under`: each position tries its
+    atom's ``K`` nearest atoms in phase, ``reoptimise_sweeps`` times, towards ``gamma_p mean_i exp(i
+    phi_i,p)``, with ``gamma_p`` fitted to the sample's starting atoms under the certified model).  Given
+    ``gamma``, a supercell's choice depends only on its own atoms and target, so the sample's re-chosen
+    supercells are those of the device re-optimised whole, and the same replicates estimate that device (each
+    pillar's correction: from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new
+    ones, plus the supercell's certified correction; on the coupled pupil ``cp`` of the starting design)
+    without making it.  ``gamma``'s own sampling error (O(1/n)) is not in the error bars.  The report's
+    ``reoptimised`` (its effect against the starting design on matched replicates in
+    ``reoptimised["reoptimise"]["effect"]``).
+    """
 
     supercells: int = 2000
     replicates: int = 8
@@ -101,29 +124,7 @@ def certified_case(device: SampledDevice, settings: CertifiedSettings = Certifie
     the corrections' statistics (in units of the pillars' rms |t|, as the certification); with
     ``return_deltas``, also the replicates' correction pupils (``(report, deltas, deltas with the ring or
     None)``: the sampled device's frames, :func:`~metadesign.sensing.sampled.sampled_frames`).  Solves under
-    ``partial`` (resumable), on ``run``'s workers or scheduler; lines to ``run.log``.
-
-    ``settings.ring_supercells``: also the neighbour ring, by overlapping windows
-    (:func:`~metadesign.library.peds.window_ring`): each of the first ``ring_supercells / replicates``
-    supercells of every replicate gets its ring term from the certified model on its three windows that
-    straddle towards +x, +y and +x+y (with its neighbours as made; solved like the supercells: at the etched
-    height, tapered), weighted for its sub-sample, so a replicate still estimates the whole correction
-    without bias; supercells whose windows leave the device's complete supercells (the aperture's rim) get
-    none.  The report's ``with_ring`` is then the same replicates with the ring added (its effect on a
-    matched sample, with its jackknife standard error in ``with_ring["ring"]["effect"]``).
-
-    ``settings.reoptimise = K`` (``device.design`` the device's own, nominal widths only): the sampled
-    supercells' atoms re-chosen under the certified model, as the compensating discretizer chooses them
-    under the pair model (:func:`~metadesign.design.compensate.descend_under`: each position tries its
-    atom's ``K`` nearest atoms in phase, ``reoptimise_sweeps`` times, towards ``gamma_p mean_i exp(i
-    phi_i,p)``, with ``gamma_p`` fitted to the sample's starting atoms under the certified model).  Given
-    ``gamma``, a supercell's choice depends only on its own atoms and target, so the sample's re-chosen
-    supercells are those of the device re-optimised whole, and the same replicates estimate that device (each
-    pillar's correction: from its coupled ``t`` among the starting atoms to its coupled ``t`` among the new
-    ones, plus the supercell's certified correction; on the coupled pupil ``cp`` of the starting design)
-    without making it.  ``gamma``'s own sampling error (O(1/n)) is not in the error bars.  The report's
-    ``reoptimised`` (its effect against the starting design on matched replicates in
-    ``reoptimised["reoptimise"]["effect"]``)."""
+    ``partial`` (resumable), on ``run``'s workers or scheduler; lines to ``run.log``.  The ring and the re-chosen atoms: :class:`CertifiedSettings`."""
     t0 = time.perf_counter()
     fab, pert, st = device.fab, device.pert, settings
     if fab.coupling is None:
@@ -152,7 +153,7 @@ def certified_case(device: SampledDevice, settings: CertifiedSettings = Certifie
     delta = (t_cert - t_pair).astype(np.complex64)
     ring = None
     if st.ring_supercells:
-        ring = _ring_sample(device, st, pick, ids, w, tu, t_cert, pm,
+        ring = _ring_sample(device, st, (pick, w, tu, t_cert), ids, pm,
                             dict(partial=partial, stack=stack, taper=taper, progress=lines("ring windows"), run=run))
     t_solved = time.perf_counter()
     plain = _replicate_pupils(device, pick, delta, m, replicates, len(ids))
@@ -210,10 +211,12 @@ def _matched_case(device: SampledDevice, deltas: list, rep: dict, effect_of: dic
     return case
 
 
-def _ring_sample(device: SampledDevice, st: CertifiedSettings, pick, ids, w, tu, t_cert, pm, solve: dict):
+def _ring_sample(device: SampledDevice, st: CertifiedSettings, sample: tuple, ids, pm, solve: dict):
     """The neighbour ring by overlapping windows on the first ``ring_supercells / replicates`` supercells of
-    every replicate (:func:`certified_case`): ``(report, supercell ids, ring terms, weight, rows per
-    replicate)``; ``solve``: how the certified model solves (partial, stack, taper, progress, run)."""
+    every replicate (:func:`certified_case`; ``sample = (pick, widths, unit t, certified t)``): ``(report,
+    supercell ids, ring terms, weight, rows per replicate)``; ``solve``: how the certified model solves
+    (partial, stack, taper, progress, run)."""
+    pick, w, tu, t_cert = sample
     fab, pert, replicates = device.fab, device.pert, st.replicates
     m = len(pick) // replicates
     k = min(m, st.ring_supercells // replicates)

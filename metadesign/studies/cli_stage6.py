@@ -50,7 +50,7 @@ def _cmd_tolerance(a: argparse.Namespace) -> int:
 
 
 def _cmd_codesign(a: argparse.Namespace) -> int:
-    from .codesign import read_diversity, run_codesign_report
+    from .codesign import FisherSettings, read_diversity, run_codesign_report
 
     read_diversity(a.run)  # a bad run is one line before anything is written
     out = out_dir(a.output)
@@ -59,9 +59,8 @@ def _cmd_codesign(a: argparse.Namespace) -> int:
     recipe = out_file(a.recipe, "--recipe", suffixes=(".toml",)) if a.recipe else None
     with product(out, "codesign", inputs), \
             (product(recipe, "design-recipe", {**inputs, "-o": out}) if recipe else contextlib.nullcontext()):
-        rep = run_codesign_report(a.run, a.dataset, a.base, out, modes=a.modes, samples=a.fisher_samples,
-                                  photons=a.photons, read_noise_e=a.read_noise_e, random=a.random,
-                                  recipe=recipe, log=log_to(a.json))
+        fisher = FisherSettings(a.modes, a.fisher_samples, a.photons, a.read_noise_e, a.random)
+        rep = run_codesign_report(a.run, a.dataset, a.base, out, fisher, recipe=recipe, log=log_to(a.json))
     m = rep["fisher"]["mean_crb_rad2"]
     lines = [f"co-designed sensor -> {out}: design recipe {Path(rep['design_recipe']).name}, "
              + ", ".join(Path(f).name for f in rep["figures"]),

@@ -19,6 +19,7 @@ __all__ = ["register"]
 
 
 def _cmd_supercells(a: argparse.Namespace) -> int:
+    from ..execution import Execution
     from .supercells import build_table, load_supercell_recipe, supercell_need
 
     rec = load_supercell_recipe(a.recipe)
@@ -29,8 +30,9 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
               "table.extra_design": rec.extra_design}
     with product(out, "supercells", inputs, scratch=(out.with_name(out.name + ".partial"),),
                  need=supercell_need(n, rec.n_harmonics, a.workers)):
-        rep = build_table(rec, out, supercells=a.supercells, workers=a.workers, scheduler=a.scheduler,
-                          progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+        rep = build_table(rec, out, a.supercells, Execution(workers=a.workers, scheduler=a.scheduler, log=log,
+                                                            progress=None if a.json else progress_bar("supercells",
+                                                                                                      unit="cell")))
     emit(rep, a.json, f"wrote {out}: {rep['supercells']} supercells ({rep['held_out']} held out), nG "
                       f"{rep['n_harmonics']}; {rep['solve_seconds']:.0f} s solving here "
                       f"({rep['seconds_per_supercell_core']:.1f} s per supercell per core)")
@@ -43,6 +45,7 @@ def _cmd_ladder(a: argparse.Namespace) -> int:
     from ..library.locate import find_library
     from ..library.store import load_library
     from ..library.supercells import load_table
+    from ..execution import Execution
     from .supercells import convergence_ladder
 
     table = load_table(a.table)
@@ -56,9 +59,9 @@ def _cmd_ladder(a: argparse.Namespace) -> int:
     out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem + "-ladder.json"), suffixes=(".json",))
     log = log_to(a.json)
     with product(out, "ladder", {"table": tp, "--library": lib_path}, scratch=(out.with_name(out.name + ".partial"),)):
-        rep = convergence_ladder(table, lib, held[:a.rows], a.harmonics, out.with_name(out.name + ".partial"),
-                                 workers=a.workers, scheduler=a.scheduler,
-                                 progress=None if a.json else progress_bar("supercells", unit="cell"), log=log)
+        run = Execution(workers=a.workers, scheduler=a.scheduler, log=log,
+                        progress=None if a.json else progress_bar("supercells", unit="cell"))
+        rep = convergence_ladder(table, lib, held[:a.rows], a.harmonics, out.with_name(out.name + ".partial"), run)
         rep.pop("_labels")
         rep = {"format": "metadesign.ladder/1", **rep,
                "table": {"path": tp.name, "n_harmonics": table.meta.get("n_harmonics")}}
@@ -81,26 +84,23 @@ def _cmd_patches(a: argparse.Namespace) -> int:
 
     from ..design.store import design_library
     from ..library.supercells import remove_partial
-    from .supercells import design_source, patch_study, plot_patches
+    from ..execution import Execution, scratch_path
+    from .supercells import PatchSettings, design_source, patch_study, plot_patches
 
-    ring_levels = sorted(set(a.ring_levels or ()))
-    if ring_levels and a.patches < 4:
-        raise InputError(f"--ring-levels: calibrating the ring's coefficients needs >= 4 patches, got {a.patches}")
+    settings = PatchSettings(a.patches, a.seed, a.harmonics, tuple(a.ring_levels or ()), a.windows, a.peds)
     src = Path(a.design)
     d, _ = design_source(src if src.suffix == ".toml" else Path(design_file(src)), log_to(a.json))
     lib = design_library(d, a.library)
     base = src.parent if src.suffix in (".toml", ".npz") else src
     out = out_file(Path(a.output) if a.output else base / "patches.json", suffixes=(".json",))
-    log = log_to(a.json)
-    partial = out.with_name(out.name + ".partial")
+    partial = scratch_path(out)
+    run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
+                    progress=None if a.json else progress_bar("patches", unit="patch"))
     with product(out, "patches", {"design": src, "--library": a.library, "--peds": a.peds},
-                 also=(out.with_suffix(".png"),) if ring_levels or a.windows else (), scratch=(partial,)):
-        rep = patch_study(d, lib, a.patches, a.seed, a.harmonics, partial,
-                          workers=a.workers, scheduler=a.scheduler,
-                          progress=None if a.json else progress_bar("patches", unit="patch"), log=log,
-                          ring_levels=ring_levels, windows=a.windows, peds=a.peds)
+                 also=(out.with_suffix(".png"),) if settings.ring_levels or a.windows else (), scratch=(partial,)):
+        rep = patch_study(d, lib, settings, partial, run)
         rep = {"format": "metadesign.patches/1", "design": str(src), **rep}
-        if ring_levels or a.windows:
+        if settings.ring_levels or a.windows:
             rep["figure"] = plot_patches(rep, out.with_suffix(".png")).name
         atomic_write_text(out, json.dumps(rep, indent=1))
         remove_partial(partial)
@@ -131,6 +131,7 @@ def _cmd_active(a: argparse.Namespace) -> int:
     from ..library.coupling import CouplingConfig
     from ..library.store import load_library
     from ..library.supercells import load_table
+    from ..execution import Execution
     from .active import ActiveConfig, active_learning, plot_active
     from .supercells import load_supercell_recipe, pool_widths
 
@@ -153,8 +154,8 @@ def _cmd_active(a: argparse.Namespace) -> int:
     with product(out, "active", {"recipe": rec.source, "table": tp, "--reference": a.reference},
                  scratch=(out.with_name(out.name + ".partial"),), also=(out.with_suffix(".png"),)):
         pool = pool_widths(rec, a.pool, log)
-        rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg, workers=a.workers,
-                              scheduler=a.scheduler, log=log)
+        rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg,
+                              Execution(workers=a.workers, scheduler=a.scheduler, log=log))
         rep.pop("members")
         rep = {"format": "metadesign.active/1", **rep}
         fig = plot_active(rep, out.with_suffix(".png"))
@@ -168,54 +169,23 @@ def _cmd_active(a: argparse.Namespace) -> int:
 
 
 def _cmd_coupling(a: argparse.Namespace) -> int:
-    from ..library.locate import find_library
-    from ..library.store import load_library
-    from ..library.supercells import load_table
+    import numpy as np
 
-    table = load_table(a.table)
+    from ..library.coupling import CouplingConfig
+    from .coupling_cert import CouplingFit, check_coupling_inputs, coupling_study, load_coupling_inputs
+
+    table, lib_path, lib = load_coupling_inputs(a.table, a.library)
     tp = Path(a.table)
-    lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
-                                                                table.meta["library"]["path"], tp.parent)
-    lib = load_library(lib_path)
     out = out_file(Path(a.output) if a.output else
                    tp.with_name(tp.stem.replace("-supercells", "") + "-coupling.safetensors"),
                    suffixes=(".safetensors",))
-    if not table.test.any() or table.test.all():
-        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
-                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
-    ref = None
-    if a.reference:
-        ref = load_table(a.reference)
-        if ref.meta.get("library", {}).get("sha256") != table.meta.get("library", {}).get("sha256"):
-            raise InputError(f"--reference {a.reference}: solved against another library than {tp.name}")
-        if not ref.test.any():
-            raise InputError(f"--reference {a.reference}: the table has no held-out rows")
-    log = log_to(a.json)
+    inputs = check_coupling_inputs(table, lib, tp, lib_path, a.reference)
+    fit = CouplingFit(tuple(a.sizes), CouplingConfig(a.hidden, a.layers, a.ensemble, a.interaction), a.steps, a.seed,
+                      a.weight_decay)
     with product(out, "coupling", {"table": tp, "--library": lib_path, "--reference": a.reference},
                  also=(card_path(out), out.with_suffix(".png"))):
-        return _coupling_fit(a, table, tp, lib, lib_path, out, log, ref)
-
-
-def _coupling_fit(a, table, tp, lib, lib_path, out, log, ref=None) -> int:
-    import numpy as np
-
-    from ..library.coupling import CouplingConfig, save_coupling
-    from ..library.locate import file_sha256
-    from .supercells import certify_coupling, plot_coupling
-
-    cfg = CouplingConfig(a.hidden, a.layers, a.ensemble, a.interaction)
-    log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
-    model, rep = certify_coupling(table, lib, a.sizes, cfg, a.steps, a.seed, weight_decay=a.weight_decay,
-                                  reference=ref, log=log)
-    fig = plot_coupling(rep, out.with_suffix(".png"))
-    rep.pop("_e"), rep.pop("_e_lpa")
-    card = {"certification": rep, "table": {"path": tp.name, "sha256": file_sha256(tp)}, "figure": fig.name,
-            "reference_table": {"path": Path(a.reference).name, "sha256": file_sha256(a.reference)}
-            if ref is not None else None,
-            "structure": "t = mean_i t_lib(w_i) + 1/4 sum_i [G(f_i, f_H, f_V, f_D) - G(f_i, f_i, f_i, f_i)]; "
-                         "t_y(w) = t_x(transpose(w))"}
-    save_coupling(out, model, lib_path, card)
-    rep["output"], rep["figure"] = str(out), str(fig)
+        rep = coupling_study(inputs, fit, out, log_to(a.json))
+    fig = Path(rep["figure"])
     m, l = rep["model"], rep["lpa"]
     lines = [f"wrote {out} (+ .json card, {fig.name}): held-out |t - t_RCWA| / rms|t_i| on "
              f"{rep['held_out_supercells']} supercells never fitted",
@@ -233,55 +203,24 @@ def _coupling_fit(a, table, tp, lib, lib_path, out, log, ref=None) -> int:
 def _cmd_peds(a: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..cards import read_card
-    from ..library.coupling import CARD_FORMAT
-    from ..library.locate import file_sha256, find_library
+    from ..execution import Execution, scratch_path
+    from ..library.locate import file_sha256
     from ..library.peds import save_peds
-    from ..library.store import load_library
-    from ..library.supercells import load_table, matched_unit_harmonics, remove_partial
-    from .supercells import certify_peds, plot_peds
+    from ..library.supercells import remove_partial
+    from .peds_cert import PedsSettings, certify_peds, load_peds_inputs, plot_peds
 
-    table = load_table(a.table)
+    settings = PedsSettings(tuple(a.harmonics), tuple(a.sizes), select=a.select)
+    table, lib_path, lib, networks = load_peds_inputs(a.table, settings, a.library, a.network)
     tp = Path(a.table)
-    if not table.test.any() or table.test.all():
-        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
-                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
-    if table.t_unit is not None:
-        raise InputError(f"{tp}: a table solved at nG {table.meta.get('n_harmonics')} with matched unit cells is a "
-                         "low fidelity itself; calibrate on a converged table (solved at the library's truncation)")
-    top = table.meta.get("n_harmonics") or 0
-    if a.select and len(set(a.harmonics)) > 8:
-        raise InputError(f"--select: at most 8 candidate levels (2^K - 1 subsets are cross-validated), got "
-                         f"{len(set(a.harmonics))}")
-    if max(a.harmonics) >= top:
-        raise InputError(f"--harmonics {max(a.harmonics)}: the levels must lie below the table's truncation (nG {top})")
-    lib_path = Path(a.library) if a.library else find_library(table.meta["library"]["sha256"],
-                                                                table.meta["library"]["path"], tp.parent)
-    lib = load_library(lib_path)
-    resolved: dict[int, list[int]] = {}
-    for h in sorted(set(a.harmonics)):
-        resolved.setdefault(matched_unit_harmonics(h, lib.stack)[0] - 1, []).append(h)
-    for nG, hs in resolved.items():
-        if len(hs) > 1:
-            raise InputError(f"--harmonics {' '.join(map(str, hs))}: these requests solve the same truncation "
-                             f"(nG {nG}); give distinct levels")
-    networks = {}
-    for i, path in enumerate(a.network or ()):
-        _, _, card = read_card(path, CARD_FORMAT, "coupling model")
-        if not isinstance(card.get("certification"), dict) or "learning_curve" not in card["certification"]:
-            raise InputError(f"--network {path}: its card holds no certification (learning curve) to draw")
-        name = f"{Path(path).name.split('.')[0]}, on {(card.get('table') or {}).get('path', '?')}"
-        networks[name if name not in networks else f"{name} ({i + 1})"] = card["certification"]
     out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem.replace("-supercells", "") + "-peds.json"),
                    suffixes=(".json",))
-    partial = out.with_name(out.name + ".partial")
-    log = log_to(a.json)
+    partial = scratch_path(out)
+    run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
+                    progress=None if a.json else progress_bar("supercells", unit="cell"))
     with product(out, "peds", {"table": tp, "--library": lib_path,
                                **{f"--network {i + 1}": p for i, p in enumerate(a.network or ())}},
                  also=(out.with_suffix(".png"),), scratch=(partial,)):
-        model, rep = certify_peds(table, lib, a.harmonics, a.sizes, partial, workers=a.workers, scheduler=a.scheduler,
-                                  select=a.select, progress=None if a.json else progress_bar("supercells", unit="cell"),
-                                  log=log)
+        model, rep = certify_peds(table, lib, settings, partial, run)
         fig = plot_peds(rep, out.with_suffix(".png"), networks)
         rep.pop("_e"), rep.pop("_e_lpa")
         rep["networks"] = {k: {"learning_curve": v["learning_curve"], "mean_both": v.get("mean_both"),

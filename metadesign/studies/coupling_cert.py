@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -13,21 +15,103 @@ from ..library.supercells import (
     SupercellTable,
 )
 from ..plotting import pyplot, save_figure
+from ..validation import InputError
 from .supercell_errors import _by_source, _error_histogram, _stats
 
-__all__ = ["certify_coupling", "plot_coupling"]
+__all__ = ["CouplingFit", "CouplingInputs", "load_coupling_inputs", "check_coupling_inputs", "coupling_study",
+           "certify_coupling", "plot_coupling"]
 
 
-def certify_coupling(table: SupercellTable, lib, sizes=(250, 500, 1000), cfg: CouplingConfig = CouplingConfig(),
-                     steps: int = 4000, seed: int = 0, goal=(0.05, 0.1), weight_decay: float = 1e-3,
+@dataclass(frozen=True)
+class CouplingFit:
+    """How :func:`certify_coupling` fits: the learning curve's ``sizes``, the network ``cfg``, ``steps`` of Adam
+    with ``weight_decay`` from ``seed``, and the ``goal`` (mean, p90) of the held-out error."""
+
+    sizes: tuple = (250, 500, 1000)
+    cfg: CouplingConfig = CouplingConfig()
+    steps: int = 4000
+    seed: int = 0
+    weight_decay: float = 1e-3
+    goal: tuple = (0.05, 0.1)
+
+
+@dataclass(frozen=True)
+class CouplingInputs:
+    """A coupling certification's inputs: the ``table`` (at ``path``), its ``lib`` (at ``lib_path``) and the
+    ``reference`` table certifying (at ``reference_path``; None: the table's own held-out rows)."""
+
+    table: SupercellTable
+    path: Path
+    lib: Any
+    lib_path: Path
+    reference: SupercellTable | None = None
+    reference_path: Path | None = None
+
+
+def load_coupling_inputs(table_path: str | Path, library: str | Path | None = None) -> tuple:
+    """``(table, library path, library)``: the table and its library (``library``, else found by sha256)."""
+    from ..library.locate import find_library
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+
+    table = load_table(table_path)
+    tp = Path(table_path)
+    lib_path = Path(library) if library else find_library(table.meta["library"]["sha256"],
+                                                           table.meta["library"]["path"], tp.parent)
+    return table, lib_path, load_library(lib_path)
+
+
+def check_coupling_inputs(table: SupercellTable, lib, table_path: str | Path, library_path: Path,
+                          reference: str | Path | None = None) -> CouplingInputs:
+    """The inputs of a certification, checked (InputError, one line): the table needs fitting and held-out
+    rows; ``reference`` (a table's path) solved against the same library, with held-out rows."""
+    from ..library.supercells import load_table
+
+    tp = Path(table_path)
+    if not table.test.any() or table.test.all():
+        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
+                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
+    ref = None
+    if reference:
+        ref = load_table(reference)
+        if ref.meta.get("library", {}).get("sha256") != table.meta.get("library", {}).get("sha256"):
+            raise InputError(f"--reference {reference}: solved against another library than {tp.name}")
+        if not ref.test.any():
+            raise InputError(f"--reference {reference}: the table has no held-out rows")
+    return CouplingInputs(table, tp, lib, library_path, ref, Path(reference) if reference else None)
+
+
+def coupling_study(inputs: CouplingInputs, fit: CouplingFit, out: Path, log=lambda s: None) -> dict:
+    """Fit and certify the coupling model (:func:`certify_coupling`) and write it to ``out`` with its card
+    (the certification, the tables) and its figure (``out`` with .png); returns the report."""
+    from ..library.coupling import save_coupling
+    from ..library.locate import file_sha256
+
+    table, tp, ref_path = inputs.table, inputs.path, inputs.reference_path
+    log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
+    model, rep = certify_coupling(table, inputs.lib, fit, inputs.reference, log)
+    fig = plot_coupling(rep, out.with_suffix(".png"))
+    rep.pop("_e"), rep.pop("_e_lpa")
+    card = {"certification": rep, "table": {"path": tp.name, "sha256": file_sha256(tp)}, "figure": fig.name,
+            "reference_table": {"path": ref_path.name, "sha256": file_sha256(ref_path)}
+            if inputs.reference is not None else None,
+            "structure": "t = mean_i t_lib(w_i) + 1/4 sum_i [G(f_i, f_H, f_V, f_D) - G(f_i, f_i, f_i, f_i)]; "
+                         "t_y(w) = t_x(transpose(w))"}
+    save_coupling(out, model, inputs.lib_path, card)
+    rep["output"], rep["figure"] = str(out), str(fig)
+    return rep
+
+
+def certify_coupling(table: SupercellTable, lib, fit: CouplingFit = CouplingFit(),
                      reference: SupercellTable | None = None, log=lambda s: None) -> tuple[object, dict]:
-    """Fit the coupling model on the first ``n`` fitting rows of the table for each ``n`` in ``sizes``
+    """Fit the coupling model on the first ``n`` fitting rows of the table for each ``n`` in ``fit.sizes``
     (a learning curve) and certify each fit on every held-out row of ``reference`` (default: the table's
     own; never fitted, never used to pick a step); returns the model of the largest size and the report.
     A table at another truncation than the library's is fitted on its labels (LPA + its coupling:
     :meth:`SupercellTable.labels`); the reference's labels are its own.  Error: ``|t - t_RCWA| / rms_i |t_i|``."""
     import torch
 
+    sizes, cfg, steps, seed, goal, weight_decay = fit.sizes, fit.cfg, fit.steps, fit.seed, fit.goal, fit.weight_decay
     torch.set_num_threads(1)
     ref = table if reference is None else reference
     fit_rows = np.flatnonzero(~table.test)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
 from ..library.coupling import lpa_t, relative_error
 from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
 from ..library.supercell import solve_supercell
@@ -17,30 +19,97 @@ from ..library.supercells import (
     unit_cells,
 )
 from ..plotting import pyplot, save_figure
+from ..validation import InputError
 from .supercell_errors import _by_source, _error_histogram, _stats
 
-__all__ = ["certify_peds", "select_levels", "plot_peds"]
+__all__ = ["PedsSettings", "load_peds_inputs", "certify_peds", "select_levels", "plot_peds"]
 
 
-def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *, workers: int = 1,
-                 scheduler: str | None = None, goal=(0.05, 0.1), probe_rows: int = 4, probe_label: bool = True,
-                 select: bool = False, progress=None, log=lambda s: None) -> tuple[object, dict]:
+@dataclass(frozen=True)
+class PedsSettings:
+    """What :func:`certify_peds` calibrates: the low truncations ``harmonics`` (requested), the learning
+    curve's fitting ``sizes``, ``select`` (the levels are candidates: cross-validation picks a subset), the
+    ``goal`` (mean, p90), and the cost probe (``probe_rows`` held-out rows timed; ``probe_label``: a
+    converged label timed too)."""
+
+    harmonics: tuple = (97, 220)
+    sizes: tuple = (10, 25, 50, 100, 250, 500, 1000)
+    select: bool = False
+    goal: tuple = (0.05, 0.1)
+    probe_rows: int = 4
+    probe_label: bool = True
+
+
+#: candidate levels at most with ``select`` (2^K - 1 subsets are cross-validated)
+MAX_CANDIDATES = 8
+
+
+def load_peds_inputs(table_path: str | Path, settings: PedsSettings, library: str | Path | None = None,
+                     networks=()) -> tuple:
+    """``(table, library path, library, {name: certification})``: the converged table at ``table_path``, its
+    library (``library``, else found by its sha256) and the certifications of the coupling models' cards
+    ``networks`` (to draw beside), each checked for :func:`certify_peds` (InputError, one line)."""
+    from ..cards import read_card
+    from ..library.coupling import CARD_FORMAT
+    from ..library.locate import find_library
+    from ..library.store import load_library
+    from ..library.supercells import load_table
+
+    table = load_table(table_path)
+    tp = Path(table_path)
+    if not table.test.any() or table.test.all():
+        raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
+                         "certification needs both fitting and held-out rows (table.test_every >= 2)")
+    if table.t_unit is not None:
+        raise InputError(f"{tp}: a table solved at nG {table.meta.get('n_harmonics')} with matched unit cells is a "
+                         "low fidelity itself; calibrate on a converged table (solved at the library's truncation)")
+    top = table.meta.get("n_harmonics") or 0
+    if settings.select and len(set(settings.harmonics)) > MAX_CANDIDATES:
+        raise InputError(f"--select: at most 8 candidate levels (2^K - 1 subsets are cross-validated), got "
+                         f"{len(set(settings.harmonics))}")
+    if max(settings.harmonics) >= top:
+        raise InputError(f"--harmonics {max(settings.harmonics)}: the levels must lie below the table's truncation "
+                         f"(nG {top})")
+    lib_path = Path(library) if library else find_library(table.meta["library"]["sha256"],
+                                                           table.meta["library"]["path"], tp.parent)
+    lib = load_library(lib_path)
+    resolved: dict[int, list[int]] = {}
+    for h in sorted(set(settings.harmonics)):
+        resolved.setdefault(matched_unit_harmonics(h, lib.stack)[0] - 1, []).append(h)
+    for nG, hs in resolved.items():
+        if len(hs) > 1:
+            raise InputError(f"--harmonics {' '.join(map(str, hs))}: these requests solve the same truncation "
+                             f"(nG {nG}); give distinct levels")
+    certs = {}
+    for i, path in enumerate(networks or ()):
+        _, _, card = read_card(path, CARD_FORMAT, "coupling model")
+        if not isinstance(card.get("certification"), dict) or "learning_curve" not in card["certification"]:
+            raise InputError(f"--network {path}: its card holds no certification (learning curve) to draw")
+        name = f"{Path(path).name.split('.')[0]}, on {(card.get('table') or {}).get('path', '?')}"
+        certs[name if name not in certs else f"{name} ({i + 1})"] = card["certification"]
+    return table, lib_path, lib, certs
+
+
+def certify_peds(table: SupercellTable, lib, settings: PedsSettings, partial: Path,
+                 run: Execution = SERIAL) -> tuple[object, dict]:
     """Calibrate the PEDS surrogate (:mod:`metadesign.library.peds`) on the table's converged labels: every row
-    solved at the low truncations ``harmonics`` (resumable under ``partial``), the coefficients fitted on the
-    first ``n`` fitting rows for each ``n`` of ``sizes`` (a learning curve; each fit certified on every
-    held-out row, never fitted), each level alone (uncalibrated) beside it; returns the model of the largest
-    size and the report (by source, cost per supercell and per million).  ``select``: the levels are
-    candidates, and the model uses the subset that cross-validation on the fitting rows picks
-    (:func:`select_levels`; the held-out rows play no part in the choice)."""
-    harmonics = sorted({int(h) for h in harmonics})
+    solved at the low truncations ``settings.harmonics`` (resumable under ``partial``, on ``run``), the
+    coefficients fitted on the first ``n`` fitting rows for each ``n`` of ``settings.sizes`` (a learning curve;
+    each fit certified on every held-out row, never fitted), each level alone (uncalibrated) beside it;
+    returns the model of the largest size and the report (by source, cost per supercell and per million).
+    ``settings.select``: the levels are candidates, and the model uses the subset that cross-validation on
+    the fitting rows picks (:func:`select_levels`; the held-out rows play no part in the choice)."""
+    sizes, goal, probe_rows, probe_label = settings.sizes, settings.goal, settings.probe_rows, settings.probe_label
+    select, log = settings.select, run.log
+    harmonics = sorted({int(h) for h in settings.harmonics})
     fit_rows, test_rows = np.flatnonzero(~table.test), np.flatnonzero(table.test)
     if not len(test_rows) or not len(fit_rows):
         raise ValueError("certification needs fitting and held-out rows")
     labels, tu = table.lpa_labels(lib)
     lpa = lpa_t(tu)
     log(f"PEDS levels nG {harmonics} on {len(table)} supercells ({len(test_rows)} held out)")
-    c, nGs = low_fidelity_couplings(table.widths, lib.stack, harmonics, partial, workers=workers,
-                                          scheduler=scheduler, progress=progress, log=log)
+    c, nGs = low_fidelity_couplings(table.widths, lib.stack, harmonics, partial, workers=run.workers,
+                                    scheduler=run.scheduler, progress=run.progress, log=log)
     te = test_rows
     e_lpa = relative_error(lpa[te], labels[te], tu[te])
     probe = table.widths[test_rows[:probe_rows]]  # the cost timed here, whatever the chunks held already
@@ -92,14 +161,18 @@ def certify_peds(table: SupercellTable, lib, harmonics, sizes, partial: Path, *,
     return PedsModel(tuple(harmonics), tuple(complex(a) for a in coef), lib.identity), report
 
 
+#: the seed of :func:`select_levels`'s folds
+SELECT_SEED = 0
+
+
 def select_levels(c: np.ndarray, target: np.ndarray, rows: np.ndarray, tu: np.ndarray, cost, folds: int = 5,
-                  tolerance: float = 0.02, seed: int = 0) -> dict:
+                  tolerance: float = 0.02) -> dict:
     """Every non-empty subset of the levels ``c`` (K, n, 2) scored by ``folds``-fold cross-validation of the
     calibration on ``rows`` only (mean error of the out-of-fold predictions against ``target`` = labels -
     LPA); the chosen subset is the cheapest (sum of the levels' ``cost``: a fixed proxy such as nG^3, so the
     choice does not depend on the machine's load) within ``tolerance`` (relative) of the best mean.  Returns
     ``{"chosen": level indices, "subsets": [{levels, cv mean, cv p90, cost}]}``."""
-    parts = np.array_split(np.random.default_rng(seed).permutation(rows), folds)
+    parts = np.array_split(np.random.default_rng(SELECT_SEED).permutation(rows), folds)
     out = []
     for k in range(1, len(c) + 1):
         for sub in combinations(range(len(c)), k):

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..execution import SERIAL, Execution
 from ..library.coupling import lpa_t, relative_error
 from ..library.store import interpolate_t
 from ..library.supercells import (
@@ -19,8 +20,8 @@ from .supercell_errors import _stats
 __all__ = ["convergence_ladder"]
 
 
-def convergence_ladder(table: SupercellTable, lib, rows: np.ndarray, harmonics, partial: Path, *, workers: int = 1,
-                       scheduler: str | None = None, progress=None, log=lambda s: None) -> dict:
+def convergence_ladder(table: SupercellTable, lib, rows: np.ndarray, harmonics, partial: Path,
+                       run: Execution = SERIAL) -> dict:
     """Rows ``rows`` of ``table`` re-solved at each requested truncation of ``harmonics`` (ascending), each
     with its unit cells at the matched truncation; per level the label in the library's frame (LPA + the
     coupling measured there, :meth:`SupercellTable.labels`), and between consecutive levels its change in
@@ -34,11 +35,12 @@ def convergence_ladder(table: SupercellTable, lib, rows: np.ndarray, harmonics, 
     for h in sorted(int(v) for v in harmonics):
         ns, nu = matched_unit_harmonics(h, lib.stack)
         t0 = time.perf_counter()
-        t, nG, _, t_unit = solve_table(w, lib.stack, ns, Path(partial) / f"level-{ns - 1}", workers=workers,
-                                       scheduler=scheduler, chunk_size=1, unit_harmonics=nu, progress=progress, log=log)
+        t, nG, _, t_unit = solve_table(w, lib.stack, ns, Path(partial) / f"level-{ns - 1}", workers=run.workers,
+                                       scheduler=run.scheduler, chunk_size=1, unit_harmonics=nu, progress=run.progress,
+                                       log=run.log)
         levels.append({"n_harmonics": nG, "unit_n_harmonics": nu - 1, "t": t, "t_unit": t_unit,
                        "label": lpa + t - t_unit.mean((1, 2)), "seconds": time.perf_counter() - t0})
-        log(f"  nG {nG}: {len(rows)} supercells in {levels[-1]['seconds']:.0f} s")
+        run.log(f"  nG {nG}: {len(rows)} supercells in {levels[-1]['seconds']:.0f} s")
     steps = []
     for a, b in zip(levels[:-1], levels[1:]):
         d_label = relative_error(b["label"], a["label"], tu)

@@ -4,12 +4,15 @@ ring's low fidelity and the overlapping windows (:func:`patch_study`)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from .. import __version__
 from ..design.store import Design
+from ..execution import SERIAL, Execution
 from ..library.peds import certified_t, fit_peds, patch_windows, ring_couplings
 from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
@@ -20,9 +23,10 @@ from ..library.supercells import (
 )
 from ..plotting import pyplot, save_figure
 from ..tasks import TaskFolder, content_key, run_resumable
+from ..validation import InputError
 from .supercell_errors import _stats
 
-__all__ = ["design_patches", "solve_patches", "patch_study", "plot_patches"]
+__all__ = ["PatchSettings", "design_patches", "solve_patches", "patch_study", "plot_patches"]
 
 
 def _patch_task(args) -> tuple[str, dict]:
@@ -54,8 +58,8 @@ def design_patches(design: Design, patches: int, seed: int) -> np.ndarray:
     return np.array(ws)
 
 
-def solve_patches(ws: np.ndarray, stack, n_harmonics: int, partial: Path, *, workers: int = 1,
-                  scheduler: str | None = None, progress=None, log=lambda s: None) -> tuple[list, int, int]:
+def solve_patches(ws: np.ndarray, stack, n_harmonics: int, partial: Path,
+                  run: Execution = SERIAL) -> tuple[list, int, int]:
     """Each patch of ``ws`` solved periodically at ``n_harmonics`` (requested) with its four supercells and
     sixteen unit cells at the matched truncations (:func:`_patch_task`): ``(results in order, supercell
     request, unit request)``.  One task per patch under ``partial`` (content-keyed: resumable)."""
@@ -65,14 +69,41 @@ def solve_patches(ws: np.ndarray, stack, n_harmonics: int, partial: Path, *, wor
                                     stack.period, stack.height, stack.n_pillar, stack.n_substrate,
                                     stack.n_superstrate], __version__) for w in ws]
     jobs = {nm: (nm, w, stack, ns_patch, ns_super, nu) for nm, w in zip(names, ws)}
-    done, _ = run_resumable(_patch_task, jobs, TaskFolder(partial), workers=workers, scheduler=scheduler,
-                            dask_key="patches", progress=progress, log=log, unit="patch")
+    done, _ = run_resumable(_patch_task, jobs, TaskFolder(partial), workers=run.workers, scheduler=run.scheduler,
+                            dask_key="patches", progress=run.progress, log=run.log, unit="patch")
     return [done[nm] for nm in names], ns_super, nu
 
 
-def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, partial: Path, *, workers: int = 1,
-                scheduler: str | None = None, progress=None, log=lambda s: None, ring_levels=(), windows: bool = False,
-                peds=None) -> dict:
+@dataclass(frozen=True)
+class PatchSettings:
+    """The patch study's sample and its options (:func:`patch_study`): ``patches`` drawn with ``seed``, solved
+    at ``harmonics`` (requested); ``ring_levels``, ``windows`` and ``peds`` as there."""
+
+    patches: int = 8
+    seed: int = 0
+    harmonics: int = 1300
+    ring_levels: tuple = ()
+    windows: bool = False
+    peds: Any = None
+
+    def __post_init__(self) -> None:
+        if self.ring_levels and self.patches < 4:
+            raise InputError(f"--ring-levels: calibrating the ring's coefficients needs >= 4 patches, got "
+                             f"{self.patches}")
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """The solved patches: widths ``ws`` (n, 4, 4, 2), their four supercells' ``t`` (n, 4, 2), their ring
+    terms ``target`` (n, 2: patch - mean of its supercells) and the sixteen pillars' rms |t| (n, 2)."""
+
+    ws: np.ndarray
+    tsc: np.ndarray
+    target: np.ndarray
+    rms: np.ndarray
+
+
+def patch_study(design: Design, lib, settings: PatchSettings, partial: Path, run: Execution = SERIAL) -> dict:
     """Beyond the periodic 2 x 2 cell (issue #34 section 2): ``patches`` 4 x 4 patches cut from ``design``
     (aligned to its supercells, all sixteen pillars present, drawn with ``seed``), each solved as a
     periodic 4 x 4 cell (2.8 um at the paper's pitch: each supercell sees other supercells around it, as
@@ -93,11 +124,12 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     straddle its supercells solved at the supercells' matched truncation (``windows_exact``: the idea
     itself) and all sixteen under the certified model ``peds`` (default: the library's; ``windows_peds``:
     what the device path uses); each how far its ring term falls from the patch solve's."""
+    st = settings
+    patches, seed, ring_levels = st.patches, st.seed, sorted(set(st.ring_levels))
     stack = lib.stack
     ws = design_patches(design, patches, seed)
     t0 = time.perf_counter()
-    done, ns_super, nu = solve_patches(ws, stack, n_harmonics, partial, workers=workers, scheduler=scheduler,
-                                       progress=progress, log=log)
+    done, ns_super, nu = solve_patches(ws, stack, st.harmonics, partial, run)
     seconds = time.perf_counter() - t0
     tp = np.array([r["t_patch"] for r in done])  # (n, 2)
     tsc = np.array([r["t_super"] for r in done])  # (n, 4, 2)
@@ -106,12 +138,11 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
     lpa = tu.mean((1, 2))
     two = tsc.mean(1)
     beyond = np.abs(tp - two) / rms
-    ring = _ring_section(ws, tp - two, rms, stack, ring_levels, partial, workers, scheduler, progress, log) \
-        if ring_levels else {}
+    solved = _Solved(ws, tsc, tp - two, rms)
+    ring = _ring_section(solved, stack, ring_levels, partial, run) if ring_levels else {}
     per_patch = {"beyond_2x2": beyond.tolist(), **ring.pop("per_patch", {})}
-    if windows:
-        ring.update(_window_section(ws, tsc, tp - two, rms, lib, ns_super, partial, peds, workers, scheduler,
-                                    progress, log))
+    if st.windows:
+        ring.update(_window_section(solved, lib, ns_super, partial, st.peds, run))
         per_patch.update(ring.pop("per_patch"))
     if ring:
         ring["per_patch"] = per_patch
@@ -121,16 +152,17 @@ def patch_study(design: Design, lib, patches: int, seed: int, n_harmonics: int, 
             "beyond_2x2_p90_both": float(np.percentile(beyond, 90)),
             "lpa_vs_patch": _stats(np.abs(tp - lpa) / rms), "two_by_two_vs_lpa": _stats(np.abs(two - lpa) / rms),
             "cross_polarisation_max": float(np.array([r["cross"] for r in done]).max()),
-            "solve_seconds": seconds, "workers": workers,
+            "solve_seconds": seconds, "workers": run.workers,
             "metric": "|t| differences over the sixteen pillars' rms |t| (matched unit cells), per polarisation",
             **ring}
 
 
-def _ring_section(ws, target, rms, stack, levels, partial, workers, scheduler, progress, log) -> dict:
-    """The neighbour-ring low fidelity at ``levels`` against the patches' own ring terms ``target`` (n, 2)."""
+def _ring_section(solved: _Solved, stack, levels, partial, run: Execution) -> dict:
+    """The neighbour-ring low fidelity at ``levels`` against the patches' own ring terms (n, 2)."""
+    ws, target, rms, workers = solved.ws, solved.target, solved.rms, run.workers
     t0 = time.perf_counter()
-    c = ring_couplings(ws, stack, levels, Path(partial), workers=workers, scheduler=scheduler, progress=progress,
-                       log=log)
+    c = ring_couplings(ws, stack, levels, Path(partial), workers=workers, scheduler=run.scheduler,
+                       progress=run.progress, log=run.log)
     seconds = time.perf_counter() - t0
     n = len(ws)
     raw = {str(h): _stats(np.abs(target - c[k]) / rms) for k, h in enumerate(levels)}
@@ -153,8 +185,10 @@ def _ring_section(ws, target, rms, stack, levels, partial, workers, scheduler, p
 ALIGNED = [0, 2, 8, 10]  # the supercells among a patch's sixteen windows (patch_windows), in _patch_task's order
 
 
-def _window_section(ws, tsc, target, rms, lib, ns_super, partial, peds, workers, scheduler, progress, log) -> dict:
-    """The overlapping-window ring of each patch against its patch solve's ``target`` (n, 2)."""
+def _window_section(solved: _Solved, lib, ns_super, partial, peds, run: Execution) -> dict:
+    """The overlapping-window ring of each patch against its patch solve's ring term (n, 2)."""
+    ws, tsc, target, rms = solved.ws, solved.tsc, solved.target, solved.rms
+    workers, scheduler, log = run.workers, run.scheduler, run.log
     n = len(ws)
     win = patch_windows(ws)  # (n, 16, 2, 2, 2)
     odd = [k for k in range(16) if k not in ALIGNED]

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -26,6 +25,7 @@ from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import Design, design_file, load_design, run_design
+from ..execution import SERIAL, Execution
 from ..library.locate import file_sha256
 from ..library.store import load_library
 from ..library.supercells import (
@@ -37,7 +37,8 @@ from ..library.supercells import (
 )
 from ..outputs import Need, temporary
 
-__all__ = ["SOURCES", "SupercellRecipe", "load_supercell_recipe", "design_source", "sample_rows", "pool_widths", "supercell_need", "build_table"]
+__all__ = ["SOURCES", "SupercellRecipe", "load_supercell_recipe", "design_source", "RowDraw", "sample_rows",
+           "pool_widths", "supercell_need", "build_table"]
 
 
 
@@ -116,10 +117,22 @@ def _design_widths(d: Design) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([d.atoms.wx, d.atoms.wy], 1), d.index_map
 
 
-def sample_rows(n: int, seed: int, mix, main: tuple, extra: tuple | None, w_range: tuple[float, float],
-                jitter: float, test_every: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(widths (n, 2, 2, 2) m, source (n,), test (n,))``; ``main``/``extra`` = (atom widths (m, 2), index map
-    [iy, ix] with the no-pillar sentinel outside the atom range)."""
+@dataclass(frozen=True)
+class RowDraw:
+    """How a table's rows are drawn: from ``seed``, the sources' ``mix`` (fractions of :data:`SOURCES`), the
+    jittered atoms' ``jitter`` (m), every ``test_every``-th row held out."""
+
+    seed: int
+    mix: tuple
+    jitter: float
+    test_every: int
+
+
+def sample_rows(n: int, draw: RowDraw, main: tuple, extra: tuple | None,
+                w_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(widths (n, 2, 2, 2) m, source (n,), test (n,))`` drawn as ``draw`` says; ``main``/``extra`` = (atom
+    widths (m, 2), index map [iy, ix] with the no-pillar sentinel outside the atom range)."""
+    seed, mix, jitter, test_every = draw.seed, draw.mix, draw.jitter, draw.test_every
     aw, im = main
     cdf = np.cumsum(mix)
     widths = np.empty((n, 2, 2, 2))
@@ -161,8 +174,8 @@ def pool_widths(recipe: SupercellRecipe, n: int, log=lambda s: None) -> np.ndarr
     main = _design_widths(design_source(recipe.design, log)[0])
     extra = None if recipe.extra_design is None else _design_widths(design_source(recipe.extra_design, log)[0])
     w_range = (float(lib.wx.min()), float(lib.wx.max()))
-    return sample_rows(n, recipe.seed + POOL_SEED_OFFSET, recipe.mix, main, extra, w_range, recipe.jitter,
-                       recipe.test_every)[0]
+    draw = RowDraw(recipe.seed + POOL_SEED_OFFSET, recipe.mix, recipe.jitter, recipe.test_every)
+    return sample_rows(n, draw, main, extra, w_range)[0]
 
 
 def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
@@ -172,11 +185,12 @@ def supercell_need(n: int, n_harmonics: int, workers: int) -> Need:
                 what="fewer -j workers or a lower table.n_harmonics")
 
 
-def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None = None, workers: int = 1,
-                scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
-                log: Callable[[str], None] = lambda s: None, _stop_after_chunks: int | None = None) -> dict:
-    """Solve (or resume, or extend) the table of ``recipe`` into ``output`` (written atomically at the end;
-    the solved chunks stay in ``<output>.partial/`` until then)."""
+def build_table(recipe: SupercellRecipe, output: Path, supercells: int | None = None,
+                run: Execution = SERIAL) -> dict:
+    """Solve (or resume, or extend) the table of ``recipe`` (``supercells`` rows, default the recipe's) into
+    ``output`` (written atomically at the end; the solved chunks stay in ``<output>.partial/`` until then), on
+    ``run``'s workers or scheduler (``run.stop_after``: stop after that many chunks, for tests)."""
+    workers, log = run.workers, run.log
     n = int(supercells or recipe.supercells)
     lib = load_library(recipe.library)
     stack = lib.stack
@@ -192,14 +206,14 @@ def build_table(recipe: SupercellRecipe, output: Path, *, supercells: int | None
         d_x, sha_extra = design_source(recipe.extra_design, log)
         extra = _design_widths(d_x)
     w_range = (float(lib.wx.min()), float(lib.wx.max()))
-    widths, source, test = sample_rows(n, recipe.seed, recipe.mix, main, extra, w_range, recipe.jitter,
-                                       recipe.test_every)
+    widths, source, test = sample_rows(n, RowDraw(recipe.seed, recipe.mix, recipe.jitter, recipe.test_every),
+                                       main, extra, w_range)
     partial = output.parent / (output.name + ".partial")
     log(f"solving {n} supercells (nG {ns - 1}, matched to " + ("the library's" if unit is None else
         "unit cells solved at") + f" {nu - 1}) -> {output}")
-    t, nG, seconds, t_unit = solve_table(widths, stack, ns, partial, workers=workers, scheduler=scheduler,
-                                         chunk_size=recipe.chunk, unit_harmonics=unit, progress=progress, log=log,
-                                         _stop_after_chunks=_stop_after_chunks)
+    t, nG, seconds, t_unit = solve_table(widths, stack, ns, partial, workers=workers, scheduler=run.scheduler,
+                                         chunk_size=recipe.chunk, unit_harmonics=unit, progress=run.progress, log=log,
+                                         _stop_after_chunks=run.stop_after)
     meta = {
         "version": __version__, "recipe": str(recipe.source.name), "seed": recipe.seed, "supercells": n,
         "test_every": recipe.test_every, "n_harmonics": nG, "unit_n_harmonics": nu - 1,

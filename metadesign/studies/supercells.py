@@ -10,13 +10,22 @@
 
 from __future__ import annotations
 
-from .coupling_cert import certify_coupling, plot_coupling
-from .peds_cert import _solve_seconds, certify_peds, plot_peds, select_levels  # noqa: F401
+from .coupling_cert import (  # noqa: F401
+    CouplingFit,
+    CouplingInputs,
+    certify_coupling,
+    check_coupling_inputs,
+    coupling_study,
+    load_coupling_inputs,
+    plot_coupling,
+)
+from .peds_cert import PedsSettings, _solve_seconds, certify_peds, load_peds_inputs, plot_peds, select_levels  # noqa: F401
 from .supercell_errors import _by_source, _error_histogram, _stats  # noqa: F401
 from .supercell_ladder import convergence_ladder
 from .supercell_patches import (  # noqa: F401
     ALIGNED,
     PATCH_MODELS,
+    PatchSettings,
     _patch_task,
     _ring_section,
     _window_section,
@@ -27,6 +36,7 @@ from .supercell_patches import (  # noqa: F401
 )
 from .supercell_table import (  # noqa: F401
     POOL_SEED_OFFSET,
+    RowDraw,
     SOURCES,
     SUPERCELL_SECTIONS,
     SupercellRecipe,
@@ -42,4 +52,5 @@ from .supercell_table import (  # noqa: F401
 __all__ = ["SupercellRecipe", "load_supercell_recipe", "sample_rows", "build_table", "pool_widths", "convergence_ladder",
            "patch_study", "design_source", "SOURCES", "certify_coupling",
            "plot_coupling", "certify_peds", "plot_peds", "select_levels", "design_patches", "solve_patches",
-           "plot_patches", "supercell_need"]
+           "plot_patches", "supercell_need", "PedsSettings", "load_peds_inputs",
+           "PatchSettings", "RowDraw", "CouplingFit"]
