@@ -8,13 +8,13 @@ coefficients fitted with that patch left out); PEDS alone (no ring); the LPA.  I
 pillars' rms |t|, per polarisation.
 
     python benchmarks/crosscheck_ring_certified.py [layouts/paper-5mm] [--patches 32] [--harmonics 1300]
-        [--ring-levels 45 97] [--partial DIR] [-j 2] [--json]
+        [--ring-levels 45 97] [--partial DIR] [-o FOLDER] [-j 2] [--json]
 
-``--partial``: the patch study's solves (OUT.partial of `library patches`, kept) are reused from there;
-the converged supercells are added to it (resumable)."""
+``-o FOLDER``: the report also written to FOLDER/crosscheck.json (the solves in FOLDER.partial: a rerun after
+a kill reuses them).  ``--partial``: the patch study's solves (OUT.partial of `library patches`, kept) are
+reused from there; the converged supercells are added to it (resumable)."""
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -24,7 +24,8 @@ os.environ.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _paper_design import design_arguments, paper_patches, patch_arguments  # noqa: E402
+from _paper_design import (  # noqa: E402
+    crosscheck, design_arguments, has_design, output_arguments, paper_patches, patch_arguments)
 
 
 def _stats(e):
@@ -34,27 +35,19 @@ def _stats(e):
             "mean_both": float(e.mean()), "p90_both": float(np.percentile(e, 90))}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    design_arguments(ap)
-    patch_arguments(ap, 32)
-    ap.add_argument("--harmonics", type=int, default=1300, help="the patch study's (requested)")
-    ap.add_argument("--ring-levels", type=int, nargs="+", default=[45, 97])
-    ap.add_argument("--converged", type=int, default=800, help="the supercells' converged truncation (requested)")
-    a = ap.parse_args(argv)
-    got = paper_patches(a)
-    if got is None:
-        return 2
+def ring_report(a, scratch) -> dict:
+    """The report: the patches' truth (four converged supercells + the ring term) against each model (solves
+    under ``scratch``)."""
     import numpy as np
 
+    from metadesign.execution import Execution
     from metadesign.library.coupling import lpa_t
     from metadesign.library.peds import certified_t, fit_peds, patch_windows, ring_couplings
     from metadesign.library.store import interpolate_t
     from metadesign.library.supercells import solve_table
-    from metadesign.execution import Execution
     from metadesign.studies.supercells import solve_patches
 
-    lib, ws, partial = got
+    lib, ws, partial = paper_patches(a, scratch)
     st = lib.stack
     t0 = time.perf_counter()
     done, _, _ = solve_patches(ws, st, a.harmonics, partial, run=Execution(workers=a.workers))
@@ -77,18 +70,19 @@ def main(argv=None) -> int:
     truth = t_conv.reshape(n, 4, 2).mean(1) + ring_hi
     peds = t_peds.reshape(n, 4, 2).mean(1)
     lpa = lpa_t(tu).reshape(n, 4, 2).mean(1)
-    rep = {"patches": n, "seed": a.seed, "ring_levels": a.ring_levels, "converged_nG": int(nG_conv),
-           "seconds": time.perf_counter() - t0, "workers": a.workers,
-           "peds_windows": _stats(np.abs(t_win.mean(1) - truth) / rms),
-           "peds_plus_ring": _stats(np.abs(peds + held - truth) / rms),
-           "peds_alone": _stats(np.abs(peds - truth) / rms),
-           "lpa": _stats(np.abs(lpa - truth) / rms),
-           "ring_term_alone_residual": _stats(np.abs(held - ring_hi) / rms),
-           "per_supercell_peds_vs_converged": _stats(np.abs(t_peds - t_conv) /
-                                                     np.sqrt((np.abs(tu) ** 2).mean((1, 2))))}
-    if a.json:
-        print(json.dumps(rep, indent=2))
-        return 0
+    return {"patches": n, "seed": a.seed, "ring_levels": a.ring_levels, "converged_nG": int(nG_conv),
+            "seconds": time.perf_counter() - t0, "workers": a.workers,
+            "peds_windows": _stats(np.abs(t_win.mean(1) - truth) / rms),
+            "peds_plus_ring": _stats(np.abs(peds + held - truth) / rms),
+            "peds_alone": _stats(np.abs(peds - truth) / rms),
+            "lpa": _stats(np.abs(lpa - truth) / rms),
+            "ring_term_alone_residual": _stats(np.abs(held - ring_hi) / rms),
+            "per_supercell_peds_vs_converged": _stats(np.abs(t_peds - t_conv) /
+                                                      np.sqrt((np.abs(tu) ** 2).mean((1, 2))))}
+
+
+def show(a, rep) -> None:
+    n, nG_conv = rep["patches"], rep["converged_nG"]
     print(f"{n} patches of {a.design} (seed {a.seed}); truth: four supercells at nG {nG_conv} + the patch's ring term; "
           f"{rep['seconds']:.0f} s on {a.workers} workers")
     print("  of rms|t_i|                mean x / y          p90 x / y")
@@ -97,7 +91,21 @@ def main(argv=None) -> int:
                     ("per_supercell_peds_vs_converged", "PEDS per supercell")):
         s = rep[k]
         print(f"  {name:<26s} {s['mean'][0]:.4f} / {s['mean'][1]:.4f}     {s['p90'][0]:.4f} / {s['p90'][1]:.4f}")
-    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    design_arguments(ap)
+    patch_arguments(ap, 32)
+    output_arguments(ap)
+    ap.add_argument("--harmonics", type=int, default=1300, help="the patch study's (requested)")
+    ap.add_argument("--ring-levels", type=int, nargs="+", default=[45, 97])
+    ap.add_argument("--converged", type=int, default=800, help="the supercells' converged truncation (requested)")
+    a = ap.parse_args(argv)
+    if not has_design(a.design):
+        return 2
+    return crosscheck(a, Path(__file__).name, {"design": a.design, "solves": a.partial},
+                      lambda scratch: ring_report(a, scratch), lambda rep: show(a, rep), keep=a.partial)
 
 
 if __name__ == "__main__":

@@ -99,13 +99,26 @@ def toml_text(d: dict) -> str:
     return "\n".join(lines)
 
 
+def design_recipe_of(rec: dict, base: str | Path) -> tuple[dict, dict]:
+    """(the co-designed device's design recipe as a dict, the base recipe's): ``base`` must be a design recipe
+    and the result one that ``design build`` takes (checked here, before anything is written)."""
+    from ..design.recipe import design_recipe_from_dict
+
+    base = Path(base)
+    base_raw = load_toml(base)
+    if not isinstance(base_raw.get("design"), dict):
+        raise InputError(f"--base {base}: not a design recipe (no [design] section)")
+    new = diversity_design_recipe(base_raw, rec)
+    design_recipe_from_dict(new, base.stem, base)  # what design build would refuse, refused now
+    return new, base_raw
+
+
 def write_design_recipe(rec: dict, base: str | Path, path: Path, run: str | Path) -> Path:
     """The co-designed device's design recipe at ``path``: ``base`` with each lens's learned focal length
     and Zernike terms; its library named relative to ``path``'s folder (so it can be committed beside the
     other design recipes)."""
     base = Path(base)
-    base_raw = load_toml(base)
-    new = diversity_design_recipe(base_raw, rec)
+    new, base_raw = design_recipe_of(rec, base)
     lib = base_raw.get("design", {}).get("library", "../library/paper.npz")
     lib_abs = (base.parent / lib).resolve() if not Path(lib).is_absolute() else Path(lib)
     new["design"]["library"] = os.path.relpath(lib_abs, path.parent.resolve())
@@ -138,13 +151,14 @@ def run_codesign_report(run: str | Path, dataset: str | Path, base: str | Path, 
     modes, samples, photons, read_noise_e, random = (fisher.modes, fisher.samples, fisher.photons,
                                                      fisher.read_noise_e, fisher.random)
     rec = read_diversity(run)
+    design_recipe_of(rec, base)  # every input checked before anything is written
+    dev = load_device(dataset)
     out.mkdir(parents=True, exist_ok=True)
     # 1. the device recipe
     write_design_recipe(rec, base, out / "design.toml", run)
     if recipe is not None:
         write_design_recipe(rec, base, Path(recipe), run)
     # 2. the diversity and its PSFs
-    dev = load_device(dataset)
     lenses = lens_table(open_dataset(dataset).attrs["provenance"]["channels"])
     ops = diversity_operators(dev.pupil, dev.sensor, lenses, dev.geometry, modes=tuple(rec["zernike_noll"]))
     tw = DiversityTwin(ops)
