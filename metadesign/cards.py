@@ -27,8 +27,8 @@ from .io import atomic_path, atomic_write_text
 from .tasks import file_key
 from .validation import ValidationError
 
-__all__ = ["card_path", "find_card", "save_card_model", "save_card", "read_card", "card_format", "load_weights",
-           "load_into"]
+__all__ = ["card_path", "find_card", "save_card_model", "save_card", "read_card", "card_format", "model_card",
+           "has_format", "load_weights", "load_into"]
 
 
 def card_path(weights: str | Path) -> Path:
@@ -135,6 +135,23 @@ def read_card(path: str | Path, formats: str | Iterable[str], what: str = "model
     if file_key(path) != card.get("weights_sha256"):
         raise ValidationError(f"{path}: weights do not match the card's sha256 (truncated or replaced)")
     return path, cp, card
+
+
+def model_card(path: str | Path, formats: str | Iterable[str] | None = None, what: str = "model") -> dict:
+    """The card of the model at ``path`` (its weights, its card, or a card-only model), read and checked by
+    :func:`read_card`: the one reader of a card's content, so the weights' sha256 is checked whenever the
+    card names weights.  ``formats``: those accepted (default: the one the card names)."""
+    return read_card(path, card_format(path, what) if formats is None else formats, what)[2]
+
+
+def has_format(path: str | Path, formats: str | Iterable[str]) -> bool:
+    """Whether the model file at ``path`` names one of ``formats`` in its card: a sniff of the format alone
+    (which loader to call); the loader then reads the card through :func:`read_card`, sha256 checked."""
+    formats = (formats,) if isinstance(formats, str) else tuple(formats)
+    try:
+        return card_format(path) in formats
+    except ValidationError:
+        return False
 
 
 def load_weights(path: str | Path, device: str = "cpu", what: str = "model") -> dict:

@@ -336,3 +336,18 @@ features = 4
     (tmp_path / "t.toml").write_text((tmp_path / "t.toml").read_text().replace("width = 4", "width = 8"))
     with pytest.raises(ValidationError, match="another \\[refine\\] architecture"):
         _build_refiner(load_train_recipe(tmp_path / "t.toml"), tiny_dataset, 16, src.config.aperture_size, None, "cpu")
+
+
+def test_model_card_checks_the_weights_sha256(tmp_path):
+    """The one reader of a card's content (cards.model_card) checks the weights' sha256 whatever the format;
+    has_format only sniffs the format (the loader then checks)."""
+    from metadesign.cards import has_format, model_card, save_card_model
+    from metadesign.validation import ValidationError
+
+    w, _ = save_card_model(tmp_path / "m.safetensors", {"a": torch.zeros(2)}, "metadesign.test/1", {"x": 1})
+    assert model_card(w)["x"] == 1 and model_card(str(w) + ".json", "metadesign.test/1")["x"] == 1
+    assert has_format(w, "metadesign.test/1") and not has_format(w, "metadesign.other/1")
+    w.write_bytes(w.read_bytes() + b" ")
+    with pytest.raises(ValidationError, match="sha256"):
+        model_card(w)
+    assert has_format(w, "metadesign.test/1") and not has_format(tmp_path / "none.safetensors", "metadesign.test/1")

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cards import find_card, save_card_model
+from ..cards import find_card, has_format, save_card_model
 from ..paths import repo_root
 from ..validation import ValidationError
 from .locate import file_sha256, find_fitted
@@ -78,11 +78,7 @@ def save_coupling(path: str | Path, model, lib_path: str | Path, card: dict) -> 
 
 
 def is_coupling(path: str | Path) -> bool:
-    try:
-        card = json.loads(find_card(path).read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(card, dict) and card.get("format") == CARD_FORMAT
+    return has_format(path, CARD_FORMAT)
 
 
 def unit_rms(t_units: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ Reading samples for training and evaluation: :mod:`.data`.
 
 from __future__ import annotations
 
-from .dataset_build import (ShardContext, _build_dataset, _device_pupil, _make_shard, _recipe_hash, build_dataset,
+from .dataset_build import (ShardContext, _build_dataset, _device_pupil, _make_shard, build_dataset,
                             ensure_layout, make_sample, make_shard, measured_rytov, normalise_psf, run_shards,
                             shard_folder, shard_name)
 from .dataset_recipe import (_MAX_SEED, SECTIONS, TENSOR_SIZE, DatasetRecipe, dataset_recipe_from_dict,

@@ -25,8 +25,7 @@ from ..design.recipe import load_design_recipe
 from ..design.store import load_design, run_design
 from ..outputs import Need, product
 from ..layouts.make import make_layout
-from ..library.locate import file_sha256
-from ..tasks import TaskFolder, content_key, run_resumable
+from ..tasks import TaskFolder, content_key, file_key, run_resumable
 from ..parallel import dask_client
 from ..paths import resolve_against
 from ..turbulence.system import build_system
@@ -185,11 +184,6 @@ def _device_pupil(fab, sensing, pert, store: Path, layout_sha: str, progress=Non
     return cp
 
 
-def _recipe_hash(parts: dict) -> str:
-    """The dataset's content key (what shapes its bytes): :func:`metadesign.tasks.content_key`."""
-    return content_key(parts)  # = sha256 of json.dumps(parts, sort_keys=True): the same value as before
-
-
 
 def _make_shard(ctx, i: int) -> tuple[str, dict]:
     return shard_name(i), ctx.make(i)
@@ -247,7 +241,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
         if not rep.ok:
             raise ValidationError(f"dataset: Rytov {r:g}: infeasible turbulence sampling: {rep.failures[0]}")
     layout = ensure_layout(recipe, log)
-    layout_sha = file_sha256(layout)
+    layout_sha = file_key(layout)
     system = build_system(layout, recipe.sensor, scenario, recipe.fabrication,
                           recipe.source.parent if recipe.source else Path.cwd(), recipe.tensor_size)
     fab, sensing, pert = system.device, system.sensing, system.perturbation
@@ -258,7 +252,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
         parts["fab_library_sha256"] = fab.fab_lib.identity
     if fab.coupling_card is not None:  # absent for the LPA: those datasets keep their hash
         parts["coupling_model_sha256"] = fab.coupling_card["weights_sha256"]
-    rhash = _recipe_hash(parts)
+    rhash = content_key(parts)  # what shapes the dataset's bytes (sha256 of json.dumps(parts, sort_keys=True))
     if existing is not None and existing.get("recipe_hash") != rhash:
         if not overwrite:
             raise ValidationError(f"{out}: holds a dataset built from a different recipe (or device); "

@@ -19,8 +19,7 @@ import numpy as np
 
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
-from ..library.locate import file_sha256
-from ..tasks import content_key
+from ..tasks import content_key, file_key
 from ..turbulence.scenario import load_scenario
 
 __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "TENSOR_SIZE", "SECTIONS",
@@ -106,7 +105,7 @@ class DatasetRecipe:
                  "turbulence": toml(self.turbulence), "design": toml(self.design)}
         if self.design is not None and Path(self.design).is_file():
             lib = load_design_recipe(self.design).library_path
-            parts["library_sha256"] = file_sha256(lib) if Path(lib).is_file() else None
+            parts["library_sha256"] = file_key(lib) if Path(lib).is_file() else None
         return content_key(parts)
 
     def with_samples(self, n: int) -> "DatasetRecipe":

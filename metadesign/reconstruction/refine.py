@@ -30,11 +30,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..cards import load_into, load_weights, read_card, save_card_model
-from ..library.locate import file_sha256
+from ..cards import has_format, load_into, load_weights, read_card, save_card_model
 from ..sensing.device import Device
 from ..sensing.twin import twin_operators
 from ..sensing.twin_real import RealTwin, real_buffers
+from ..tasks import file_key
 from ..validation import ValidationError, check_int, check_number
 from .model import aperture_mask, check_sizes, field_phase, load_model
 
@@ -225,18 +225,13 @@ def save_refiner(refiner, path: str | Path, unet_path: str | Path, card: dict) -
     except ValueError:
         rel = str(unet_path.resolve())
     return save_card_model(path, state, REFINER_FORMAT,
-                           {"refine": refiner.cfg.to_dict(), "unet": {"path": rel, "weights_sha256": file_sha256(unet_path)},
+                           {"refine": refiner.cfg.to_dict(), "unet": {"path": rel, "weights_sha256": file_key(unet_path)},
                             **card}, trained_on=card.get("dataset"))
 
 
 def is_refiner(path: str | Path) -> bool:
     """Whether ``path`` (weights or card) is a saved refiner (by its card's format)."""
-    path = Path(path)
-    card = path if path.suffix == ".json" else path.with_name(path.name + ".json")
-    try:
-        return json.loads(card.read_text()).get("format") == REFINER_FORMAT
-    except (OSError, ValueError, AttributeError):
-        return False
+    return has_format(path, REFINER_FORMAT)
 
 
 def load_refiner(path: str | Path, device: str = "cpu"):
@@ -254,7 +249,7 @@ def load_refiner(path: str | Path, device: str = "cpu"):
     if not up.is_file() and (path.parent / up.name).is_file():  # copied beside the refiner (a wheel, a release)
         up = path.parent / up.name
     unet, _ = load_model(up, device)
-    if file_sha256(up) != unet_ref.get("weights_sha256"):
+    if file_key(up) != unet_ref.get("weights_sha256"):
         raise ValidationError(f"{path}: its U-Net {up} is not the one it was trained on (sha256 differs)")
     state = load_weights(path, device, "refiner")
     buffers = {k[len("twin."):]: v.numpy() for k, v in state.items()

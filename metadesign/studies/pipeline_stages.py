@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..cards import model_card
 from ..cliutil import progress_bar
 from ..design.plot import plot_design
 from ..design.recipe import load_design_recipe
@@ -448,8 +449,8 @@ CAPTURED_MARGIN = 0.10
 def _validated_captured_fraction(model) -> float | None:
     """The captured fraction on the validation set recorded in a model's card (None: not recorded)."""
     try:
-        card = json.loads(Path(str(model) + ".json").read_text())
-    except (OSError, ValueError, TypeError):
+        card = model_card(model)  # sha256 checked: a replaced model has no validated fraction
+    except (ValidationError, TypeError):
         return None
     m = card.get("metrics") if isinstance(card, dict) else None
     if not isinstance(m, dict):

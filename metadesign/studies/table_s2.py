@@ -9,6 +9,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..cards import model_card
 from ..config import Param, Section, load_toml, parse
 from ..io import atomic_write_text
 from ..reconstruction.dataset import build_dataset, dataset_recipe_from_dict
@@ -57,7 +58,7 @@ def run_table_s2(recipe_path: str | Path, out: Path, workers: int = 2, log: Call
         import torch
 
         st = torch.load(run / "checkpoint.pt", weights_only=True)
-        m = build_unet(UNetConfig(**json.loads((run / "model.safetensors.json").read_text())["architecture"]))
+        m = build_unet(UNetConfig(**model_card(run / "model.safetensors")["architecture"]))
         m.load_state_dict(st["model"])
         save_model(m, run / "final.safetensors", {"loss": loss, "epochs": rep["epochs_done"]})
         for split in ("train", "test"):
