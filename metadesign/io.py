@@ -398,3 +398,8 @@ def output_lock(out: str | Path, what: str = "output") -> Iterator[None]:
             os.unlink(lock)
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
+
+
+#: public names of two of the writer's helpers (the scratch folders' maker uses them)
+check_claimed = _check_claimed
+current_umask = _umask

@@ -47,7 +47,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
-from .execution import is_scratch
+from .scratch import is_scratch, remove_scratch
 from .io import atomic_write_text, claim, output_lock
 from .plotting import PNG_KEY
 from .validation import MEMORY_FRACTION, InputError, ValidationError, available_memory
@@ -521,8 +521,6 @@ def product(out: str | Path, kind: str, inputs: Mapping[str, str | Path | Input 
                 if not ok and created and out.is_dir() and (refused or {p.name for p in out.iterdir()} <= {MARKER}):
                     shutil.rmtree(out, ignore_errors=True)
                 if refused:
-                    from .execution import remove_scratch
-
                     for s in new_scratch:
                         remove_scratch(s)
 

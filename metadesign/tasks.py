@@ -37,7 +37,7 @@ from typing import Callable, Iterable, Mapping
 import numpy as np
 
 from .cliutil import plural
-from .execution import SCRATCH_FORMAT, SCRATCH_MARK, is_scratch, make_scratch, remove_scratch
+from .scratch import SCRATCH_FORMAT, SCRATCH_MARK, is_scratch, make_scratch, remove_scratch
 from .io import atomic_write_text, read_npz, write_npz
 from .parallel import run_tasks
 from .validation import InputError, ValidationError

@@ -1,6 +1,6 @@
 """The package's layering, enforced: a stage imports only what lies below it in the pipeline, never a
 later stage and never another package's private name; studies sit on top; internal imports sit at
-module top (the CLI modules, which defer their stage's implementation so that ``--help`` and stage-1
+module top (the CLI modules, ``cli.py`` and ``cli_*.py``, which defer their stage's implementation so that ``--help`` and stage-1
 commands do not load torch, excepted)."""
 
 import ast
@@ -11,7 +11,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "metadesign"
 
 #: the shared edges: used by everything, import only each other
-EDGES = {"conventions", "config", "io", "validation", "outputs", "tasks", "cards", "cliutil", "parallel", "paths",
+EDGES = {"conventions", "config", "io", "validation", "outputs", "tasks", "execution", "scratch", "cards", "cliutil", "parallel", "paths",
          "plotting", "timing", "lazy",
          "determinism", "deflate", "jit"}
 #: subpackages in pipeline order (a module may import its own level and those below)
@@ -51,6 +51,9 @@ def internal_imports(source: str, module: str, is_pkg: bool):
     """(line, target module, imported names, at module top?) of every metadesign import in ``source``."""
     tree = ast.parse(source)
     top = set(map(id, tree.body))
+    for node in tree.body:  # ``if TYPE_CHECKING:`` imports are the module's own (annotations only)
+        if isinstance(node, ast.If) and ast.unparse(node.test).endswith("TYPE_CHECKING"):
+            top |= set(map(id, node.body))
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
@@ -81,7 +84,8 @@ def internal_imports(source: str, module: str, is_pkg: bool):
 
 def violations(source: str, module: str, is_pkg: bool = False) -> list[str]:
     own = level(module)
-    cli = module.split(".")[-1] in TOP
+    last = module.split(".")[-1]
+    cli = last in TOP or last.startswith("cli_")  # a stage's CLI module, or one of the studies' per-area ones
     bad = []
     for line, target, names, at_top in internal_imports(source, module, is_pkg):
         if target == module:

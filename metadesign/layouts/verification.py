@@ -27,10 +27,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
+from ..design.store import design_file, load_design
 from ..execution import SERIAL, Execution
 from ..validation import MEMORY_FRACTION, InputError, available_memory
-from .reader import layout_format, layout_tiling
+from .reader import (drc_check, layout_format, layout_tiling, read_layout, read_layout_klayout, verify_against_design,
+                     verify_tiled)
 from .rules import DESIGN_RULES, DesignRules
+from .stream import verify_stream
 
 __all__ = ["METHODS", "VerifyOptions", "VerifyReport", "MethodChoice", "choose_method", "verify",
            "klayout_memory", "KLAYOUT_BYTES_PER_PILLAR"]
@@ -135,8 +138,6 @@ def choose_method(path: str | Path, method: str = "auto", options: VerifyOptions
 
 def _design_beside(path: Path, design: str | Path | None) -> Path:
     """The design a tiled layout is verified against: ``design``, else the design.npz beside it."""
-    from ..design.store import design_file
-
     found = design_file(design if design else path.parent)
     if not found.exists():
         raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
@@ -146,9 +147,6 @@ def _design_beside(path: Path, design: str | Path | None) -> Path:
 def _readback(path: Path, design, rules: DesignRules, options: VerifyOptions) -> tuple[dict, str]:
     """Every pillar read back (gdstk; KLayout too with ``options.klayout``) against the design, and the
     design rules: the report and the design's path."""
-    from ..design.store import design_file, load_design
-    from .reader import drc_check, read_layout, read_layout_klayout, verify_against_design
-
     lc = read_layout(path)
     if not design and not (path.parent / "design.npz").exists():
         raise InputError(f"{path}: no design.npz beside it; pass --design DESIGN")
@@ -173,14 +171,10 @@ def _run(choice: MethodChoice, path: Path, design, rules: DesignRules, options: 
         return rep, src, (g["pillars"], g["expected"], g["pillars"])
     src = _design_beside(path, design)
     if choice.method == "tiled":
-        from .reader import verify_tiled
-
         sample = 8 if options.sample_tiles is None else options.sample_tiles
         rep = verify_tiled(path, src, sample, options.seed, rules, run)
         rep["passed"] = bool(rep["exact"] and rep["drc"]["passed"])
         return rep, str(src), (rep["pillars_klayout"], rep["pillars_design"], rep["sampled_pillars"])
-    from .stream import verify_stream
-
     rep = verify_stream(path, src, rules, options.tile, run)
     rep["passed"] = bool(rep["exact"] and rep["drc"]["passed"])
     return rep, str(src), (rep["pillars"], rep["pillars_design"], rep["pillars"])

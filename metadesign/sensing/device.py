@@ -41,6 +41,7 @@ from ..validation import ValidationError, check_int, check_number
 from .detector import Detector
 from .forward import CoarsePupil, sensor_frames
 from .sensor import SensorSpec, psf_tensor
+from .twin import TorchTwin, crop_to_pupil
 
 __all__ = ["ReceiverCrop", "Device", "Exposure", "load_pupil", "save_pupil", "check_wavelengths", "WAVELENGTH_RTOL"]
 
@@ -143,8 +144,6 @@ class Device:
     def pupil_field(self, crop: np.ndarray) -> np.ndarray:
         """Received crop(s) ``(..., A, A)`` -> the incident field(s) on the pupil grid (the cubic resampling
         of :meth:`~metadesign.turbulence.propagate.Turbulence.to_metasurface`, the metasurface's mask)."""
-        from .twin import crop_to_pupil
-
         c = self._need_crop()
         crop = np.asarray(crop)
         if crop.ndim == 3:
@@ -157,8 +156,6 @@ class Device:
     def twin(self, rebin: int = 1, samples: int | None = None, device="cpu", double: bool = False):
         """The torch backend of this device (:class:`~metadesign.sensing.twin.TorchTwin`: the same three
         calls, batched, differentiable)."""
-        from .twin import TorchTwin
-
         return TorchTwin.for_device(self, rebin, samples, device, double)
 
     def _need_crop(self) -> ReceiverCrop:

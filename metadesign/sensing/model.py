@@ -16,7 +16,9 @@ from ..layouts.reader import IndexRows, LayoutContents, open_layout, read_tiled_
 from ..layouts.writer import LayoutOptions, layout_geometry, provenance_of, snap_widths
 from ..library.locate import find_library
 from ..library.store import UnitCellLibrary, load_library
+from ..library.surrogates import CouplingNet
 from ..parallel import run_tasks
+from .device import Device
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
@@ -119,8 +121,6 @@ class AsFabricated:
         (:func:`metadesign.library.surrogates.surrogate`).  "peds" is refused (one line): its
         transmissions cost RCWA solves per supercell, which a whole device cannot afford; a device under
         it is estimated by sampling (``metadesign library coupling-check --certified N``)."""
-        from ..library.surrogates import CouplingNet
-
         name = kind if isinstance(kind, str) else getattr(kind, "name", None)
         if name not in COUPLINGS:
             raise ConfigError("pupil.coupling", f"expected one of {', '.join(map(repr, COUPLINGS))}, got {kind!r}")
@@ -404,6 +404,4 @@ def spot_metrics(cp: CoarsePupil, sensor: SensorSpec, fab: AsFabricated, focus_s
 def render_frames(fab: AsFabricated, sr: SensingRecipe, pert: Perturbation = Perturbation(),
                   e_in: np.ndarray | None = None, progress=None) -> tuple[np.ndarray, CoarsePupil]:
     cp = fab.pupil(sr.sensor.distance, sr.pupil_grid, pert, progress)
-    from .device import Device  # the device module builds on this one
-
     return Device(cp, sr.sensor).frames(e_in), cp

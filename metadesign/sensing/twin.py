@@ -19,13 +19,16 @@ field that is zero outside the crop).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..optics.propagation import cexp
-from .device import Device
 from .forward import CoarsePupil, _nonparaxial
 from .sensor import SensorSpec, area_weights, quadrant_slices
+
+if TYPE_CHECKING:  # the device builds its torch backend from this module
+    from .device import Device
 
 __all__ = ["rebin_pupil", "crop_interpolator", "crop_to_pupil", "TwinOperators", "twin_operators",
            "TorchTwin", "twin_error", "normalise", "render_tensor"]

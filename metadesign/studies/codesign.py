@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ..config import load_toml
+from ..design.recipe import design_recipe_from_dict
 from ..io import atomic_write_text
 from ..outputs import RECIPE_HEADER
 from ..plotting import pyplot, save_figure
@@ -102,8 +103,6 @@ def toml_text(d: dict) -> str:
 def design_recipe_of(rec: dict, base: str | Path) -> tuple[dict, dict]:
     """(the co-designed device's design recipe as a dict, the base recipe's): ``base`` must be a design recipe
     and the result one that ``design build`` takes (checked here, before anything is written)."""
-    from ..design.recipe import design_recipe_from_dict
-
     base = Path(base)
     base_raw = load_toml(base)
     if not isinstance(base_raw.get("design"), dict):

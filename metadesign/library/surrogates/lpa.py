@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import surrogates as kernels
 from ..coupling import lpa_t
 from .base import Surrogate, check_widths
 
@@ -29,6 +30,4 @@ class LPA(Surrogate):
 
     def t_torch(self, widths):
         """(n, 2) complex128 tensor: :func:`~metadesign.library.peds_torch.lpa_torch` (float64 look-up)."""
-        from ..peds_torch import lpa_torch
-
-        return lpa_torch(self.lib, widths)
+        return kernels.lpa_torch(self.lib, widths)  # torch: its module is imported on first use

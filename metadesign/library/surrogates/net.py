@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import surrogates as kernels  # the network's kernels (torch) are imported on first use
 from ..coupling import CARD_FORMAT
 from ..store import UnitCellLibrary
 from .base import Surrogate, check_widths
@@ -33,25 +34,19 @@ class CouplingNet(Surrogate):
                  file_card: dict | None = None):
         super().__init__(lib)
         if model is None:
-            from ..coupling_net import find_coupling
-
-            model, file_card, path = find_coupling(lib, path)
+            model, file_card, path = kernels.find_coupling(lib, path)
         self.model, self.file_card = model, dict(file_card or {})
         self.path = None if path is None else Path(path)
 
     def t(self, widths: np.ndarray, t_units: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) complex64: :func:`~metadesign.library.coupling_net.coupling_t` (``t_units`` None: the
         network's own float32 look-up of the library, as ``coupling_t``)."""
-        from ..coupling_net import coupling_t
-
-        return coupling_t(self.model, check_widths(widths, "coupling"), t_units)
+        return kernels.coupling_t(self.model, check_widths(widths, "coupling"), t_units)
 
     def pillar_terms(self, widths: np.ndarray, t_units: np.ndarray | None = None) -> np.ndarray:
         """(n, 2, 2, 2 pol) complex64: :func:`~metadesign.library.coupling_net.pillar_terms`."""
-        from ..coupling_net import pillar_terms
-
         w = check_widths(widths, "coupling")
-        return pillar_terms(self.model, w, self.unit_t(w) if t_units is None else t_units)
+        return kernels.pillar_terms(self.model, w, self.unit_t(w) if t_units is None else t_units)
 
     def t_torch(self, widths, t_units=None):
         """(n, 2) complex64 tensor: the network's forward pass (differentiable in the widths); ``t_units``

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ...execution import SERIAL, Execution
+from ...validation import ValidationError
+from .. import surrogates as kernels
 from ..peds import PEDS_FORMAT, PedsModel, certified_t, find_peds, load_peds
 from ..rcwa import Stack
 from ..store import UnitCellLibrary
@@ -59,20 +61,15 @@ class PEDS(Surrogate):
                            progress=r.progress, stack=self.stack, t_unit=t_units, taper=self.taper)
 
     def pillar_terms(self, widths: np.ndarray, t_units: np.ndarray | None = None) -> np.ndarray:
-        from ...validation import ValidationError
-
         raise ValidationError("the peds supercell model has no per-pillar terms (its correction belongs to the "
                               "supercell; a device under it is sampled: metadesign library coupling-check --certified)")
 
     def t_torch(self, widths):
         """(n, 2) complex128 tensor: :func:`~metadesign.library.peds_torch.peds_t_torch` (vertical pillars of
         the library's stack only)."""
-        from ...validation import ValidationError
-        from ..peds_torch import peds_t_torch
-
         if self.stack is not None or self.taper is not None:
             raise ValidationError("peds: the torch twin solves the library's vertical pillars only (no stack / taper)")
-        return peds_t_torch(self.model, self.lib, widths)
+        return kernels.peds_t_torch(self.model, self.lib, widths)  # torch: imported on first use
 
     def certification(self) -> dict | None:
         return self.model.card.get("certification")
