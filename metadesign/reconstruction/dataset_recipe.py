@@ -56,7 +56,7 @@ SECTIONS = (
         Param("height_gradient_nm", float, 0.0, lo=-500, hi=500),
         Param("sidewall_gradient_deg", float, 0.0, lo=-30, hi=30),
         Param("fab_library", str, None, help="library with height / sidewall axes (relative to the recipe)"),
-        Param("coupling", str, None, choices=("lpa", "supercell"),
+        Param("coupling", str, None, choices=("lpa", "supercell", "coupling", "peds"),
               help="supercell coupling of the pillars (default: the sensing recipe's pupil.coupling)"),
         Param("coupling_model", str, None, help="the coupling model (relative to the recipe; default: the one "
                                                 "fitted against the layout's library)"),

@@ -185,9 +185,11 @@ def _forward_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("layout", help="layout file (.oas/.gds) written by `metadesign layout`")
     p.add_argument("--sensor", help="sensing recipe (default: sensing/paper.toml)")
     p.add_argument("--library", help="unit-cell library (default: the one recorded in the layout, found by sha256)")
-    p.add_argument("--coupling", choices=("lpa", "supercell"), help="lpa: every pillar as in an infinite array "
-                   "of itself; supercell: plus its neighbours' coupling from the supercell model (default: the "
-                   "sensing recipe's pupil.coupling, else lpa)")
+    p.add_argument("--coupling", choices=("lpa", "supercell", "coupling", "peds"), help="the supercell model "
+                   "(metadesign.library.surrogates): lpa: every pillar as in an infinite array of itself; coupling "
+                   "(or supercell): plus its neighbours' coupling from the coupling network; peds: the certified "
+                   "surrogate, sampled by `library coupling-check --certified` (default: the sensing recipe's "
+                   "pupil.coupling, else lpa)")
     p.add_argument("--coupling-model", help="the supercell coupling model (default: the one fitted against the "
                    "layout's library, found in library/)")
 
@@ -199,8 +201,8 @@ def _device(a, sr=None):
     fab = AsFabricated.from_files(a.layout, a.library)
     kind = a.coupling or (sr.coupling if sr is not None else "lpa")
     model = a.coupling_model or (sr.coupling_model if sr is not None else None)
-    if a.coupling_model and kind != "supercell":
-        raise InputError("--coupling-model needs --coupling supercell")
+    if a.coupling_model and kind not in ("supercell", "coupling"):
+        raise InputError("--coupling-model needs --coupling coupling (or supercell)")
     return fab if kind == "lpa" else fab.with_coupling(kind, model)
 
 

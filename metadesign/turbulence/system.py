@@ -60,8 +60,8 @@ def build_system(layout: str | Path | AsFabricated, sensor: str | Path | Sensing
     kind = f.get("coupling") or sensing.coupling
     cmodel = sensing.coupling_model
     if f.get("coupling_model"):
-        if kind != "supercell":
-            raise ValidationError('fabrication.coupling_model: needs coupling = "supercell"')
+        if kind not in ("supercell", "coupling"):
+            raise ValidationError('fabrication.coupling_model: needs coupling = "coupling" (or "supercell")')
         cmodel = resolve_against(base, f["coupling_model"])
     if kind != "lpa":
         fab = fab.with_coupling(kind, cmodel)
