@@ -33,12 +33,13 @@ def _perturbed_device(base, layout):
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory, tiny_dataset, demo_products):
     from metadesign.sensing.camera import Alignment, CameraSpec
-    from metadesign.studies.captures import synth_captures
+    from metadesign.studies.captures import CaptureSession, synth_captures
 
     base = tmp_path_factory.mktemp("captures")
     dev = _perturbed_device(base, demo_products["layout"])
     cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
-    synth_captures(tiny_dataset, dev, base / "cap", Alignment(**TRUE), cam, samples=5, saturate=1, fmt="png", seed=2)
+    synth_captures(tiny_dataset, dev, base / "cap", Alignment(**TRUE), cam,
+                   CaptureSession(samples=5, saturate=1, fmt="png", seed=2))
     return {"cap": base / "cap", "device": dev, "ref": tiny_dataset, "base": base}
 
 
@@ -193,12 +194,12 @@ def test_synthetic_captures_are_seeded_and_16_bit(captures, tmp_path):
     the nominal device the calibration recovers the relay to 0.1 px."""
     from metadesign.reconstruction.captures import import_captures, read_frame
     from metadesign.sensing.camera import Alignment, CameraSpec
-    from metadesign.studies.captures import synth_captures
+    from metadesign.studies.captures import CaptureSession, synth_captures
 
     cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
     for name in ("c1", "c2"):
-        synth_captures(captures["ref"], captures["ref"], tmp_path / name, Alignment(**TRUE), cam, samples=3,
-                       saturate=1, fmt="tiff", seed=2, flats=2, darks=1)
+        synth_captures(captures["ref"], captures["ref"], tmp_path / name, Alignment(**TRUE), cam,
+                       CaptureSession(samples=3, saturate=1, fmt="tiff", seed=2, flats=2, darks=1))
     a, full = read_frame(tmp_path / "c1" / "frames" / "000000-x.tif")
     b, _ = read_frame(tmp_path / "c2" / "frames" / "000000-x.tif")
     assert full == 65535 and np.array_equal(a, b)
@@ -374,12 +375,12 @@ def test_fits_frames_import_as_the_same_counts_in_png(captures, tmp_path, capsys
 
     from metadesign.reconstruction.captures import import_captures, read_frame
     from metadesign.sensing.camera import Alignment, CameraSpec
-    from metadesign.studies.captures import synth_captures
+    from metadesign.studies.captures import CaptureSession, synth_captures
 
     cam = CameraSpec(photons_at_peak=1e6, read_noise_e=2.0, hot_pixels=15)
     cap = tmp_path / "cap-fits"
-    synth_captures(captures["ref"], captures["device"], cap, Alignment(**TRUE), cam, samples=5, saturate=1,
-                   fmt="fits", seed=2)
+    synth_captures(captures["ref"], captures["device"], cap, Alignment(**TRUE), cam,
+                   CaptureSession(samples=5, saturate=1, fmt="fits", seed=2))
     f = cap / "frames" / "000000-x.fits"
     raw = fits.getdata(f)
     a, full = read_frame(f)

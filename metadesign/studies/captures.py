@@ -8,6 +8,7 @@ import csv
 import io
 import json
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +18,53 @@ from ..io import atomic_path, atomic_write_text
 from ..outputs import product, write_marker, zarr_input
 from ..reconstruction.data import PSFDataset
 from ..reconstruction.dataset import load_device
+from ..sensing.device import Device
 from ..sensing.camera import Alignment, CameraSpec, expose, misaligned_frames, slm_pupil_field, write_frame
 from ..validation import ValidationError
 
-__all__ = ["synth_captures"]
+__all__ = ["synth_captures", "CaptureSession"]
+
+
+@dataclass(frozen=True)
+class CaptureSession:
+    """What a synthetic capture session records: the first ``samples`` of the phases' ``split`` (None: all),
+    in file format ``fmt``, with ``flats`` flat-wavefront and ``darks`` dark captures, the last ``saturate``
+    samples over-exposed, the noise drawn from ``seed``."""
+
+    samples: int | None = None
+    split: str = "all"
+    fmt: str = "png"
+    flats: int = 4
+    darks: int = 4
+    saturate: int = 0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.fmt not in _EXTENSIONS:
+            raise ValidationError(f"format: expected one of {', '.join(_EXTENSIONS)}, got {self.fmt!r}")
+
+    @property
+    def ext(self) -> str:
+        return _EXTENSIONS[self.fmt]
+
+
+_EXTENSIONS = {"png": ".png", "tiff": ".tif", "npy": ".npy", "fits": ".fits"}
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One synthesis: the phases' dataset and the device's, the session, the camera and its alignment."""
+
+    phases: Path
+    device: Path
+    session: CaptureSession
+    camera: CameraSpec
+    alignment: Alignment
+    progress: object = None
 
 
 def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alignment: Alignment = Alignment(),
-                   camera: CameraSpec = CameraSpec(), samples: int | None = None, split: str = "all",
-                   fmt: str = "png", flats: int = 4, darks: int = 4, saturate: int = 0, seed: int = 0,
+                   camera: CameraSpec = CameraSpec(), session: CaptureSession = CaptureSession(),
                    progress=None) -> dict:
     """Write synthetic captures into ``out``: ``frames/NNNNNN-{x,y}.EXT``, ``slm/NNNNNN.npy`` (phase, rad),
     ``manifest.csv`` (sample, frame_x, frame_y, slm_phase, rytov, split), ``flat/``+``flat.csv`` (flat-
@@ -39,25 +78,18 @@ def synth_captures(phases: str | Path, device: str | Path, out: str | Path, alig
         raise ValidationError(f"-o/--output {final}: exists and is not empty (captures are written into a new folder)")
     with product(final, "captures", {"PHASES": zarr_input(phases), "--device": device},
                  scratch=(scratch_path(final),)):
-        return _synth_captures(phases, device, final, alignment, camera, samples, split, fmt, flats, darks, saturate,
-                               seed, progress)
+        return _synth_captures(_Job(Path(phases), Path(device), session, camera, alignment, progress), final)
 
 
-def _synth_captures(phases, device, final: Path, alignment, camera, samples, split, fmt, flats, darks, saturate,
-                    seed, progress) -> dict:
-    dev_path = Path(device)
-    dev = load_device(dev_path.parent if dev_path.suffix == ".npz" else dev_path)
-    geo_src = load_device(phases)
-    cp, sensor, geom = dev.pupil, geo_src.sensor, geo_src.geometry
-    ds = PSFDataset(phases, split, limit=samples)
-    n = len(ds)
-    if n == 0:
-        raise ValidationError(f"{phases}: the {split} split is empty (no samples to capture)")
-    ext = {"png": ".png", "tiff": ".tif", "npy": ".npy", "fits": ".fits"}[fmt]
+def _synth_captures(job: _Job, final: Path) -> dict:
+    dev = load_device(job.device.parent if job.device.suffix == ".npz" else job.device)
+    geo_src = load_device(job.phases)
+    ds = PSFDataset(job.phases, job.session.split, limit=job.session.samples)
+    if len(ds) == 0:
+        raise ValidationError(f"{job.phases}: the {job.session.split} split is empty (no samples to capture)")
     out = fresh_scratch(final)  # OUT.partial, renamed when complete: a failure leaves no capture folder
     try:
-        rep = _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed,
-                     phases, device, progress)
+        rep = _synth(job, ds, Device(dev.pupil, geo_src.sensor, geo_src.crop), out)
         write_marker(out, "captures")
         if final.exists():  # empty but for the marker (refused otherwise, above)
             shutil.rmtree(final)
@@ -68,8 +100,12 @@ def _synth_captures(phases, device, final: Path, alignment, camera, samples, spl
     return {**rep, "output": str(final)}
 
 
-def _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, darks, saturate, seed, phases, device,
-           progress) -> dict:
+def _synth(job: _Job, ds, dev: Device, out: Path) -> dict:
+    """The captures of ``ds``'s samples by the device ``dev`` (its pupil, the phases' sensor and crop) into
+    ``out``."""
+    cp, sensor, geom = dev.pupil, dev.sensor, dev.geometry
+    se, camera, alignment, progress = job.session, job.camera, job.alignment, job.progress
+    n, ext, flats, darks, saturate, seed = len(ds), se.ext, se.flats, se.darks, se.saturate, se.seed
     for sub in ("frames", "slm", "flat", "dark"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     shape = (sensor.height_px, sensor.width_px)
@@ -114,11 +150,12 @@ def _synth(ds, cp, sensor, geom, out, alignment, camera, n, ext, fmt, flats, dar
             progress(n + flats + j + 1, n + flats + darks)
     _write_csv(out / "manifest.csv", rows)
     _write_csv(out / "flat.csv", flat_rows)
-    truth = {"alignment": alignment.to_dict(), "camera": camera.to_dict(), "phases": str(phases),
-             "device": str(device), "samples": n, "saturated": [r["sample"] for r in rows[n - saturate:]] if saturate else [],
-             "hot_pixels": int(hot.sum()), "format": fmt, "seed": int(root.entropy)}
+    truth = {"alignment": alignment.to_dict(), "camera": camera.to_dict(), "phases": str(job.phases),
+             "device": str(job.device), "samples": n,
+             "saturated": [r["sample"] for r in rows[n - saturate:]] if saturate else [],
+             "hot_pixels": int(hot.sum()), "format": se.fmt, "seed": int(root.entropy)}
     atomic_write_text(out / "truth.json", json.dumps(truth, indent=1))
-    return {"samples": n, "flats": flats, "darks": darks, "format": fmt,
+    return {"samples": n, "flats": flats, "darks": darks, "format": se.fmt,
             "alignment": alignment.to_dict(), "saturated": len(truth["saturated"])}
 
 

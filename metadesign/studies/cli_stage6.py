@@ -72,14 +72,14 @@ def _cmd_codesign(a: argparse.Namespace) -> int:
 
 def _cmd_synth(a: argparse.Namespace) -> int:
     from ..sensing.camera import Alignment, CameraSpec
-    from .captures import synth_captures
+    from .captures import CaptureSession, synth_captures
 
     out = out_dir(a.output)
     al = Alignment(a.shift[0], a.shift[1], a.rotation_deg, a.scale)
     cam = CameraSpec(peak_counts=a.peak_counts, photons_at_peak=a.photons, read_noise_e=a.read_noise_e,
                      dark_counts=a.dark_counts, hot_pixels=a.hot_pixels, seed=a.seed)
-    rep = synth_captures(a.phases, a.device, out, al, cam, samples=a.samples, split=a.split, fmt=a.format,
-                         saturate=a.saturate, seed=a.seed, progress=progress_bar("captures", unit="frame"))
+    session = CaptureSession(samples=a.samples, split=a.split, fmt=a.format, saturate=a.saturate, seed=a.seed)
+    rep = synth_captures(a.phases, a.device, out, al, cam, session, progress=progress_bar("captures", unit="frame"))
     emit(rep, a.json, f"wrote {out}: {rep['samples']} samples ({rep['format']}), {rep['flats']} flat and "
          f"{rep['darks']} dark captures, {rep['saturated']} over-exposed; manifest {out / 'manifest.csv'}")
     return 0

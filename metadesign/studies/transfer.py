@@ -41,7 +41,7 @@ from ..reconstruction.model import check_fits, load_model
 from ..reconstruction.train import load_train_recipe, train
 from ..sensing.camera import Alignment, CameraSpec
 from ..tasks import TaskFolder, content_key, file_key
-from .captures import synth_captures
+from .captures import CaptureSession, synth_captures
 from .tolerance import check_architecture
 
 __all__ = ["run_transfer", "load_transfer_recipe"]
@@ -147,7 +147,7 @@ def run_transfer(recipe: TransferRecipe, out: Path, workers: int = 2, log: Calla
                          read_noise_e=c["read_noise_e"], dark_counts=c["dark_counts"], hot_pixels=c["hot_pixels"],
                          seed=c["seed"])
         synth_captures(dev, dev, cap, Alignment(c["shift_px"][0], c["shift_px"][1], c["rotation_deg"], c["scale"]),
-                       cam, fmt=c["format"], seed=c["seed"], progress=progress)
+                       cam, CaptureSession(fmt=c["format"], seed=c["seed"]), progress=progress)
         return {}
 
     steps.step("captures", k_cap, do_captures, [cap / "manifest.csv"], clear=[cap])
