@@ -73,6 +73,25 @@ def save_card(path: str | Path, fmt: str, card: dict, trained_on: dict | None = 
     return Path(path)
 
 
+def _not_a_folder(path: Path, what: str) -> None:
+    """A folder given where a model file is expected: one line."""
+    if path.is_dir():
+        raise ValidationError(f"{path}: a folder, not a {what} (give the model's file: its weights NAME.safetensors "
+                              "with the card beside them, or a card-only model's JSON)")
+
+
+def _a_card(path: Path, what: str) -> None:
+    """A JSON file given as a model that is no model card (another product's JSON): one line."""
+    if not path.is_file():
+        return
+    try:
+        card = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError, OSError):
+        card = None
+    if not (isinstance(card, dict) and isinstance(card.get("format"), str)):
+        raise ValidationError(f"{path}: not a metadesign {what} card (a JSON file without a card's format)")
+
+
 def _card_only(path: Path) -> dict | None:
     """The card of a model held in its card alone (a JSON object without ``weights``) at ``path``, else None."""
     if path.suffix == ".safetensors" or not path.is_file():
@@ -88,6 +107,7 @@ def card_format(path: str | Path, what: str = "model") -> str:
     """The ``format`` of the model file at ``path`` (its weights, its card, or a card-only model), unchecked
     otherwise; one-line ValidationError when there is no readable card."""
     path = Path(path)
+    _not_a_folder(path, what)
     card = _card_only(path)
     if card is not None:
         return str(card["format"])
@@ -111,6 +131,7 @@ def read_card(path: str | Path, formats: str | Iterable[str], what: str = "model
     (:func:`save_card`): ``(path, path, card)``, its format checked.  One-line ValidationError else."""
     formats = (formats,) if isinstance(formats, str) else tuple(formats)
     path = Path(path)
+    _not_a_folder(path, what)
     card = _card_only(path)
     if card is not None:
         if card.get("format") not in formats:
@@ -118,6 +139,7 @@ def read_card(path: str | Path, formats: str | Iterable[str], what: str = "model
                                   f"{' or '.join(formats)})")
         return path, path, card
     if path.suffix == ".json":
+        _a_card(path, what)
         path = path.with_suffix("") if path.with_suffix("").suffix == ".safetensors" else \
             path.with_suffix(".safetensors")
     cp = find_card(path)

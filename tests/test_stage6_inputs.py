@@ -393,3 +393,42 @@ def test_a_scenario_at_another_wavelength_is_refused(demo_products, tmp_path, ca
     sr = load_sensing_recipe(REPO / "sensing" / "demo.toml")
     with pytest.raises(ValidationError, match="1064 nm does not match"):
         BeaconChain.for_device(fab, sr, load_scenario(turb))
+
+
+# -- evaluate against inputs of the wrong kind ----------------------------------------------------------
+
+def test_evaluate_refuses_inputs_of_the_wrong_kind_before_the_work(tiny_dataset, tmp_path, capsys):
+    """`metadesign evaluate` with a model or a dataset of the wrong kind or shape, a split the dataset lacks,
+    or a folder where a file is expected (and the reverse): one line on stderr, exit 2, nothing written."""
+    from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
+
+    model = tiny_model(tmp_path)
+    (tmp_path / "big").mkdir()
+    save_model(build_unet(UNetConfig(base=4, depth=3, input_size=32)), tmp_path / "big" / "m.safetensors", {})
+    peds = tmp_path / "peds.json"  # a model held in its card, of another kind
+    peds.write_text(json.dumps({"format": "metadesign.peds/1", "config": {}}))
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"\x00" * 64)
+    foreign = tmp_path / "foreign"  # a zarr store, not a metadesign dataset
+    foreign.mkdir()
+    (foreign / "zarr.json").write_text(json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {}}))
+    cases = [
+        ([tiny_dataset, tiny_dataset], "a folder, not a model"),  # a folder given as the model
+        ([tmp_path / "big", tiny_dataset], "a folder, not a model"),
+        ([peds, tiny_dataset], "metadesign.peds/1"),  # a model of another kind
+        ([junk, tiny_dataset], "junk.safetensors"),  # weights without a card
+        ([Path(tiny_dataset) / "zarr.json", tiny_dataset], "not a metadesign model card"),  # another JSON
+        ([model, model], "a file, not a dataset folder"),  # a file given as the dataset
+        ([model, foreign], "not a metadesign dataset"),
+        ([model, tmp_path / "missing"], "no such dataset"),
+        ([tmp_path / "big" / "m.safetensors", tiny_dataset], "16"),  # the model takes 32^2 tensors, the data 16^2
+        ([model, tiny_dataset, "--split", "test"], "test split"),  # the tiny dataset has no test samples
+    ]
+    for i, (args, match) in enumerate(cases):
+        out = tmp_path / f"ev{i}"
+        split = [] if "--split" in args else ["--split", "train"]
+        _one_line(["evaluate", *args, *split, "--limit", "2", "-o", out], capsys, match)
+        assert not out.exists(), (args, sorted(out.rglob("*")))
+    # the default output (DATASET/evaluation) is not created either
+    _one_line(["evaluate", tmp_path / "big" / "m.safetensors", tiny_dataset, "--split", "train"], capsys, "16")
+    assert not (Path(tiny_dataset) / "evaluation").exists()

@@ -343,7 +343,8 @@ def open_dataset(path: str | Path) -> DatasetInfo:
 
     path = Path(path)
     if not path.is_dir():
-        raise ValidationError(f"{path}: no such dataset folder")
+        raise ValidationError(f"{path}: a file, not a dataset folder" if path.exists() else
+                              f"{path}: no such dataset folder")
     attrs = read_attrs(path)
     if attrs is None:
         raise ValidationError(f"{path}: not a metadesign dataset (no zarr.json with format {DATASET_FORMAT})")
