@@ -17,7 +17,7 @@ from metadesign.library.store import interpolate_t, load_library
 from metadesign.reconstruction.dataset import load_device
 from metadesign.reconstruction.model import UNetConfig, build_unet, save_model
 from metadesign.sensing.forward import CoarsePupil, coarse_pupil, quadrant_fields, sensor_frames
-from metadesign.studies.lpa import pupil_downstream
+from metadesign.studies.lpa import Downstream, pupil_downstream
 from metadesign.sensing.model import AsFabricated, load_sensing_recipe, spot_metrics
 from metadesign.sensing.transmission import Perturbation, unit_t_as_made
 from metadesign.sensing.sampled import (
@@ -307,7 +307,7 @@ def test_sampled_frames_and_npib_of_exact_replicates(demo_products, tiny_dataset
                 prm.normal_(0.0, 0.3)
     model = tmp_path / "m.safetensors"
     save_model(net, model, {"noise_percent": 0})
-    out = pupil_downstream({"base": cp, "exact": exact}, tiny_dataset, model, fab, samples=4,
+    out = pupil_downstream({"base": cp, "exact": exact}, Downstream(tiny_dataset, model, samples=4), fab,
                            sampled={"sampled": ("base", [D, D, D])})
     s = out["sampled"]
     assert s["npib_unet"] == pytest.approx(out["exact"]["npib_unet"], abs=1e-5)

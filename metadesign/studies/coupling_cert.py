@@ -9,10 +9,13 @@ from typing import Any
 
 import numpy as np
 
-from ..library.coupling import CouplingConfig, lpa_t, relative_error
+from ..library.coupling import CouplingConfig, lpa_t, relative_error, save_coupling
 from ..library.coupling_net import coupling_t, fit_coupling
+from ..library.locate import file_sha256, find_library
+from ..library.store import load_library
 from ..library.supercells import (
     SupercellTable,
+    load_table,
 )
 from ..plotting import pyplot, save_figure
 from ..validation import InputError
@@ -50,10 +53,6 @@ class CouplingInputs:
 
 def load_coupling_inputs(table_path: str | Path, library: str | Path | None = None) -> tuple:
     """``(table, library path, library)``: the table and its library (``library``, else found by sha256)."""
-    from ..library.locate import find_library
-    from ..library.store import load_library
-    from ..library.supercells import load_table
-
     table = load_table(table_path)
     tp = Path(table_path)
     lib_path = Path(library) if library else find_library(table.meta["library"]["sha256"],
@@ -65,8 +64,6 @@ def check_coupling_inputs(table: SupercellTable, lib, table_path: str | Path, li
                           reference: str | Path | None = None) -> CouplingInputs:
     """The inputs of a certification, checked (InputError, one line): the table needs fitting and held-out
     rows; ``reference`` (a table's path) solved against the same library, with held-out rows."""
-    from ..library.supercells import load_table
-
     tp = Path(table_path)
     if not table.test.any() or table.test.all():
         raise InputError(f"{tp}: the table has {int(table.test.sum())} held-out rows of {len(table.test)}: "
@@ -84,9 +81,6 @@ def check_coupling_inputs(table: SupercellTable, lib, table_path: str | Path, li
 def coupling_study(inputs: CouplingInputs, fit: CouplingFit, out: Path, log=lambda s: None) -> dict:
     """Fit and certify the coupling model (:func:`certify_coupling`) and write it to ``out`` with its card
     (the certification, the tables) and its figure (``out`` with .png); returns the report."""
-    from ..library.coupling import save_coupling
-    from ..library.locate import file_sha256
-
     table, tp, ref_path = inputs.table, inputs.path, inputs.reference_path
     log(f"coupling model on {tp.name}: {int((~table.test).sum())} fitting rows, {int(table.test.sum())} held out")
     model, rep = certify_coupling(table, inputs.lib, fit, inputs.reference, log)

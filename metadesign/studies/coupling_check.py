@@ -19,7 +19,7 @@ import numpy as np
 
 from ..execution import SERIAL, Execution
 from ..plotting import pyplot, save_figure
-from ..sensing.forward import sensor_frames
+from ..sensing.device import Device
 from ..sensing.model import channel_metrics, spot_metrics
 from ..sensing.plot import case_label
 from ..sensing.sensor import SensorSpec
@@ -90,7 +90,7 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, pert: Perturbation
         log(f"  {CASES.get(name, name)}: pupil ...")
         cp = fab.pupil(sensor.distance, grid, pert)
         pupils[name] = cp
-        frames[name] = sensor_frames(cp, sensor)
+        frames[name] = Device(cp, sensor).frames()
         m = spot_metrics(cp, sensor, fab)
         sl = channel_metrics(cp, sensor, fab)
         rep["cases"][name] = {
@@ -124,9 +124,7 @@ def coupling_check(fabs: dict, sensor: SensorSpec, grid: int, pert: Perturbation
             c["relative_to_lpa"] = {k: (c["mean"][k] / base[k] if base[k] else None)
                                     for k in ("spot_efficiency", "spot_strehl", "stray")}
     if downstream is not None:
-        d = downstream
-        rep["downstream"] = pupil_downstream(pupils, d.dataset, d.model, next(iter(fabs.values())), d.samples,
-                                             d.noise_percent, d.seed, log, sampled=sampled)
+        rep["downstream"] = pupil_downstream(pupils, downstream, next(iter(fabs.values())), log, sampled=sampled)
     return rep, frames
 
 

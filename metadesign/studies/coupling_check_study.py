@@ -10,10 +10,25 @@ from pathlib import Path
 
 import numpy as np
 
+from ..design.store import design_file, load_design
 from ..execution import SERIAL, Execution, scratch_path
+from ..io import atomic_write_text
+from ..library.locate import file_sha256
+from ..library.store import load_library
+from ..library.supercells import remove_partial
+from ..paths import product as packaged
+from ..reconstruction.dataset import load_device
+from ..sensing.model import AsFabricated, load_sensing_recipe
 from ..sensing.transmission import Perturbation
 from ..validation import ValidationError
 from .certified import CertifiedSettings
+from .coupling_check import (
+    CASES,
+    CertifiedCheck,
+    coupling_check,
+    plot_case_metrics,
+    plot_coupling_frames,
+)
 from .lpa import Downstream
 
 __all__ = ["CouplingCheckRequest", "run_coupling_check"]
@@ -77,10 +92,6 @@ def _check_fab_axes(fab, pert: Perturbation) -> None:
 
 def _devices(req: CouplingCheckRequest) -> tuple[dict, dict]:
     """``(designs, fabs)``: the design (and the compensated one) and each case's device."""
-    from ..design.store import load_design
-    from ..library.store import load_library
-    from ..sensing.model import AsFabricated
-
     designs = {"coupled": load_design(req.design)}
     fab = AsFabricated.from_design(designs["coupled"])
     if req.fab_library:
@@ -99,16 +110,11 @@ def _devices(req: CouplingCheckRequest) -> tuple[dict, dict]:
 def _sensor(req: CouplingCheckRequest, fab):
     """``(sensor, pupil grid)``: the dataset's device's (its pupil made with this design), else the recipe's."""
     if req.downstream is not None:
-        from ..reconstruction.dataset import load_device
-
         dev = load_device(req.downstream.dataset)
         if dev.pupil.block != fab.pupil_block(dev.pupil.G.shape[-1]):
             raise ValidationError(f"{req.downstream.dataset}: its device's pupil ({dev.pupil.block}-cell blocks) is "
                                   "not this design's on that grid: use the dataset made with this design")
         return dev.sensor, dev.pupil.G.shape[-1]
-    from ..paths import product as packaged
-    from ..sensing.model import load_sensing_recipe
-
     sr = load_sensing_recipe(req.sensor or packaged("sensing", "paper.toml"))
     return sr.sensor, sr.pupil_grid
 
@@ -117,12 +123,6 @@ def run_coupling_check(req: CouplingCheckRequest, out: Path, run: Execution = SE
     """The coupling check of ``req`` into the folder ``out``: ``coupling-check.json``, ``coupling-frames.png``
     and (with certified cases) ``coupling-metrics.png``; the certified solves resumable in ``OUT.partial/``
     (removed at the end)."""
-    from ..design.store import design_file
-    from ..io import atomic_write_text
-    from ..library.locate import file_sha256
-    from ..library.supercells import remove_partial
-    from .coupling_check import CASES, CertifiedCheck, coupling_check, plot_case_metrics, plot_coupling_frames
-
     partial = scratch_path(out)
     designs, fabs = _devices(req)
     sensor, grid = _sensor(req, fabs["lpa"])

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ..design.store import load_design
 from ..execution import SERIAL, Execution
 from ..io import atomic_write_text
 from ..library.rcwa import SolverSettings, solve_cell
@@ -39,12 +40,14 @@ from ..reconstruction.dataset import load_device, normalise_psf
 from ..reconstruction.losses import PiB
 from ..reconstruction.metrics import npib_rows
 from ..reconstruction.model import check_fits, load_model
-from ..sensing.forward import CoarsePupil, sensor_frames
-from ..sensing.model import channel_metrics
+from ..sensing.device import Device
+from ..sensing.forward import CoarsePupil
+from ..sensing.model import AsFabricated, channel_metrics
 from ..sensing.sampled import jackknife_bias, jackknife_se, sampled_frames
 from ..sensing.sensor import psf_tensor
 from ..sensing.transmission import interpolate_t
 from ..sensing.twin import crop_to_pupil
+from ..validation import ValidationError
 
 __all__ = ["LpaSettings", "Downstream", "downstream_of", "lpa_study", "lpa_check", "sample_supercells",
            "perturbed_pupil", "lpa_downstream", "pupil_downstream", "plot_lpa"]
@@ -78,8 +81,6 @@ def downstream_of(dataset, model, samples: int = 64, noise_percent: float = 5.0,
     """The downstream study of a dataset and a model (None without them); one of them alone is refused
     (ValidationError: ``what`` needs both)."""
     if (dataset is None) != (model is None):
-        from ..validation import ValidationError
-
         raise ValidationError(f"--dataset and --model go together ({what} needs both)")
     return None if dataset is None else Downstream(dataset, model, samples, noise_percent, seed)
 
@@ -89,12 +90,8 @@ def lpa_study(src: str | Path, out: Path, settings: LpaSettings = LpaSettings(),
     """The LPA check of the layout or design folder ``src`` (:func:`lpa_check`, inside its clear aperture
     when that is a circle) and, with ``downstream``, the channel metrics and NPiB with the measured error
     (:func:`lpa_downstream`); writes ``out/lpa.json`` and ``out/lpa.png`` (the report's ``figure``)."""
-    from ..sensing.model import AsFabricated
-
     src = Path(src)
     if src.is_dir():
-        from ..design.store import load_design
-
         fab = AsFabricated.from_design(load_design(src))
     else:
         fab = AsFabricated.from_files(src)
@@ -247,20 +244,18 @@ def perturbed_pupil(cp, eps: np.ndarray, model: str, seed: int = 0, supercells_p
 def lpa_downstream(eps: np.ndarray, fab, downstream: Downstream, log=lambda s: None) -> dict:
     """Channel metrics and the model's NPiB with the device pupil of ``downstream.dataset`` (nominal LPA) and
     with the measured LPA error applied (both bounding models)."""
-    dataset, model_path, seed = downstream.dataset, downstream.model, downstream.seed
-    samples, noise_percent = downstream.samples, downstream.noise_percent
-    cp = load_device(dataset).pupil
+    cp = load_device(downstream.dataset).pupil
     per_block = max(1, (cp.block // 2) ** 2)
+    seed = downstream.seed
     pupils = {"nominal": cp,
               "independent": perturbed_pupil(cp, eps, "independent", seed, per_block),
               "correlated": perturbed_pupil(cp, eps, "correlated", seed)}
-    out = pupil_downstream(pupils, dataset, model_path, fab, samples, noise_percent, seed, log)
+    out = pupil_downstream(pupils, downstream, fab, log)
     out["supercells_per_block"] = per_block
     return out
 
 
-def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, noise_percent: float = 5.0,
-                     seed: int = 0, log=lambda s: None, sampled: dict | None = None) -> dict:
+def pupil_downstream(pupils: dict, downstream: Downstream, fab, log=lambda s: None, sampled: dict | None = None) -> dict:
     """Channel metrics and the U-Net's NPiB through each of ``pupils`` (name -> coarse pupil on the grid of
     ``dataset``'s device): the test samples are re-rendered from their received fields through each pupil
     (same path, same noise draws) and corrected through their own screens.  ``sampled``: name -> (a name
@@ -269,6 +264,8 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
     bias estimate over the replicates (the same noise draws in every leave-one-out pass)."""
     import torch
 
+    dataset, model_path, samples = downstream.dataset, downstream.model, downstream.samples
+    noise_percent, seed = downstream.noise_percent, downstream.seed
     dev = load_device(dataset)
     sensor = dev.sensor
     c0, a, ng, dx, d2 = dev.geometry
@@ -285,8 +282,8 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
     scr = torch.from_numpy(np.stack([s["screens"] for s in items]))
     out = {"samples": len(items), "noise_percent": noise_percent}
 
-    def noisy(frames, s):  # the network's input: the same noise draws for a sample whatever its frames
-        t, _ = normalise_psf(psf_tensor(frames, sensor))
+    def noisy(psfs, s):  # the network's input: the same noise draws for a sample whatever its PSFs
+        t, _ = normalise_psf(psfs)
         return apply_noise(t, np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(s["index"],))),
                            noise_percent)
 
@@ -299,7 +296,8 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
             raise ValueError(f"pupil {name}: grid {p.G.shape[-1]} differs from the dataset's {N}")
         log(f"  downstream: {name} pupil ...")
         m = channel_metrics(p, sensor, fab)
-        out[name] = {"npib_unet": npib_of([noisy(sensor_frames(p, sensor, e), s) for s, e in zip(items, e_in)]),
+        dv = Device(p, sensor)
+        out[name] = {"npib_unet": npib_of([noisy(dv.psfs(e), s) for s, e in zip(items, e_in)]),
                      "channels": [{k: r[k] for k in ("pol", "k", "focusing_efficiency", "strehl", "crosstalk",
                                                      "focal_shift_mm")} for r in m]}
     for name, (base, deltas) in (sampled or {}).items():
@@ -307,7 +305,7 @@ def pupil_downstream(pupils: dict, dataset, model_path, fab, samples: int = 64, 
         x = []  # per sample: the full estimate's input, then each leave-one-out's
         for s, e in zip(items, e_in):
             full, loo = sampled_frames(pupils[base], deltas, sensor, e)
-            x.append([noisy(f, s) for f in (full, *loo)])
+            x.append([noisy(psf_tensor(f, sensor), s) for f in (full, *loo)])
         npib = npib_of([v[0] for v in x])
         loo_means = [npib_of([v[j + 1] for v in x]) for j in range(len(deltas))]
         out[name] = {"npib_unet": npib, "npib_unet_se": jackknife_se(loo_means),

@@ -9,12 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cards import read_card
 from ..execution import SERIAL, Execution
-from ..library.coupling import lpa_t, relative_error
+from ..library.coupling import CARD_FORMAT, lpa_t, relative_error
+from ..library.locate import find_library
 from ..library.peds import PedsModel, fit_peds, low_fidelity_couplings, peds_t
+from ..library.store import load_library
 from ..library.supercell import solve_supercell
 from ..library.supercells import (
     SupercellTable,
+    load_table,
     matched_unit_harmonics,
     unit_cells,
 )
@@ -49,12 +53,6 @@ def load_peds_inputs(table_path: str | Path, settings: PedsSettings, library: st
     """``(table, library path, library, {name: certification})``: the converged table at ``table_path``, its
     library (``library``, else found by its sha256) and the certifications of the coupling models' cards
     ``networks`` (to draw beside), each checked for :func:`certify_peds` (InputError, one line)."""
-    from ..cards import read_card
-    from ..library.coupling import CARD_FORMAT
-    from ..library.locate import find_library
-    from ..library.store import load_library
-    from ..library.supercells import load_table
-
     table = load_table(table_path)
     tp = Path(table_path)
     if not table.test.any() or table.test.all():

@@ -7,7 +7,6 @@ line, checks, tables and figures."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
