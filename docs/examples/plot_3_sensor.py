@@ -19,7 +19,7 @@ from metadesign.design.recipe import load_design_recipe
 from metadesign.design.store import run_design
 from metadesign.layouts.make import make_layout
 from metadesign.paths import repo_root
-from metadesign.sensing.render import fab_study, render_psf
+from metadesign.sensing.render import FabCases, fab_study, render_psf
 from metadesign.turbulence.system import build_system
 
 work = Path(tempfile.mkdtemp())
@@ -47,7 +47,7 @@ for k, ax in enumerate(axes.flat):
 
 # %%
 # Fabrication: Strehl of each channel for the nominal device and a +10 nm width bias.
-rows = fab_study(system.device, system.sensing, [0.0, 10.0], [0.0], [0.0])
+rows = fab_study(system.device, system.sensing, FabCases(bias_nm=(0.0, 10.0)))
 for bias in (0.0, 10.0):
     s = [r["strehl"] for r in rows if r["bias_nm"] == bias]
     print(f"bias {bias:+.0f} nm: Strehl {min(s):.3f}..{max(s):.3f}")

@@ -98,7 +98,7 @@ def _cmd_psf(a: argparse.Namespace) -> int:
 
 
 def _cmd_fab_study(a: argparse.Namespace) -> int:
-    from .render import fab_study, write_fab_study
+    from .render import FabCases, fab_study, write_fab_study
 
     sr = _sensing_recipe(a)
     if a.seed + a.seeds - 1 > 2**63 - 1:
@@ -115,9 +115,9 @@ def _cmd_fab_study(a: argparse.Namespace) -> int:
         if needs_axes and fab.fab_lib is None and fab.lib.fab is None:
             raise InputError("--height-nm / --sidewall-deg need a library with height and sidewall axes: build one "
                              "with a [fab_axes] recipe section and pass it as --fab-library")
-        rows = fab_study(fab, sr, a.bias_nm, a.jitter_nm, a.corner_nm, a.seeds, a.seed,
-                         progress_bar("fab-study", unit="case"), a.height_nm, a.sidewall_deg, a.height_gradient_nm,
-                         a.sidewall_gradient_deg)
+        cases = FabCases(tuple(a.bias_nm), tuple(a.jitter_nm), tuple(a.corner_nm), tuple(a.height_nm),
+                         tuple(a.sidewall_deg), a.seeds, a.seed, a.height_gradient_nm, a.sidewall_gradient_deg)
+        rows = fab_study(fab, sr, cases, progress_bar("fab-study", unit="case"))
         files = write_fab_study(rows, out)
     n_cases = len(a.bias_nm) * len(a.jitter_nm) * len(a.corner_nm) * len(a.height_nm) * len(a.sidewall_deg) * a.seeds
     lines = [f"wrote {out}/fab-study.csv, fab-study.png ({n_cases} cases x 8 channels)",

@@ -22,7 +22,7 @@ from .plot import plot_fab_study
 from .sensor import NoiseSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
-__all__ = ["PSFResult", "render_psf", "save_psf", "load_psf", "PSF_FORMAT", "full_resolution_check",
+__all__ = ["PSFResult", "FabCases", "render_psf", "save_psf", "load_psf", "PSF_FORMAT", "full_resolution_check",
            "fab_study", "FAB_STUDY_COLUMNS", "check_field"]
 
 PSF_FORMAT = "metadesign.psf/1"
@@ -48,16 +48,15 @@ def check_field(field: np.ndarray, pupil: CoarsePupil, what: str = "input field"
 
 def render_psf(fab: AsFabricated, sensing: SensingRecipe, field: np.ndarray | None = None,
                pert: Perturbation = Perturbation(), pupil: CoarsePupil | None = None,
-               noise: NoiseSpec | None = None, rng: np.random.Generator | None = None,
-               progress=None) -> PSFResult:
+               noise: NoiseSpec | None = None, progress=None) -> PSFResult:
     """The as-fabricated sensor frames and 8-PSF tensor of ``fab`` for the incident ``field`` on the coarse
     pupil grid (None: a flat unit plane wave).  ``pupil`` reuses a coarse pupil built for the same
-    perturbation and distance (the costly part; build it once per device).  ``noise`` is applied to the
-    frames (seeded by ``noise.seed`` unless ``rng`` is given)."""
+    perturbation and distance (the costly part; build it once per device).  ``noise``: the detector's, after
+    rendering (seeded by ``noise.seed``)."""
     if pupil is None:
         pupil = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert, progress)
     e_in = None if field is None else check_field(field, pupil)
-    shot = Device(pupil, sensing.sensor).render(e_in, Detector(noise) if noise is not None else None, rng)
+    shot = Device(pupil, sensing.sensor).render(e_in, Detector(noise) if noise is not None else None)
     return PSFResult(shot.frames, shot.psfs, pupil, pert, noise)
 
 
@@ -127,17 +126,42 @@ FAB_STUDY_COLUMNS = ["bias_nm", "jitter_nm", "corner_nm", "height_nm", "sidewall
                      "crosstalk", "clamped_pillars"]
 
 
-def fab_study(fab: AsFabricated, sensing: SensingRecipe, bias_nm, jitter_nm, corner_nm, seeds: int = 1,
-              seed: int = 0, progress=None, height_nm=(0.0,), sidewall_deg=(90.0,), height_gradient_nm: float = 0.0,
-              sidewall_gradient_deg: float = 0.0) -> list[dict]:
-    """Per case (bias x jitter x corner x etch depth x sidewall x seed) and channel: focusing efficiency,
-    Strehl, focal shift, centroid shift, crosstalk (see :func:`~metadesign.sensing.model.channel_metrics`).
-    Height and sidewall cases (with the optional across-wafer gradients) need ``fab.fab_lib`` or a library
-    with fab axes."""
-    cases = list(itertools.product(bias_nm, jitter_nm, corner_nm, height_nm, sidewall_deg, range(seeds)))
+@dataclass(frozen=True)
+class FabCases:
+    """The cases of a fab study: every combination of width ``bias_nm``, ``jitter_nm``, ``corner_nm``, etch
+    depth change ``height_nm`` and ``sidewall_deg``, each drawn with ``seeds`` jitter seeds from ``seed``, with
+    optional across-wafer gradients of height and sidewall."""
+
+    bias_nm: tuple = (0.0,)
+    jitter_nm: tuple = (0.0,)
+    corner_nm: tuple = (0.0,)
+    height_nm: tuple = (0.0,)
+    sidewall_deg: tuple = (90.0,)
+    seeds: int = 1
+    seed: int = 0
+    height_gradient_nm: float = 0.0
+    sidewall_gradient_deg: float = 0.0
+
+    def __iter__(self):
+        """``(bias, jitter, corner, height, sidewall, seed index)`` of each case, in the study's order."""
+        return iter(itertools.product(self.bias_nm, self.jitter_nm, self.corner_nm, self.height_nm,
+                                      self.sidewall_deg, range(self.seeds)))
+
+    def __len__(self) -> int:
+        return (len(self.bias_nm) * len(self.jitter_nm) * len(self.corner_nm) * len(self.height_nm)
+                * len(self.sidewall_deg) * self.seeds)
+
+
+def fab_study(fab: AsFabricated, sensing: SensingRecipe, cases: FabCases, progress=None) -> list[dict]:
+    """Per case (bias x jitter x corner x etch depth x sidewall x seed, :class:`FabCases`) and channel:
+    focusing efficiency, Strehl, focal shift, centroid shift, crosstalk (see
+    :func:`~metadesign.sensing.model.channel_metrics`).  Height and sidewall cases (with the optional
+    across-wafer gradients) need ``fab.fab_lib`` or a library with fab axes."""
+    fc, seeds, seed = cases, cases.seeds, cases.seed
+    cases = list(fc)
     rows = []
     for i, (b, j, c, h, a, s) in enumerate(cases):
-        pert = Perturbation.from_nm(b, b, j, c, seed + s, h, a, height_gradient_nm, sidewall_gradient_deg)
+        pert = Perturbation.from_nm(b, b, j, c, seed + s, h, a, fc.height_gradient_nm, fc.sidewall_gradient_deg)
         cp = fab.pupil(sensing.sensor.distance, sensing.pupil_grid, pert)
         label = f"bias {b:+g} jit {j:g} cr {c:g}" + (f" h {h:+g} sw {a:g}" if (h or a != 90) else "")
         for r in channel_metrics(cp, sensing.sensor, fab):

@@ -33,7 +33,7 @@ from ..reconstruction.train import load_train_recipe
 from ..reconstruction.train import train as train_network
 from ..sensing.model import load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
-from ..sensing.render import fab_study, render_psf, save_psf
+from ..sensing.render import FabCases, fab_study, render_psf, save_psf
 from ..turbulence.scenario import load_scenario
 from ..turbulence.system import build_system
 from ..turbulence.validate import plot_validation, validate
@@ -178,7 +178,7 @@ def sensing(run: "Run", key: str) -> None:
         plot_frames(res.frames, sr.sensor, figs[0], fab.channels, "as-fabricated sensor frames")
         rows = []
         for i, (label, b, j, seed) in enumerate(cases):
-            for r in fab_study(fab, sr, [b], [j], [0.0], seed=seed):
+            for r in fab_study(fab, sr, FabCases((b,), (j,), seed=seed)):
                 rows.append({**r, "case": i, "label": label})
         plot_fab_study(rows, figs[1])
         smp = system.chain().sample(seed=1, rytov=0.3)
