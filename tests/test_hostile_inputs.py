@@ -50,9 +50,9 @@ def design_arrays(tmp_path_factory):
     rec = base / "tiny.toml"
     rec.write_text(f'[design]\nlibrary = "{REPO / "library" / "paper.npz"}"\nwavelength_nm = 1550.0\n'
                    'period_um = 0.7\naperture_mm = 0.1\n')
-    d = run_design(load_design_recipe(rec), base / "d")
+    run_design(load_design_recipe(rec), base / "d")
     with np.load(base / "d" / "design.npz", allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}, d
+        return {k: z[k] for k in z.files}, base / "d"
 
 
 @pytest.mark.parametrize("name, damage, match", [
@@ -144,3 +144,79 @@ def test_codesign_checks_its_base_recipe_and_dataset_before_writing(tmp_path, ca
              "not a metadesign dataset", tmp_path)
     _refused(["codesign", run, "--dataset", tmp_path, "--base", REPO / "sensing" / "demo.toml", "-o",
               tmp_path / "cd"], capsys, "not a design recipe", tmp_path)
+
+
+@pytest.fixture(scope="module")
+def tables(tmp_path_factory):
+    """The committed fast supercell table with one infinite width, and with one NaN label."""
+    base = tmp_path_factory.mktemp("tables")
+    with np.load(REPO / "library" / "paper-supercells-fast.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    w = arrays["widths_m"].copy()
+    w[3, 0, 0, 0] = np.inf
+    np.savez(base / "inf-width.npz", **{**arrays, "widths_m": w})
+    t = arrays["t"].copy()
+    t[5, 1] = np.nan
+    np.savez(base / "nan-label.npz", **{**arrays, "t": t})
+    return base
+
+
+@pytest.mark.parametrize("table, match", [("inf-width.npz", "widths_m must be finite"),
+                                          ("nan-label.npz", "NaN or infinite")])
+@pytest.mark.parametrize("command", [["library", "ladder"], ["library", "peds"], ["library", "coupling"]])
+def test_a_supercell_table_with_nan_or_infinite_values_is_refused_before_any_solve(command, table, match, tables,
+                                                                                   tmp_path, capsys):
+    """ladder (a traceback on an infinite width), peds (NaN labels found after the solves) and coupling read
+    the table through one loader that checks its rows."""
+    out = tmp_path / ("o.safetensors" if command[1] == "coupling" else "o.json")
+    _refused([*command, tables / table, "-o", out], capsys, match, tmp_path)
+    assert not any(tmp_path.iterdir())
+
+
+def test_matched_truncations_without_grcwas_dense_setup():
+    """The matched harmonic sets equal those grcwa's Init_Setup makes (its G list, the reference), computed
+    from the lattice alone: a truncation far above any solve (nG 20,000) takes milliseconds, not 6 GB."""
+    import time
+
+    import grcwa
+
+    from metadesign.library.store import load_library
+    from metadesign.library.supercells import matched_harmonics, matched_unit_harmonics
+
+    lib = load_library(REPO / "library" / "paper.npz")
+
+    def grcwa_set(n):  # the reference: the G list grcwa's own set-up makes
+        o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], 0.5, 0.0, 0.0, verbose=0)
+        o.Add_LayerUniform(0.0, 1.0)
+        o.Init_Setup(Gmethod=0)
+        return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
+
+    def reference(n_big, q):  # matched_harmonics as it was written on grcwa's set-up
+        s, ns = grcwa_set(n_big)
+        sub = {(a // q, b // q) for a, b in s if a % q == 0 and b % q == 0}
+        u, nu = grcwa_set(len(sub) + 1)
+        assert u == sub
+        return ns + 1, nu + 1
+
+    for n in (21, 45, 97, 357):
+        assert matched_unit_harmonics(n, lib.stack) == reference(n, 2)
+    for n in (100, 1300):
+        assert matched_harmonics(n, lib.stack, 4, 2) == reference(n, 2)
+    t0 = time.perf_counter()
+    assert matched_harmonics(20000, lib.stack, 4, 2)[0] > 19000
+    assert time.perf_counter() - t0 < 10
+
+
+def test_absurd_patch_and_certified_requests_are_refused_with_their_estimate(design_arrays, tmp_path, capsys):
+    """A ring level above the patches' own truncation, a patch truncation whose solves would not fit in memory,
+    and a certified sample larger than the device are refused in one line before any solve."""
+    _, design = design_arrays
+    _refused(["library", "patches", design, "--ring-levels", "45", "2000", "-o", tmp_path / "p.json"], capsys,
+             "above the patches' own supercell truncation", tmp_path)
+    _refused(["library", "patches", design, "--harmonics", "20000", "-o", tmp_path / "p.json"], capsys,
+             "of memory", tmp_path)
+    _refused(["library", "coupling-check", design, "--certified", "1000000", "-o", tmp_path / "cc"], capsys,
+             "more than the device's", tmp_path)
+    _refused(["library", "coupling-check", design, "--certified", "16", "--peds",
+              REPO / "library" / "paper-coupling.safetensors", "-o", tmp_path / "cc"], capsys,
+             "not a PEDS supercell model", tmp_path)

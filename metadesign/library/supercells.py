@@ -50,17 +50,15 @@ def matched_harmonics(n_big: int, stack: Stack, big: int, small: int) -> tuple[i
     """Requested harmonic counts ``(big cell, small cell)`` whose sets match, for cells of ``big`` and ``small``
     pitches (``big`` a multiple of ``small``): the small cell's harmonics are the big cell's multiples of
     ``big / small``, divided.  See :func:`matched_unit_harmonics` (big 2, small 1)."""
-    import grcwa
+    from grcwa.kbloch import Lattice_getG, Lattice_Reciprocate
 
     if big % small:
         raise ValueError(f"a cell of {big} pitches does not hold cells of {small}")
     q = big // small
 
-    def gset(n, L):
-        o = grcwa.obj(int(n), [1.0, 0.0], [0.0, 1.0], L / stack.wavelength, 0.0, 0.0, verbose=0)
-        o.Add_LayerUniform(0.0, 1.0)
-        o.Init_Setup(Gmethod=0)
-        return {tuple(g) for g in np.asarray(o.G)}, int(o.nG)
+    def gset(n, L):  # grcwa's circular truncation of the unit lattice (Init_Setup's, without its dense matrices)
+        G, nG = Lattice_getG(int(n), *Lattice_Reciprocate([1.0, 0.0], [0.0, 1.0]), method=0)
+        return {tuple(g) for g in np.asarray(G)}, int(nG)
 
     s, ns = gset(n_big, big * stack.period)
     sub = {(a // q, b // q) for a, b in s if a % q == 0 and b % q == 0}
@@ -206,9 +204,28 @@ def load_table(path: str | Path) -> SupercellTable:
         raise ValidationError(f"{path}: not a supercell table ({TABLE_FORMAT}"
                               + (f"; missing {', '.join(missing)})" if missing else ")"))
     t_unit = d.get("t_unit")
+    _check_table_arrays(path, d)
     if t_unit is not None and t_unit.shape != (*d["t"].shape[:1], 2, 2, 2):
         raise ValidationError(f"{path}: t_unit has shape {t_unit.shape}, expected ({len(d['t'])}, 2, 2, 2)")
     return SupercellTable(d["widths_m"], d["t"], d["source"], d["test"].astype(bool), meta, t_unit)
+
+
+def _check_table_arrays(path, d: dict) -> None:
+    """A table's rows agree (widths (n, 2, 2, 2) of finite positive metres below 1 mm, labels
+    (n, 2) finite complex, one source and test flag per row): one line naming the array otherwise."""
+    w, t = np.asarray(d["widths_m"]), np.asarray(d["t"])
+    n = len(w) if w.ndim else -1
+    if w.shape != (n, 2, 2, 2) or w.dtype.kind != "f":
+        raise ValidationError(f"{path}: widths_m has shape {w.shape} {w.dtype}, expected (rows, 2, 2, 2) real")
+    if not np.isfinite(w).all() or (w <= 0).any() or (w >= 1e-3).any():
+        raise ValidationError(f"{path}: widths_m must be finite widths in (0, 1 mm) (NaN, infinite, negative or "
+                              "absurd widths found)")
+    if t.shape != (n, 2) or t.dtype.kind != "c" or not np.isfinite(t).all():
+        raise ValidationError(f"{path}: t (the labels) must be ({n}, 2) finite complex values, got {t.shape} {t.dtype}"
+                              + ("" if t.dtype.kind != "c" or np.isfinite(t).all() else " with NaN or infinite values"))
+    for k in ("source", "test"):
+        if np.shape(d[k]) != (n,):
+            raise ValidationError(f"{path}: {k} has shape {np.shape(d[k])}, expected ({n},)")
 
 
 def remove_partial(partial: str | Path) -> None:

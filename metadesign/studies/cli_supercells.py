@@ -11,6 +11,7 @@ from pathlib import Path
 from ..cliutil import emit, integer, log_to, num, out_file, progress_bar, workers_arg
 from ..cards import card_path
 from ..design.store import design_file
+from ..execution import Execution, scratch_path
 from ..io import atomic_write_text
 from ..outputs import product
 from ..validation import InputError
@@ -19,7 +20,6 @@ __all__ = ["register"]
 
 
 def _cmd_supercells(a: argparse.Namespace) -> int:
-    from ..execution import Execution
     from .supercells import build_table, load_supercell_recipe, supercell_need
 
     rec = load_supercell_recipe(a.recipe)
@@ -28,7 +28,7 @@ def _cmd_supercells(a: argparse.Namespace) -> int:
     n = a.supercells or rec.supercells
     inputs = {"recipe": rec.source, "table.library": rec.library, "table.design": rec.design,
               "table.extra_design": rec.extra_design}
-    with product(out, "supercells", inputs, scratch=(out.with_name(out.name + ".partial"),),
+    with product(out, "supercells", inputs, scratch=(scratch_path(out),),
                  need=supercell_need(n, rec.n_harmonics, a.workers)):
         rep = build_table(rec, out, a.supercells, Execution(workers=a.workers, scheduler=a.scheduler, log=log,
                                                             progress=None if a.json else progress_bar("supercells",
@@ -45,7 +45,6 @@ def _cmd_ladder(a: argparse.Namespace) -> int:
     from ..library.locate import find_library
     from ..library.store import load_library
     from ..library.supercells import load_table
-    from ..execution import Execution
     from .supercells import convergence_ladder
 
     table = load_table(a.table)
@@ -58,10 +57,10 @@ def _cmd_ladder(a: argparse.Namespace) -> int:
     lib = load_library(lib_path)
     out = out_file(Path(a.output) if a.output else tp.with_name(tp.stem + "-ladder.json"), suffixes=(".json",))
     log = log_to(a.json)
-    with product(out, "ladder", {"table": tp, "--library": lib_path}, scratch=(out.with_name(out.name + ".partial"),)):
+    with product(out, "ladder", {"table": tp, "--library": lib_path}, scratch=(scratch_path(out),)):
         run = Execution(workers=a.workers, scheduler=a.scheduler, log=log,
                         progress=None if a.json else progress_bar("supercells", unit="cell"))
-        rep = convergence_ladder(table, lib, held[:a.rows], a.harmonics, out.with_name(out.name + ".partial"), run)
+        rep = convergence_ladder(table, lib, held[:a.rows], a.harmonics, scratch_path(out), run)
         rep.pop("_labels")
         rep = {"format": "metadesign.ladder/1", **rep,
                "table": {"path": tp.name, "n_harmonics": table.meta.get("n_harmonics")}}
@@ -84,7 +83,8 @@ def _cmd_patches(a: argparse.Namespace) -> int:
 
     from ..design.store import design_library
     from ..library.supercells import remove_partial
-    from ..execution import Execution, scratch_path
+
+    from .supercell_patches import patch_need
     from .supercells import PatchSettings, design_source, patch_study, plot_patches
 
     settings = PatchSettings(a.patches, a.seed, a.harmonics, tuple(a.ring_levels or ()), a.windows, a.peds)
@@ -97,7 +97,8 @@ def _cmd_patches(a: argparse.Namespace) -> int:
     run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
                     progress=None if a.json else progress_bar("patches", unit="patch"))
     with product(out, "patches", {"design": src, "--library": a.library, "--peds": a.peds},
-                 also=(out.with_suffix(".png"),) if settings.ring_levels or a.windows else (), scratch=(partial,)):
+                 also=(out.with_suffix(".png"),) if settings.ring_levels or a.windows else (), scratch=(partial,),
+                 need=patch_need(settings, lib.stack, run.workers)):
         rep = patch_study(d, lib, settings, partial, run)
         rep = {"format": "metadesign.patches/1", "design": str(src), **rep}
         if settings.ring_levels or a.windows:
@@ -131,7 +132,6 @@ def _cmd_active(a: argparse.Namespace) -> int:
     from ..library.coupling import CouplingConfig
     from ..library.store import load_library
     from ..library.supercells import load_table
-    from ..execution import Execution
     from .active import ActiveConfig, active_learning, plot_active
     from .supercells import load_supercell_recipe, pool_widths
 
@@ -152,9 +152,9 @@ def _cmd_active(a: argparse.Namespace) -> int:
     log = log_to(a.json)
     lib = load_library(rec.library)
     with product(out, "active", {"recipe": rec.source, "table": tp, "--reference": a.reference},
-                 scratch=(out.with_name(out.name + ".partial"),), also=(out.with_suffix(".png"),)):
+                 scratch=(scratch_path(out),), also=(out.with_suffix(".png"),)):
         pool = pool_widths(rec, a.pool, log)
-        rep = active_learning(table, ref, lib, pool, out.with_name(out.name + ".partial"), cfg,
+        rep = active_learning(table, ref, lib, pool, scratch_path(out), cfg,
                               Execution(workers=a.workers, scheduler=a.scheduler, log=log))
         rep.pop("members")
         rep = {"format": "metadesign.active/1", **rep}
@@ -203,7 +203,7 @@ def _cmd_coupling(a: argparse.Namespace) -> int:
 def _cmd_peds(a: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..execution import Execution, scratch_path
+
     from ..library.locate import file_sha256
     from ..library.peds import save_peds
     from ..library.supercells import remove_partial

@@ -5,7 +5,7 @@ together (:class:`CouplingCheckRequest`), then the devices made from them, check
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +15,7 @@ from ..execution import SERIAL, Execution, scratch_path
 from ..io import atomic_write_text
 from ..library.locate import file_sha256
 from ..library.store import load_library
+from ..library.peds import PedsModel, find_peds, load_peds
 from ..library.supercells import remove_partial
 from ..paths import product as packaged
 from ..reconstruction.dataset import load_device
@@ -119,12 +120,35 @@ def _sensor(req: CouplingCheckRequest, fab):
     return sr.sensor, sr.pupil_grid
 
 
+#: core-seconds of one supercell's certified (PEDS) solves, all levels (measured: 0.09-0.12 on the paper design)
+PEDS_CORE_S = 0.12
+
+
+def _certified_plan(req: CouplingCheckRequest, fab, run: Execution) -> CertifiedSettings:
+    """The certified settings with their PEDS model loaded (a file of another kind refused now, not after the
+    solves), a sample no larger than the device's supercells, and the cost said before the work."""
+    c = req.certified
+    peds = c.peds if isinstance(c.peds, PedsModel) else load_peds(c.peds if c.peds is not None else find_peds(fab.lib),
+                                                                  fab.lib)
+    n_super = (fab.n_cells // 2) ** 2
+    total = c.supercells + c.ring_supercells * 3 + c.supercells * max(0, c.reoptimise - 1) * 4 * c.reoptimise_sweeps
+    if c.supercells > n_super:
+        raise ValidationError(f"--certified {c.supercells}: more than the device's {n_super:,} supercells (a sample "
+                              "that large costs more than solving every supercell once)")
+    hours = total * PEDS_CORE_S / 3600
+    run.log(f"certified: about {total:,} supercell solves at {len(peds.harmonics)} levels, ~{hours:.2g} core-hours "
+            f"(~{hours / max(1, run.workers):.2g} h on {max(1, run.workers)} workers)")
+    return replace(c, peds=peds)
+
+
 def run_coupling_check(req: CouplingCheckRequest, out: Path, run: Execution = SERIAL) -> dict:
     """The coupling check of ``req`` into the folder ``out``: ``coupling-check.json``, ``coupling-frames.png``
     and (with certified cases) ``coupling-metrics.png``; the certified solves resumable in ``OUT.partial/``
     (removed at the end)."""
     partial = scratch_path(out)
     designs, fabs = _devices(req)
+    if req.certified.supercells:
+        req = replace(req, certified=_certified_plan(req, fabs["lpa"], run))
     sensor, grid = _sensor(req, fabs["lpa"])
     run.log(f"coupling-check: {req.design} ({', '.join(CASES[k] for k in fabs)}) ...")
     cert = CertifiedCheck(req.certified, partial, designs) if req.certified.supercells else None

@@ -13,7 +13,7 @@ import numpy as np
 from .. import __version__
 from ..design.store import Design
 from ..execution import SERIAL, Execution
-from ..library.peds import certified_t, fit_peds, patch_windows, ring_couplings
+from ..library.peds import certified_t, fit_peds, patch_harmonics, patch_windows, ring_couplings
 from ..library.supercell import solve_patch, solve_supercell
 from ..library.supercells import (
     matched_harmonics,
@@ -21,6 +21,7 @@ from ..library.supercells import (
     unit_cells,
     solve_table,
 )
+from ..outputs import Need
 from ..plotting import pyplot, save_figure
 from ..tasks import TaskFolder, content_key, run_resumable
 from ..validation import InputError
@@ -90,6 +91,28 @@ class PatchSettings:
         if self.ring_levels and self.patches < 4:
             raise InputError(f"--ring-levels: calibrating the ring's coefficients needs >= 4 patches, got "
                              f"{self.patches}")
+
+
+#: memory of one 4 x 4 patch solve per harmonic squared (bytes): 1.2 GB per worker at nG 1289, measured
+PATCH_BYTES_PER_NG2 = 1.2e9 / 1289**2
+
+
+def patch_need(settings: PatchSettings, stack, workers: int) -> Need:
+    """What the patch study of ``settings`` asks of the machine, checked before any solve: each ring level a
+    low fidelity at or below the patches' own supercell truncation (a level above it would make the ring's
+    patches costlier than the truth they approximate; InputError, one line), and the memory of the largest
+    patch solve on each of ``workers`` (:class:`~metadesign.outputs.Need`)."""
+    ns_patch, ns_super = matched_harmonics(int(settings.harmonics), stack, 4, 2)
+    largest = ns_patch - 1
+    for h in settings.ring_levels:
+        ns_h, _ = matched_unit_harmonics(int(h), stack)
+        if ns_h > ns_super:
+            raise InputError(f"--ring-levels {h:g}: above the patches' own supercell truncation (nG {ns_super - 1} at "
+                             f"--harmonics {settings.harmonics}): the ring's low fidelity must be cheaper than the "
+                             f"truth (levels <= {settings.harmonics // 4})")
+        largest = max(largest, patch_harmonics(int(h), stack)[0] - 1)
+    return Need(memory=max(1, workers) * PATCH_BYTES_PER_NG2 * largest**2,
+                what=f"4 x 4 patch solves at nG {largest} on {max(1, workers)} workers: fewer -j or a lower --harmonics")
 
 
 @dataclass(frozen=True)

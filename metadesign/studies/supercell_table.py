@@ -25,7 +25,7 @@ from .. import __version__
 from ..config import ConfigError, Param, Section, load_toml, parse
 from ..design.recipe import load_design_recipe
 from ..design.store import Design, design_file, load_design, run_design
-from ..execution import SERIAL, Execution
+from ..execution import SERIAL, Execution, scratch_path
 from ..library.locate import file_sha256
 from ..library.store import load_library
 from ..library.supercells import (
@@ -208,7 +208,7 @@ def build_table(recipe: SupercellRecipe, output: Path, supercells: int | None = 
     w_range = (float(lib.wx.min()), float(lib.wx.max()))
     widths, source, test = sample_rows(n, RowDraw(recipe.seed, recipe.mix, recipe.jitter, recipe.test_every),
                                        main, extra, w_range)
-    partial = output.parent / (output.name + ".partial")
+    partial = scratch_path(output)
     log(f"solving {n} supercells (nG {ns - 1}, matched to " + ("the library's" if unit is None else
         "unit cells solved at") + f" {nu - 1}) -> {output}")
     t, nG, seconds, t_unit = solve_table(widths, stack, ns, partial, workers=workers, scheduler=run.scheduler,
