@@ -40,7 +40,6 @@ failed import leaves nothing behind."""
 
 from __future__ import annotations
 
-import csv
 import json
 import shutil
 import time
@@ -50,14 +49,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..execution import fresh_scratch, publish_scratch, remove_scratch, scratch_path
 from ..execution import SERIAL, Execution
 from ..io import atomic_write_text
 from ..plotting import save_figure
 from ..tasks import content_key, file_key
 from ..outputs import product
-from ..sensing.forward import sensor_frames
+from ..sensing.device import Device
 from ..validation import ValidationError
-from .camera_frames import (FITS_SUFFIXES, IMAGE_SUFFIXES, _checked, _read_fits, _warp, aligned_tensor,
+from .camera_frames import (aligned_tensor,
                             calibrate, fit_alignment, fix_hot_pixels, hot_pixel_map, read_frame, read_manifest,
                             spot_centroids)
 from .dataset_build import normalise_psf
@@ -165,7 +165,7 @@ def import_captures(folder: str | Path, out: str | Path, calibration: str | Path
         raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
     with product(out, "dataset", {"captures": folder, "--calibration": calibration, "--reference": reference,
                                   **{f"--dark {d}": d for d in (darks or [])}},
-                 scratch=(out.with_name(out.name + ".partial"),)):
+                 scratch=(scratch_path(out),)):
         return _import(folder, out, calibration, reference, darks, options, run)
 
 
@@ -361,7 +361,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     # calibration
     flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot, neg)
                      for p in "xy"])
-    ref_frames = sensor_frames(ref.pupil, sensor, None)
+    ref_frames = Device(ref.pupil, sensor).frames()
     c_ref = spot_centroids(ref_frames, sensor, options.threshold)
     al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
     notes = [f"calibration: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
@@ -390,7 +390,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
              "calibration": calib, "options": options.hashed()}
     attrs = _store_attrs(out.name, parts, conv, split, ref_info, options,
                          {"captures": str(folder), "reference": str(reference)})
-    tmp = out.with_name(out.name + ".partial")
+    tmp = fresh_scratch(out, "store")  # OUT.partial/store: zarr empties its own folder, so the marker stays outside
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         create_store(tmp, attrs, split, rytov_fill=-1.0)
@@ -401,9 +401,9 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
         if out.exists():
             shutil.rmtree(out)
-        tmp.rename(out)
+        publish_scratch(tmp, out)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_scratch(tmp.parent)
         raise
     info = open_dataset(out)
     return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(conv.flagged),
