@@ -38,6 +38,7 @@ def test_readme_python_block_runs(i, demo_products, tmp_path, monkeypatch):
                        "sensing/models/demo-unet-long.safetensors": model,
                        "sensing/dataset-demo": ds}.items():
         code = code.replace(f'"{big}"', repr(str(small)))
+    code = code.replace('"library/', '"' + str(REPO / "library") + "/")  # the committed library products
     assert "paper-5mm" not in code and "dataset-demo" not in code, code
     monkeypatch.chdir(tmp_path)
     exec(compile(code, f"documentation python block {i}", "exec"), {})
