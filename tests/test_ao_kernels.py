@@ -19,6 +19,7 @@ from metadesign.optics.control import (
 )
 from metadesign.optics.dm import DeformableMirror, ModalDM, TipTiltMirror
 from metadesign.optics.zernike import zernike
+from metadesign.sensing.device import ReceiverCrop
 from metadesign.turbulence.screens import ScreenGrid, screens
 from metadesign.validation import ConfigError
 
@@ -146,6 +147,8 @@ def test_integrator_and_pseudo_open_loop():
         u = ctrl.step(r)
     ctrl = Controller(1.0, 1.0, limit=0.3)
     assert np.all(np.abs(ctrl.step(np.array([5.0, -5.0, 0.1]))) <= 0.3)
+    with pytest.raises(ConfigError):
+        Controller(0.4, 0.5)  # the total delay is at least one frame
 
 
 # -- DM ---------------------------------------------------------------------------------------------------
@@ -170,13 +173,17 @@ def test_dm_reproduces_its_own_surfaces_and_clips():
     assert dm.fitting_error(dm.surface(c)) < 0.02 * np.std(dm.surface(c)[dm.mask])
     assert dm.n == len(dm.positions) and np.all(np.hypot(*dm.positions.T) <= D / 2 + dm.pitch + 1e-9)
     # a measured influence matrix in place of the Gaussians: the same mirror
-    meas = DeformableMirror(x, D, influence=dm.influence)
+    meas = DeformableMirror.measured(x, D, dm.influence)
     assert np.allclose(meas.surface(c), dm.surface(c)) and np.allclose(meas.fit(dm.surface(c)), back, atol=1e-4)
     # stroke: commands clipped to +- stroke
     lim = DeformableMirror(x, D, n_act=9, coupling=0.2, stroke=0.5)
     big = 3 * c
     assert np.allclose(lim.surface(big), dm.surface(np.clip(big, -0.5, 0.5)))
     assert not np.allclose(lim.surface(big), dm.surface(big))
+    # on a received-field crop: the same aperture
+    crop = ReceiverCrop(40, 80, 160, D / 64, D)
+    assert np.array_equal(DeformableMirror.for_crop(crop, n_act=9).mask, crop.aperture_mask())
+    assert np.array_equal(TipTiltMirror.for_crop(crop).mask, crop.aperture_mask())
     # batches
     assert dm.surface(np.stack([c, c])).shape == (2, len(x), len(x))
     assert dm.fit(np.stack([dm.surface(c)] * 3)).shape == (3, dm.n)

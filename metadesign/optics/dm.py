@@ -15,7 +15,8 @@ Zonal mirror: ``n_act`` actuators across the pupil diameter on a square grid of 
 (Fried geometry: the outer actuators of the middle row and column sit on the pupil's edge, as for a
 Shack-Hartmann with ``n_act - 1`` lenslets across); actuators farther than ``D/2 + margin * d`` from the
 centre are dropped.  Influence ``exp(ln(coupling) (r / d)^2)``: Gaussian, ``coupling`` at the neighbouring
-actuator (``sigma = d / sqrt(-2 ln coupling)``); or a measured influence matrix given as an array.
+actuator (``sigma = d / sqrt(-2 ln coupling)``, as hcipy's ``make_gaussian_influence_functions``), not
+truncated; or a measured influence matrix given as an array (:meth:`DeformableMirror.measured`).
 
 Fit: Tikhonov-regularised least squares over the mask's pixels,
 ``c = (B^T B + lambda I)^-1 B^T phi`` with ``lambda = regularisation * mean(diag(B^T B))`` (relative to one
@@ -128,34 +129,47 @@ def gaussian_influence(x: np.ndarray, positions: np.ndarray, pitch: float, coupl
     return (gy[:, :, None] * gx[:, None, :]).astype(np.float32)
 
 
+def _pupil(coords, aperture) -> tuple[np.ndarray, float, np.ndarray]:
+    """(coords (A,) float, D, aperture mask (A, A)) of a pupil of diameter D centred on coordinate 0."""
+    x = np.asarray(coords, float)
+    D = check_number("dm.aperture", aperture, 0, open_lo=True, unit="m")
+    return x, D, (x[None, :] ** 2 + x[:, None] ** 2) <= (D / 2) ** 2
+
+
 class DeformableMirror(LinearCorrector):
     """Zonal continuous-face-sheet mirror: Gaussian influence functions on a square actuator grid of pitch
-    ``D / (n_act - 1)`` (or a measured ``influence`` matrix (n, A, A), rad per unit command, in place of the
-    Gaussians; ``positions`` then optional).  ``coords`` (A,) are the crop's sample coordinates (m),
-    ``aperture`` the pupil diameter D (m), centred on coordinate 0."""
+    ``D / (n_act - 1)`` (:meth:`measured`: a measured influence matrix in place of the Gaussians).
+    ``coords`` (A,) are the crop's sample coordinates (m), ``aperture`` the pupil diameter D (m), centred on
+    coordinate 0; ``positions`` (n, 2) the kept actuators' (x, y) (m)."""
 
     def __init__(self, coords: np.ndarray, aperture: float, n_act: int = 11, coupling: float = 0.15,
-                 margin: float = 1.0, stroke: float = np.inf, regularisation: float = 1e-3,
-                 influence: np.ndarray | None = None):
-        x = np.asarray(coords, float)
-        D = check_number("dm.aperture", aperture, 0, open_lo=True, unit="m")
-        mask = (x[None, :] ** 2 + x[:, None] ** 2) <= (D / 2) ** 2
-        if influence is None:
-            n_act = check_int("dm.n_act", n_act, 2, 256)
-            self.coupling = check_number("dm.coupling", coupling, 0, 1, open_lo=True, open_hi=True)
-            self.margin = check_number("dm.margin", margin, 0, 10, unit="pitch")
-            self.pitch = D / (n_act - 1)
-            g = (np.arange(n_act) - (n_act - 1) / 2) * self.pitch
-            X, Y = np.meshgrid(g, g)
-            keep = np.hypot(X, Y) <= D / 2 + self.margin * self.pitch + 1e-9 * D
-            self.positions = np.stack([X[keep], Y[keep]], -1)  # (n, 2) (x, y) m
-            basis = gaussian_influence(x, self.positions, self.pitch, self.coupling)
-        else:
-            basis = np.asarray(influence, np.float32)
-            self.coupling, self.margin, self.positions, self.pitch = None, None, None, None
-            n_act = basis.shape[0] if basis.ndim == 3 else n_act
-        self.n_act, self.aperture, self.coords = n_act, D, x
-        super().__init__(basis, mask, stroke, regularisation)
+                 margin: float = 1.0, stroke: float = np.inf, regularisation: float = 1e-3):
+        x, D, mask = _pupil(coords, aperture)
+        self.n_act = check_int("dm.n_act", n_act, 2, 256)
+        self.coupling = check_number("dm.coupling", coupling, 0, 1, open_lo=True, open_hi=True)
+        self.margin = check_number("dm.margin", margin, 0, 10, unit="pitch")
+        self.pitch = D / (n_act - 1)
+        g = (np.arange(n_act) - (n_act - 1) / 2) * self.pitch
+        X, Y = np.meshgrid(g, g)
+        keep = np.hypot(X, Y) <= D / 2 + self.margin * self.pitch + 1e-9 * D
+        self.positions = np.stack([X[keep], Y[keep]], -1)
+        self.aperture, self.coords = D, x
+        super().__init__(gaussian_influence(x, self.positions, self.pitch, self.coupling), mask, stroke,
+                         regularisation)
+
+    @classmethod
+    def measured(cls, coords: np.ndarray, aperture: float, influence: np.ndarray, stroke: float = np.inf,
+                 regularisation: float = 1e-3, positions: np.ndarray | None = None) -> DeformableMirror:
+        """A mirror from a measured influence matrix ``influence`` (n, A, A), rad per unit command on the crop
+        (``pitch``, ``coupling``, ``margin`` None; ``positions`` (n, 2) if known)."""
+        x, D, mask = _pupil(coords, aperture)
+        self = cls.__new__(cls)
+        basis = np.asarray(influence, np.float32)
+        self.n_act, self.coupling, self.margin, self.pitch = None, None, None, None
+        self.positions = None if positions is None else np.asarray(positions, float)
+        self.aperture, self.coords = D, x
+        LinearCorrector.__init__(self, basis, mask, stroke, regularisation)
+        return self
 
     @classmethod
     def for_crop(cls, crop, **kwargs) -> DeformableMirror:
@@ -175,23 +189,23 @@ def _zernike_on(x: np.ndarray, radius: float, modes, inside_only: bool) -> np.nd
 
 class ModalDM(LinearCorrector):
     """A modal corrector: commands are the coefficients (rad RMS over the pupil) of Noll Zernike modes
-    ``first .. first + n_modes - 1`` (or the explicit Noll indices ``modes``), zero outside the pupil."""
+    ``2 .. n_modes + 1`` (tilts first, no piston) or of the explicit Noll indices ``modes``; zero outside the
+    pupil."""
 
-    def __init__(self, coords: np.ndarray, aperture: float, n_modes: int = 20, first: int = 2,
-                 modes=None, stroke: float = np.inf, regularisation: float = 1e-9, inside_only: bool = True):
-        x = np.asarray(coords, float)
-        D = check_number("dm.aperture", aperture, 0, open_lo=True, unit="m")
+    _inside_only = True
+
+    def __init__(self, coords: np.ndarray, aperture: float, n_modes: int = 20, modes=None,
+                 stroke: float = np.inf, regularisation: float = 1e-9):
+        x, D, mask = _pupil(coords, aperture)
         if modes is None:
-            check_int("dm.n_modes", n_modes, 1, 2000)
-            check_int("dm.first", first, 1, 10000)
-            modes = range(first, first + n_modes)
-        self.modes = tuple(int(j) for j in modes)
+            modes = range(2, 2 + check_int("dm.n_modes", n_modes, 1, 2000))
+        self.modes = tuple(check_int("dm.modes", j, 1, 100000) for j in modes)
         self.aperture, self.coords = D, x
-        mask = (x[None, :] ** 2 + x[:, None] ** 2) <= (D / 2) ** 2
-        super().__init__(_zernike_on(x, D / 2, self.modes, inside_only), mask, stroke, regularisation)
+        super().__init__(_zernike_on(x, D / 2, self.modes, self._inside_only), mask, stroke, regularisation)
 
     @classmethod
     def for_crop(cls, crop, **kwargs) -> ModalDM:
+        """The corrector on a received-field crop (:class:`~metadesign.sensing.device.ReceiverCrop`)."""
         x, D = _crop_geometry(crop)
         return cls(x, D, **kwargs)
 
@@ -200,6 +214,7 @@ class TipTiltMirror(ModalDM):
     """Tip-tilt: Noll 2 (x) and 3 (y) tilts, commands in rad RMS over the pupil (a tilt of ``a`` rad RMS is a
     phase slope of ``4 a / D`` rad/m); a plane over the whole crop."""
 
+    _inside_only = False
+
     def __init__(self, coords: np.ndarray, aperture: float, stroke: float = np.inf, regularisation: float = 1e-9):
-        super().__init__(coords, aperture, modes=(2, 3), stroke=stroke, regularisation=regularisation,
-                         inside_only=False)
+        super().__init__(coords, aperture, modes=(2, 3), stroke=stroke, regularisation=regularisation)
