@@ -41,8 +41,25 @@ def _cmd_show(a: argparse.Namespace) -> int:
              f"sampling: {'OK' if rep.ok else 'INFEASIBLE'}"]
     lines += [f"  {k}: {v[0]:.4g} vs {v[1]:.4g}" for k, v in rep.constraints.items()]
     lines += [f"  ! {f}" for f in rep.failures]
+    lines += _wind_lines(a, sc, info)
     emit(info, a.json, "\n".join(lines))
     return 0 if rep.ok else 2
+
+
+def _wind_lines(a, sc, info: dict) -> list[str]:
+    """f_G and tau0 when the recipe has [wind] (added to ``info``); nothing otherwise."""
+    from ..paths import repo_root
+    from .scenario import load_wind
+    from .temporal import temporal_summary
+
+    wind = load_wind(a.recipe or repo_root() / "sensing" / "turbulence.toml", sc)
+    if wind is None:
+        return []
+    t = temporal_summary(sc, wind)
+    info.update(t)
+    return [f"wind: Greenwood frequency {t['greenwood_hz']:.1f} Hz, tau0 {t['tau0_s'] * 1e3:.3g} ms, v_5/3 "
+            f"{t['v53_m_s']:.3g} m/s (plane-wave path weighting; spherical-wave f_G "
+            f"{t['greenwood_spherical_hz']:.1f} Hz)"]
 
 
 def _cmd_validate(a: argparse.Namespace) -> int:

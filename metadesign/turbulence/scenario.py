@@ -1,12 +1,13 @@
-"""The turbulence scenario recipe (TOML: [path], [grid], [receiver]; keys carry their unit) and its
-loader: a :class:`~.path.Scenario` in SI units."""
+"""The turbulence scenario recipe (TOML: [path], [grid], [receiver], optional [wind]; keys carry their
+unit) and its loader: a :class:`~.path.Scenario` in SI units, and the path's :class:`~.temporal.Wind`
+when the recipe has a ``[wind]`` section (:func:`wind_from_dict`, :func:`load_wind`)."""
 
 from __future__ import annotations
 
 from ..config import Param, Section, load_toml, parse
 from .path import Scenario
 
-__all__ = ["SECTIONS", "scenario_from_dict", "load_scenario"]
+__all__ = ["SECTIONS", "scenario_from_dict", "load_scenario", "wind_from_dict", "load_wind"]
 
 SECTIONS = (
     Section("path", (
@@ -29,6 +30,15 @@ SECTIONS = (
         Param("metasurface_aperture_mm", float, 5.0, lo=0, open_lo=True, hi=1000),
         Param("roi_factor", float, 4.0, lo=1, hi=20),
     ), optional=True),
+    # frozen-flow wind (m/s, deg; 0 deg blows towards +x): a speed at the source with an optional linear ramp
+    # to end_speed_m_s at the receiver, or one speed (and direction) per screen; without [wind], nothing moves
+    Section("wind", (
+        Param("speed_m_s", float, None, lo=0, hi=200),
+        Param("end_speed_m_s", float, None, lo=0, hi=200),
+        Param("direction_deg", float, None, lo=-360, hi=360),
+        Param("speeds_m_s", list, None, lo=0, hi=200),
+        Param("directions_deg", list, None, lo=-360, hi=360),
+    ), optional=True),
 )
 
 
@@ -44,3 +54,18 @@ def scenario_from_dict(data: dict, source: str = "recipe") -> Scenario:
 
 def load_scenario(path) -> Scenario:
     return scenario_from_dict(load_toml(path), str(path))
+
+
+def wind_from_dict(data: dict, sc: Scenario | None = None, source: str = "recipe"):
+    """The recipe's :class:`~.temporal.Wind` (one velocity per screen of ``sc``, default: the recipe's own
+    scenario), or None without a ``[wind]`` section."""
+    from .temporal import wind_of
+
+    if "wind" not in data:
+        return None
+    sc = sc or scenario_from_dict(data, source)
+    return wind_of(sc, parse(data, SECTIONS, source)["wind"])
+
+
+def load_wind(path, sc: Scenario | None = None):
+    return wind_from_dict(load_toml(path), sc, str(path))
