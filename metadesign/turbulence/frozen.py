@@ -35,7 +35,8 @@ from ..validation import ValidationError, check_int, check_memory, check_number
 from .screens import ScreenGrid, psd_mvk
 from .temporal import Wind
 
-__all__ = ["FrozenFlow", "frozen_flow", "long_screen", "fourier_shift", "window"]
+__all__ = ["FrozenFlow", "frozen_flow", "long_screen", "spectrum", "structure_function_expected", "fourier_shift",
+           "window"]
 
 PAD = 16  # pixels of padding on each side of a window for the Fourier shift (cropped afterwards)
 
@@ -114,6 +115,21 @@ def spectrum(ny: int, nx: int, dx: float, l0: float, L0: float, levels: int = 5)
         fsx, fsy = np.array([-1.0, 0.0, 1.0]) * sx, np.array([-1.0, 0.0, 1.0]) * sy
         sub.append((fsx, fsy, _amplitudes(fsx[None, :], fsy[:, None], sx, sy, l0, L0)))
     return {"fft": amp, "block_fy": block_fy, "block_k": block_k, "block": block, "sub": sub, "dfx": dfx}
+
+
+def structure_function_expected(ny: int, nx: int, dx: float, l0: float, L0: float, r, levels: int = 5):
+    """The ensemble structure function (r0 = 1 m) of :func:`long_screen` along x and along y at separations
+    ``r`` (m), exactly, from its modes' amplitudes: ``sum 2 a^2 (1 - cos(2 pi f r))`` (each mode's real
+    part has variance ``a^2``); compare with :func:`~.screens.structure_function_theory`."""
+    sp = spectrum(ny, nx, dx, l0, L0, levels)
+    fx, fy = np.fft.fftfreq(nx, dx), np.fft.fftfreq(ny, dx)
+    cells = [(fx[None, :], fy[:, None], sp["fft"]),
+             (sp["block_k"][None, :] * sp["dfx"], sp["block_fy"][:, None], sp["block"])]
+    cells += [(fsx[None, :], fsy[:, None], a) for fsx, fsy, a in sp["sub"]]
+    r = np.atleast_1d(np.asarray(r, float))
+    d = [[sum(float(np.sum(2 * a**2 * (1 - np.cos(2 * np.pi * (f1 if ax == 0 else f2) * rr)))) for f1, f2, a in cells)
+          for rr in r] for ax in (0, 1)]
+    return np.array(d[0]), np.array(d[1])
 
 
 def long_screen(ny: int, nx: int, dx: float, l0: float, L0: float, seed, subharmonics: bool = True,
