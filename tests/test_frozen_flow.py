@@ -26,7 +26,7 @@ def test_long_screen_modes_match_von_karman_along_and_across():
     for ny, nx in ((64, 64), (90, 300), (100, 3000)):
         r = np.array([1, 2, 4, 8, 16, 32, ny // 2]) * DX
         th = structure_function_theory(r, 1.0, 0.01, 100.0)
-        dx_, dy_ = structure_function_expected(ny, nx, DX, 0.01, 100.0, r)
+        dx_, dy_ = structure_function_expected((ny, nx), DX, (0.01, 100.0), r)
         np.testing.assert_allclose(dx_ / th, 1.0, atol=0.015 if ny > 64 else 0.07)
         np.testing.assert_allclose(dy_ / th, 1.0, atol=0.015 if ny > 64 else 0.07)
         np.testing.assert_allclose(dx_, dy_, rtol=0.01)
@@ -36,10 +36,10 @@ def test_long_screen_draws_match_their_modes():
     """60 drawn 64 x 600 screens: the sample structure function within 6 % of the exact one (the
     synthesis puts each mode where the spectrum says)."""
     r = np.array([1, 4, 16])
-    ex, ey = structure_function_expected(64, 600, DX, 0.01, 100.0, r * DX)
+    ex, ey = structure_function_expected((64, 600), DX, (0.01, 100.0), r * DX)
     Dx, Dy = np.zeros(3), np.zeros(3)
     for s in range(60):
-        a = long_screen(64, 600, DX, 0.01, 100.0, s).astype(np.float64)
+        a = long_screen((64, 600), DX, (0.01, 100.0), s).astype(np.float64)
         Dx += [np.mean((a[:, k:] - a[:, :-k]) ** 2) for k in r]
         Dy += [np.mean((a[k:] - a[:-k]) ** 2) for k in r]
     np.testing.assert_allclose(Dx / 60 / ex, 1.0, atol=0.06)
@@ -164,12 +164,12 @@ def test_v7_greenwood_frequency_of_two_layers():
 
 def test_temporal_psd_theory_regimes():
     f = np.array([2.0, 20.0])
-    np.testing.assert_allclose(temporal_psd_theory(f, 0.05, 10.0, l0=1e-7, L0=1e7), temporal_psd_theory(f, 0.05, 10.0),
+    np.testing.assert_allclose(temporal_psd_theory(f, 0.05, 10.0, scales=(1e-7, 1e7)), temporal_psd_theory(f, 0.05, 10.0),
                                rtol=0.01)
     D, v = 0.1, 10.0
     fc = tilt_cutoff(v, D)
-    lo = temporal_psd_theory([fc / 100, fc / 10], 0.05, v, mode="tilt", D=D, l0=1e-6, L0=1e6)
-    hi = temporal_psd_theory([fc * 10, fc * 30], 0.05, v, mode="tilt", D=D, l0=1e-6, L0=1e6)
+    lo = temporal_psd_theory([fc / 100, fc / 10], 0.05, v, mode="tilt", D=D, scales=(1e-6, 1e6))
+    hi = temporal_psd_theory([fc * 10, fc * 30], 0.05, v, mode="tilt", D=D, scales=(1e-6, 1e6))
     assert np.log(lo[1] / lo[0]) / np.log(10) == pytest.approx(-2 / 3, abs=0.1)
     assert np.log(hi[1] / hi[0]) / np.log(3) == pytest.approx(-17 / 3, abs=0.5)
 

@@ -11,6 +11,7 @@ _EXPORTS = {
     "Scenario": "path", "check_sampling": "path", "solve_path": "path", "Turbulence": "propagate",
     "point_source": "propagate", "split_step": "propagate", "split_step_torch": "propagate",
     "load_scenario": "scenario", "scenario_from_dict": "scenario", "ScreenGrid": "screens", "psd_mvk": "screens", "structure_function_theory": "screens",
+    "FrozenFlow": "frozen", "frozen_flow": "frozen", "Wind": "temporal", "greenwood_frequency": "temporal", "coherence_time": "temporal",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -2,25 +2,31 @@
 
 Each screen is drawn once, at the start, on a *long screen*: a rectangle covering the whole run's sweep
 of the ``n x n`` window in that screen's wind direction (plus a margin), with the same modified von
-Karman PSD as :mod:`.screens` (r0 = 1 m template, scaled by ``r0_i^(-5/3)``).  A run never wraps: the
+Karman PSD as :mod:`.screens` (r0 = 1 m template, scaled by ``r0_i^(-5/6)``).  A run never wraps: the
 window at step ``j`` (``t = j dt``) samples the long screen at ``x - v_i t`` (the pattern moves with the
 wind), and a step past the drawn run is refused in one line.  Sub-pixel positions come from a Fourier
 phase ramp on a padded window (each axis in turn, after removing the line through the padded row's
 ends so that its periodic extension is continuous; the line is shifted exactly), not from
 interpolation, which would smooth the spectrum; integer positions are plain slices (exact).
+The long screen is the bounding box of the sweep: along x or y it is ``n + |v| T / dx`` long and
+``n + 35`` wide (256 x 12,000 float32 = 12 MB for 30 m at 2.5 mm), but an oblique wind needs the whole
+box (30 m at 40 deg: 9,400 x 7,900 = 300 MB); the memory is checked before anything is drawn.
 
 The long rectangle (``ny x nx``, ``nx >= ny``; a screen moving mostly along y is drawn transposed) is
-the FFT screen of :mod:`.screens` with three low-frequency parts, so that its statistics match
-:func:`~.screens.structure_function_theory` although its cells are ``nx / ny`` times longer in fy than
-in fx:
+the FFT screen of :mod:`.screens` with its low frequencies resampled, so that its statistics match
+:func:`~.screens.structure_function_theory` along and across the long axis although its FFT cells are
+``nx / ny`` times longer in fy than in fx (:func:`spectrum`):
 
-* the 2-D FFT part, cells ``dfx x dfy``; those near the origin carry their cell-integrated,
-  ``|f|^2``-weighted PSD (as in :class:`~.screens.ScreenGrid`), and the row fy = 0 is left out;
-* the strip ``|fy| < dfy / 2``: rows at ``fy = +-dfy / 3^p`` (width ``dfy / 3^p``, p = 1..P) and a
-  centre row of width ``dfy / 3^P``, each with every fx of the FFT (one 1-D FFT per row, separable in y),
-  with P such that the last rows' cells are about square;
-* subharmonics: 3 x 3 cells of the central cell ``dfx x dfy / 3^P``, five levels down, as in
-  :mod:`.screens`.
+* the 2-D FFT part, cells ``dfx x dfy``, those near the origin with their cell-integrated,
+  ``|f|^2``-weighted PSD (as in :class:`~.screens.ScreenGrid`);
+* a block around the origin (the rows ``|fy| <= 4.5 dfy`` and as wide in fx) resampled on about square
+  cells ``dfx x ~dfx``: each of its rows of fy is a sum over its fx, added to the FFT after its y pass (an
+  elongated cell near the origin would put its power in the wrong direction: 5-15 % anisotropy in the
+  structure function);
+* subharmonics: 3 x 3 cells tiling the block's central cell, five levels down, as in :mod:`.screens`.
+
+The expected structure function of these modes (:func:`structure_function_expected`, exact) is within
+1.5 % of the theory up to half the short side along both axes (test).
 
 Boiling (a screen that also evolves in its own frame) is not modelled: the flow is purely frozen.
 """
@@ -41,10 +47,12 @@ __all__ = ["FrozenFlow", "frozen_flow", "long_screen", "spectrum", "structure_fu
 PAD = 16  # pixels of padding on each side of a window for the Fourier shift (cropped afterwards)
 
 
-def _cell_psd(fx, fy, wx: float, wy: float, l0: float, L0: float, sub: int = 8, cap: int = 256) -> np.ndarray:
+def _cell_psd(fx, fy, cell: tuple[float, float], scales: tuple[float, float], sub: int = 8,
+              cap: int = 256) -> np.ndarray:
     """Effective PSD (r0 = 1 m) of ``wx x wy`` cells centred on ``(fx, fy)``: ``int_cell PSD |f|^2 / (|f_c|^2
     wx wy)`` (:func:`metadesign.turbulence.screens._cell_psd` for rectangular cells: ``sub`` samples
     along the shorter side, proportionally more along the longer one); 0 at the origin."""
+    (wx, wy), (l0, L0) = cell, scales
     fx, fy = np.broadcast_arrays(np.asarray(fx, float), np.asarray(fy, float))
     w = min(wx, wy)
     nx_, ny_ = (min(sub * int(np.ceil(d / w - 1e-9)), cap) for d in (wx, wy))
@@ -58,17 +66,18 @@ def _cell_psd(fx, fy, wx: float, wy: float, l0: float, L0: float, sub: int = 8, 
     return acc / (nx_ * ny_) / np.where(fc2 > 0, fc2, np.inf)
 
 
-def _amplitudes(fx, fy, wx: float, wy: float, l0: float, L0: float, near: float | None = None,
+def _amplitudes(fx, fy, cell: tuple[float, float], scales: tuple[float, float], near: float | None = None,
                 sub_cap: int = 256) -> np.ndarray:
     """``sqrt(PSD_cell wx wy)`` (r0 = 1 m) of ``wx x wy`` cells centred on (fx, fy): cell-integrated where the
     PSD varies across the cell (``|fx|, |fy| <= near``, default ``4.5 max(wx, wy)``), the centre value
     elsewhere; 0 at the origin."""
+    (wx, wy), (l0, L0) = cell, scales
     fx, fy = np.broadcast_arrays(np.asarray(fx, float), np.asarray(fy, float))
     f = np.hypot(fx, fy)
     psd = np.array(psd_mvk(np.where(f == 0, 1.0, f), 1.0, l0, L0))
     big = 4.5 * max(wx, wy) if near is None else near
     sel = (np.abs(fx) <= big) & (np.abs(fy) <= big)
-    psd[sel] = _cell_psd(fx[sel], fy[sel], wx, wy, l0, L0, cap=sub_cap)
+    psd[sel] = _cell_psd(fx[sel], fy[sel], cell, scales, cap=sub_cap)
     psd[f == 0] = 0.0
     return np.sqrt(psd * wx * wy)
 
@@ -78,8 +87,9 @@ def _amplitudes(fx, fy, wx: float, wy: float, l0: float, L0: float, near: float 
 BLOCK_ROWS = 4
 
 
-def spectrum(ny: int, nx: int, dx: float, l0: float, L0: float, levels: int = 5) -> dict:
-    """The amplitudes (r0 = 1 m, rad) of a long screen's modes (``nx >= ny``; see the module's docstring):
+def spectrum(shape: tuple[int, int], dx: float, scales: tuple[float, float], levels: int = 5) -> dict:
+    """The amplitudes (r0 = 1 m, rad) of a long screen's modes (``shape = (ny, nx)``, ``nx >= ny``;
+    ``scales = (l0, L0)``, m; see the module's docstring):
 
     * ``"fft"``: (ny, nx) amplitudes of the FFT cells ``dfx x dfy`` (``fftfreq`` order), zero in the block;
     * the block ``|fy| <= (M + 1/2) dfy`` (M = :data:`BLOCK_ROWS`), ``|fx| <= (K + 1/2) dfx``, with K such
@@ -92,6 +102,7 @@ def spectrum(ny: int, nx: int, dx: float, l0: float, L0: float, levels: int = 5)
     Every cell near the origin carries its cell-integrated, ``|f|^2``-weighted PSD, as in
     :class:`~.screens.ScreenGrid`: with square cells, each mode then carries its cell's share of the
     small-separation structure function along x and along y alike."""
+    ny, nx = shape
     dfx, dfy = 1.0 / (nx * dx), 1.0 / (ny * dx)
     M = min(BLOCK_ROWS, (ny - 1) // 2)
     K = min(int(np.ceil((M + 0.5) * dfy / dfx - 0.5)), (nx - 1) // 2)
@@ -101,27 +112,28 @@ def spectrum(ny: int, nx: int, dx: float, l0: float, L0: float, levels: int = 5)
     aspect = dfy / dfx
     amp = np.zeros((ny, nx))
     for r in range(ny):
-        amp[r] = _amplitudes(fx, fy[r], dfx, dfy, l0, L0, near=2 * (M + 1) * dfy,
+        amp[r] = _amplitudes(fx, fy[r], (dfx, dfy), scales, near=2 * (M + 1) * dfy,
                              sub_cap=8 * min(int(np.ceil(aspect)), 4))
     rows = np.r_[0:M + 1, ny - M:ny] if M > 0 else np.array([0])
     cols = np.r_[0:K + 1, nx - K:nx] if K > 0 else np.array([0])
     amp[np.ix_(rows, cols)] = 0.0
     block_fy = (np.arange(R) - R // 2) * wy
     block_k = np.arange(-K, K + 1)
-    block = _amplitudes(block_k[None, :] * dfx, block_fy[:, None], dfx, wy, l0, L0)
+    block = _amplitudes(block_k[None, :] * dfx, block_fy[:, None], (dfx, wy), scales)
     sub = []
     for p in range(1, levels + 1):
         sx, sy = dfx / 3**p, wy / 3**p
         fsx, fsy = np.array([-1.0, 0.0, 1.0]) * sx, np.array([-1.0, 0.0, 1.0]) * sy
-        sub.append((fsx, fsy, _amplitudes(fsx[None, :], fsy[:, None], sx, sy, l0, L0)))
+        sub.append((fsx, fsy, _amplitudes(fsx[None, :], fsy[:, None], (sx, sy), scales)))
     return {"fft": amp, "block_fy": block_fy, "block_k": block_k, "block": block, "sub": sub, "dfx": dfx}
 
 
-def structure_function_expected(ny: int, nx: int, dx: float, l0: float, L0: float, r, levels: int = 5):
+def structure_function_expected(shape: tuple[int, int], dx: float, scales: tuple[float, float], r, levels: int = 5):
     """The ensemble structure function (r0 = 1 m) of :func:`long_screen` along x and along y at separations
     ``r`` (m), exactly, from its modes' amplitudes: ``sum 2 a^2 (1 - cos(2 pi f r))`` (each mode's real
     part has variance ``a^2``); compare with :func:`~.screens.structure_function_theory`."""
-    sp = spectrum(ny, nx, dx, l0, L0, levels)
+    ny, nx = shape
+    sp = spectrum(shape, dx, scales, levels)
     fx, fy = np.fft.fftfreq(nx, dx), np.fft.fftfreq(ny, dx)
     cells = [(fx[None, :], fy[:, None], sp["fft"]),
              (sp["block_k"][None, :] * sp["dfx"], sp["block_fy"][:, None], sp["block"])]
@@ -132,15 +144,17 @@ def structure_function_expected(ny: int, nx: int, dx: float, l0: float, L0: floa
     return np.array(d[0]), np.array(d[1])
 
 
-def long_screen(ny: int, nx: int, dx: float, l0: float, L0: float, seed, subharmonics: bool = True,
+def long_screen(shape: tuple[int, int], dx: float, scales: tuple[float, float], seed, subharmonics: bool = True,
                 levels: int = 5) -> np.ndarray:
-    """One r0 = 1 m modified von Karman screen on an ``ny x nx`` rectangle (float32, rad), ``nx >= ny``
-    (see the module's docstring); ``seed`` an int or a SeedSequence.  Same seed, same bytes."""
+    """One r0 = 1 m modified von Karman screen on an ``shape = (ny, nx)`` rectangle (float32, rad),
+    ``nx >= ny``, inner and outer scales ``scales = (l0, L0)`` (m; see the module's docstring); ``seed`` an
+    int or a SeedSequence.  Same seed, same bytes."""
+    ny, nx = shape
     if nx < ny:
         raise ValueError("long_screen: nx >= ny (draw the transpose)")
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     rng_hf, rng_block, rng_sh = (np.random.default_rng(s) for s in ss.spawn(3))
-    sp = spectrum(ny, nx, dx, l0, L0, levels if subharmonics else 0)
+    sp = spectrum(shape, dx, scales, levels if subharmonics else 0)
     with single_thread_blas():
         return _long_screen(ny, nx, dx, sp, rng_hf, rng_block, rng_sh)
 
@@ -255,9 +269,9 @@ class FrozenFlow:
         for i in live:
             ny, nx = shapes[i]
             if nx >= ny:
-                s = long_screen(ny, nx, dx, grid.l0, grid.L0, kids[i], grid.subharmonics)
+                s = long_screen((ny, nx), dx, (grid.l0, grid.L0), kids[i], grid.subharmonics)
             else:
-                s = long_screen(nx, ny, dx, grid.l0, grid.L0, kids[i], grid.subharmonics).T
+                s = long_screen((nx, ny), dx, (grid.l0, grid.L0), kids[i], grid.subharmonics).T
             s *= np.float32(r0s[i] ** (-5 / 6))
             self.long[i] = s
             # window origin (y, x) at step 0: the pattern moves by +v t, so the origin moves by -v t

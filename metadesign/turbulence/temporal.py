@@ -171,11 +171,12 @@ def tilt_cutoff(v: float, D: float, n: int = 1) -> float:
     return 0.3 * (n + 1) * v / D
 
 
-def temporal_psd_theory(f, r0, v, *, mode: str = "phase", D: float | None = None, l0: float = 0.0,
-                        L0: float = np.inf, axis: str = "along") -> np.ndarray:
+def temporal_psd_theory(f, r0, v, *, mode: str = "phase", D: float | None = None,
+                        scales: tuple[float, float] = (0.0, np.inf), axis: str = "along") -> np.ndarray:
     """One-sided temporal PSD (rad^2 / Hz, f > 0) under frozen flow, summed over layers (``r0`` and ``v``
     arrays of one Fried parameter and speed per layer, or scalars).
 
+    ``scales``: the inner and outer scales ``(l0, L0)`` (m) of the screens' modified von Karman PSD.
     ``mode="phase"``: the phase at one pupil point.  Kolmogorov (``l0 = 0``, ``L0 = inf``):
     ``0.0774 r0^(-5/3) v^(5/3) f^(-8/3)`` per layer; otherwise the modified von Karman PSD of the screens
     integrated across the wind, ``(2 / v) int PSD(f / v, ky) dky``.
@@ -189,6 +190,7 @@ def temporal_psd_theory(f, r0, v, *, mode: str = "phase", D: float | None = None
         raise ValueError(f"mode: expected 'phase' or 'tilt', got {mode!r}")
     if mode == "tilt" and D is None:
         raise ValueError("the tilt PSD needs the pupil diameter D")
+    l0, L0 = scales
     out = np.zeros_like(f)
     kolmogorov = mode == "phase" and l0 == 0 and not np.isfinite(L0)
     ky = np.geomspace(1e-6, 1e4, 4001)  # 1/m, one side (the integrand is even in ky)
