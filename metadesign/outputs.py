@@ -97,6 +97,7 @@ KINDS: dict[str, tuple[str, bool]] = {
     "codesign": ("co-design report folder", True),
     "demo": ("demo folder", True),
     "pipeline": ("pipeline run folder", True),
+    "loop": ("loop study folder", True),
     "captures": ("capture folder", True),
     "crosscheck": ("cross-check report folder", True),
 }
@@ -144,6 +145,7 @@ _LEGACY_SUMMARIES: dict[str, tuple[str, set]] = {
     "demo": ("summary.json", {"output", "passed", "seconds", "stages"}),
     "evaluation": ("summary.json", {"n", "split", "noise", "npib", "captured_fraction"}),
     "compare": ("compare.json", {"settings", "summary", "wall_seconds"}),
+    "loop": ("loop.json", {"format", "loop", "methods"}),
     "coupling-check": ("coupling-check.json", {"cases", "coupling_model_sha256"}),
     "lpa-check": ("lpa.json", {"lpa", "lpa_library", "n_harmonics_supercell"}),
     "tolerance": ("tolerance.json", {"model", "noise_percent", "rows"}),

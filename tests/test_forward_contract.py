@@ -132,3 +132,21 @@ def test_shack_hartmann_reads_its_own_detectors_spots():
     noisy = sh_exposures(est, rec, np.arange(3), 5.0, 1)
     assert not np.array_equal(noisy, spots0)
     np.testing.assert_array_equal(sh_exposures(est, rec[1:], np.arange(1, 3), 5.0, 1), noisy[1:])
+
+
+def test_an_exposure_over_moving_turbulence_is_the_mean_frame_read_once():
+    """Device.expose: the mean of the sub-steps' frames, read once by the detector (the frame's photon budget),
+    then the tensor; one sub-step is render."""
+    from metadesign.sensing.detector import Detector, NoiseSpec, add_noise
+    from metadesign.sensing.sensor import psf_tensor
+
+    dev = _device()
+    rng = np.random.default_rng(4)
+    es = [dev.pupil_field(_smooth_field((GEOM[1], GEOM[1]), rng, 2).astype(np.complex64)) for _ in range(3)]
+    np.testing.assert_array_equal(dev.expose(es[:1]).frames, dev.render(es[0]).frames)
+    noise = NoiseSpec(gaussian_sigma=0.02, seed=1)
+    shot = dev.expose(es, Detector(noise), np.random.default_rng(9))
+    mean = np.mean([dev.frames(e).astype(np.float64) for e in es], axis=0).astype(np.float32)
+    want = add_noise(mean, noise, np.random.default_rng(9))
+    np.testing.assert_array_equal(shot.frames, want)
+    np.testing.assert_array_equal(shot.psfs, psf_tensor(want, dev.sensor))

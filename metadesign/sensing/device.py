@@ -135,6 +135,15 @@ class Device:
             frames = detector.read(frames, rng)
         return Exposure(frames, psf_tensor(frames, self.sensor))
 
+    def expose(self, fields, detector: Detector | None = None, rng: np.random.Generator | None = None) -> Exposure:
+        """One exposure over moving turbulence: the mean of the noise-free frames of each incident field of
+        ``fields`` (the exposure's sub-steps), read once by the ``detector`` (its photon budget is the
+        frame's), and the PSF tensor of what it read.  One field: :meth:`render`."""
+        frames = np.mean([self.frames(e) for e in fields], axis=0, dtype=np.float64).astype(np.float32)
+        if detector is not None:
+            frames = detector.read(frames, rng)
+        return Exposure(frames, psf_tensor(frames, self.sensor))
+
     def psfs(self, e_in: np.ndarray | None = None) -> np.ndarray:
         """The noise-free PSF tensor ``(8, S, S)`` (or ``(B, 8, S, S)`` for a batch of fields)."""
         if e_in is not None and np.ndim(e_in) == 3:

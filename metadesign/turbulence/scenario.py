@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from ..config import Param, Section, load_toml, parse
 from .path import Scenario
+from .temporal import wind_of
 
 __all__ = ["SECTIONS", "scenario_from_dict", "load_scenario", "wind_from_dict", "load_wind"]
 
@@ -59,8 +60,6 @@ def load_scenario(path) -> Scenario:
 def wind_from_dict(data: dict, sc: Scenario | None = None, source: str = "recipe"):
     """The recipe's :class:`~.temporal.Wind` (one velocity per screen of ``sc``, default: the recipe's own
     scenario), or None without a ``[wind]`` section."""
-    from .temporal import wind_of
-
     if "wind" not in data:
         return None
     sc = sc or scenario_from_dict(data, source)

@@ -1,0 +1,212 @@
+"""The loop in time (issue #50): a beacon through moving turbulence, a sensor that integrates each frame over
+the turbulence's motion, a reconstruction, a deformable mirror driven by a controller with the loop's real
+delay, and the power in the bucket of the corrected outgoing beam at every step.
+
+One step ``k`` of a loop at ``rate_hz`` (frame ``[k, k + 1) / rate_hz``):
+
+1. the turbulence at the exposure's ``substeps`` instants (:class:`LoopWorld`: the frozen-flow screens, the
+   beacon's split step, the collimated received crop);
+2. the residual the sensor sees, each received crop times ``exp(-i phi_DM)`` (the mirror's phase as it stands
+   during the frame), measured by the loop's sensor (:class:`MetasurfaceSensor`: the device's exposure
+   integrated over the sub-steps, read once by its detector, an estimator's phase; a Shack-Hartmann in the same
+   plane; the ideal-phase sensor), or nothing (open loop);
+3. the mirror's fit of that residual estimate, through the controller (a leaky integrator; the total delay in
+   frames, real-valued: half the exposure, the readout, the reconstruction's latency, the mirror's response)
+   to the commands applied from the next frame on;
+4. the normalised power in the bucket of the outgoing beam corrected by the mirror, sent back through the
+   turbulence of the frame's first instant, and the residual phase's rms and branch points.
+
+References on the same turbulence: the open loop (no correction), the zero-delay mirror-fitted oracle (the
+mirror fitted to the true phase at that instant) and the phase-conjugate oracle (the exact phase).  The
+engine takes its mirror and controller as objects with ``fit(phase, mask)`` / ``surface(commands)`` and
+``step(error) -> commands`` (:mod:`metadesign.optics.dm`, :mod:`metadesign.optics.control`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from ..reconstruction.dataset import normalise_psf
+
+__all__ = ["LoopTiming", "LoopWorld", "MetasurfaceSensor", "IdealPhaseSensor", "run_loop", "branch_points",
+           "fitted_oracle", "ORACLES"]
+
+#: references that need no sensor, mirror or controller
+ORACLES = ("open", "fitted", "conjugate")
+
+
+@dataclass(frozen=True)
+class LoopTiming:
+    """A loop's clock: ``rate_hz`` frames per second, each exposure integrated over ``substeps`` instants; the
+    total delay in frames (real-valued, :class:`metadesign.optics.control.Controller`'s) from the frame
+    measured to the frame corrected: half the exposure and half the mirror's hold (one frame: a frame
+    corrected on the next), the readout, the reconstruction's latency and the mirror's response,
+    ``1 + readout_frames + latency_s * rate_hz + dm_frames``."""
+
+    rate_hz: float
+    substeps: int = 4
+    readout_frames: float = 0.0
+    latency_s: float = 0.0
+    dm_frames: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ValueError("rate_hz must be > 0")
+        if self.substeps < 1:
+            raise ValueError("substeps must be >= 1")
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def delay_frames(self) -> float:
+        return 1.0 + self.readout_frames + self.latency_s * self.rate_hz + self.dm_frames
+
+    def sub_steps(self, k: int) -> range:
+        """The turbulence's steps (of ``dt / substeps``) during frame ``k``'s exposure."""
+        return range(k * self.substeps, (k + 1) * self.substeps)
+
+
+@dataclass
+class LoopWorld:
+    """The turbulence a loop runs in: ``screens_at(j)`` (the moving screens, (n_screens, n, n) rad at the
+    turbulence's step ``j``, ``t = j dt / substeps``: :meth:`metadesign.turbulence.frozen.FrozenFlow.screens`), the path (:class:`~metadesign.turbulence.propagate.Turbulence` at the loop's Rytov number), the
+    received crop ``[c0, c0 + a)`` and its bucket (:class:`~metadesign.reconstruction.losses.PiB`)."""
+
+    turbulence: Any
+    screens_at: Callable[[int], np.ndarray]
+    c0: int
+    a: int
+    pib: Any
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(a, a) bool: the receiver aperture on the crop."""
+        c0, a = self.c0, self.a
+        return self.turbulence.aperture[c0:c0 + a, c0:c0 + a]
+
+    def received(self, screens: np.ndarray) -> np.ndarray:
+        """The collimated received crop (a, a) complex64 of the beacon through ``screens``."""
+        tb, c0, a = self.turbulence, self.c0, self.a
+        return tb.collimated(tb.element.forward(tb.source, screens))[c0:c0 + a, c0:c0 + a]
+
+    def npib(self, phi: np.ndarray, screens: np.ndarray) -> float:
+        """NPiB of the phase-only correction conjugating ``phi`` (a, a) through ``screens``."""
+        import torch
+
+        with torch.no_grad():
+            return float(self.pib.npib_phase(torch.from_numpy(np.asarray(phi, np.float32))[None],
+                                             torch.from_numpy(np.asarray(screens, np.float32))[None]))
+
+
+class MetasurfaceSensor:
+    """The metasurface wavefront sensor in the loop: each frame the device's exposure of the residual crops
+    (:meth:`~metadesign.sensing.device.Device.expose`: integrated over the sub-steps, read once by the
+    detector, drawn from ``seed`` and the frame), normalised as the datasets are, and the estimator's phase
+    estimate of the residual (rad, on the crop)."""
+
+    def __init__(self, device, estimator, detector=None, seed: int = 0):
+        self.device, self.estimator, self.detector, self.seed = device, estimator, detector, int(seed)
+
+    def expose(self, crops: list, k: int) -> dict:
+        """Frame ``k`` as the camera records it: the estimator's input batch (the sensor's side)."""
+        fields = [self.device.pupil_field(c) for c in crops]
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(11, int(k))))
+        shot = self.device.expose(fields, self.detector, rng)
+        psf, _ = normalise_psf(shot.psfs)
+        return {"psf": psf[None], "received": np.asarray(crops[-1])[None], "index": np.array([k])}
+
+    def reconstruct(self, frame: dict) -> np.ndarray:
+        """The estimator's phase estimate (rad, on the crop) of one recorded frame: what its latency times."""
+        return np.asarray(self.estimator.estimate(frame), np.float64)[0]
+
+    def measure(self, crops: list, k: int) -> np.ndarray:
+        return self.reconstruct(self.expose(crops, k))
+
+
+class IdealPhaseSensor:
+    """A perfect phase sensor: the phase of the residual field averaged over the exposure (rad, on the crop;
+    wrapped where the field has branch points), with no latency."""
+
+    def expose(self, crops: list, k: int) -> np.ndarray:
+        return np.mean(np.asarray(crops), axis=0)
+
+    def reconstruct(self, frame) -> np.ndarray:
+        return np.angle(frame).astype(np.float64)
+
+    def measure(self, crops: list, k: int) -> np.ndarray:
+        return self.reconstruct(self.expose(crops, k))
+
+
+def branch_points(field: np.ndarray, mask: np.ndarray) -> int:
+    """Phase singularities of ``field`` inside ``mask``: plaquettes (2 x 2 samples, all inside) around which
+    the wrapped phase differences sum to a non-zero multiple of 2 pi."""
+    ph = np.angle(field)
+
+    def wrap(d):
+        return (d + np.pi) % (2 * np.pi) - np.pi
+
+    a, b, c, d = ph[:-1, :-1], ph[:-1, 1:], ph[1:, 1:], ph[1:, :-1]
+    circ = wrap(b - a) + wrap(c - b) + wrap(d - c) + wrap(a - d)
+    inside = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
+    return int((np.abs(circ[inside]) > np.pi).sum())
+
+
+#: fixed-point iterations of the mirror-fitted oracle
+ORACLE_ITERATIONS = 8
+
+
+def fitted_oracle(dm, field: np.ndarray, mask: np.ndarray, iterations: int = ORACLE_ITERATIONS) -> np.ndarray:
+    """The mirror's best phase for ``field`` with no delay: the fit of a perfect sensor's measurement, iterated
+    on the residual (a wrapped phase's 2 pi jumps shrink as the residual does: the loop of an ideal sensor with
+    zero delay, gain 1, run to its fixed point)."""
+    c = dm.fit(np.angle(field), mask)
+    for _ in range(iterations - 1):
+        c = c + dm.fit(np.angle(field * np.exp(-1j * dm.surface(c))), mask)
+    return dm.surface(c)
+
+
+def _rms(phi: np.ndarray, mask: np.ndarray) -> float:
+    v = phi[mask]
+    return float(np.sqrt(np.mean((v - v.mean()) ** 2)))
+
+
+def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sensor=None, dm=None,
+             controller=None, modes: np.ndarray | None = None, progress=None) -> dict:
+    """``steps`` frames of the loop ``method`` (a closed loop with ``sensor``, ``dm`` and ``controller``, or one
+    of :data:`ORACLES`) in ``world``: per step the NPiB, the residual phase's rms (rad, piston removed) and its
+    branch points, and with ``modes`` (M, a, a: an orthonormal modal basis on the aperture) the residual's modal
+    coefficients (T, M).  Same world, same seed: the same turbulence for every method."""
+    mask = world.mask
+    n = int(mask.sum())
+    out = {"npib": np.empty(steps), "residual_rms": np.empty(steps), "branch_points": np.empty(steps, int)}
+    if modes is not None:
+        out["modal"] = np.empty((steps, len(modes)))
+    closed = method not in ORACLES
+    if closed and (sensor is None or dm is None or controller is None):
+        raise ValueError(f"loop method {method!r}: a closed loop needs a sensor, a mirror and a controller")
+    phi_dm = np.zeros(mask.shape)
+    for k in range(steps):
+        scr = [world.screens_at(j) for j in timing.sub_steps(k)]
+        rec = [world.received(s) for s in scr]
+        if method == "fitted":
+            phi_dm = fitted_oracle(dm, rec[0], mask)
+        elif method == "conjugate":
+            phi_dm = np.angle(rec[0]) * mask
+        res0 = rec[0] * np.exp(-1j * phi_dm)
+        out["npib"][k] = world.npib(phi_dm, scr[0])
+        ph = np.angle(res0) * mask
+        out["residual_rms"][k] = _rms(ph, mask)
+        out["branch_points"][k] = branch_points(res0, mask)
+        if modes is not None:
+            out["modal"][k] = modes.reshape(len(modes), -1) @ ph.ravel() / n
+        if closed:
+            meas = sensor.measure([r * np.exp(-1j * phi_dm) for r in rec], k)
+            phi_dm = dm.surface(controller.step(dm.fit(meas, mask)))
+        if progress:
+            progress(k + 1, steps)
+    return out

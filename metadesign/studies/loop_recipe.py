@@ -1,0 +1,165 @@
+"""The loop recipe (``metadesign loop RECIPE``; TOML, keys carry their unit, validated at load, paths relative
+to the recipe):
+
+.. code-block:: toml
+
+    [device]                      # the sensor as made, as the pipeline's [beacons] names it
+    design = "../layouts/paper-5mm.toml"
+    sensor = "paper.toml"
+    turbulence = "turbulence.toml"
+    model = "models/demo-refine.safetensors"   # a U-Net, or a refiner with its U-Net
+
+    [loop]
+    rate_hz = 2000.0
+    steps = 400
+    substeps = 4                  # exposure sub-steps (the turbulence moves during a frame)
+    rytov = 0.5
+    gain = 0.4
+    leak = 0.99
+    noise_percent = 5.0
+    readout_frames = 0.0
+    dm_frames = 0.0
+    latency_ms = {}               # per method; a method not named: measured on this machine
+    methods = ["unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open"]
+    seed = 0
+    threshold_db = 3.0
+
+    [dm]
+    actuators = 12                # across the receiver aperture
+    coupling = 0.15
+    regularisation = 1e-3
+
+    [wind]                        # the turbulence's motion (metadesign.turbulence.frozen)
+    speed_m_s = 5.0
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..config import Param, Section, load_toml, parse
+from ..turbulence.scenario import load_scenario, wind_from_dict
+from ..validation import ConfigError
+
+__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "load_loop_recipe", "SECTIONS"]
+
+#: the loop's methods: closed loops (a sensor and its reconstruction) and the references
+METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open")
+
+SECTIONS = (
+    Section("device", (
+        Param("design", str), Param("sensor", str), Param("turbulence", str), Param("model", str, None),
+    )),
+    Section("loop", (
+        Param("rate_hz", float, 2000.0, lo=1, hi=1e6),
+        Param("steps", int, 400, lo=2, hi=10_000_000),
+        Param("substeps", int, 4, lo=1, hi=64),
+        Param("rytov", float, 0.5, lo=0, open_lo=True, hi=5),
+        Param("gain", float, 0.4, lo=0, hi=2),
+        Param("leak", float, 0.99, lo=0, hi=1),
+        Param("noise_percent", float, 5.0, lo=0, hi=100),
+        Param("readout_frames", float, 0.0, lo=0, hi=1000),
+        Param("dm_frames", float, 0.0, lo=0, hi=1000),
+        Param("seed", int, 0, lo=0, hi=2**63 - 1),
+        Param("threshold_db", float, 3.0, lo=0, open_lo=True, hi=60),
+    ), optional=True),
+    Section("dm", (
+        Param("actuators", int, 12, lo=2, hi=256),
+        Param("coupling", float, 0.15, lo=0, open_lo=True, hi=0.9),
+        Param("regularisation", float, 1e-3, lo=0, hi=1e6),
+    ), optional=True),
+)
+
+
+@dataclass(frozen=True)
+class LoopSection:
+    rate_hz: float
+    steps: int
+    substeps: int
+    rytov: float
+    gain: float
+    leak: float
+    noise_percent: float
+    readout_frames: float
+    dm_frames: float
+    methods: tuple
+    seed: int
+    threshold_db: float
+    latency_ms: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DMSection:
+    actuators: int
+    coupling: float
+    regularisation: float
+
+
+@dataclass(frozen=True)
+class LoopRecipe:
+    name: str
+    source: Path
+    design: Path
+    sensor: Path
+    turbulence: Path
+    model: Path | None
+    loop: LoopSection
+    dm: DMSection
+    wind: dict
+
+
+def _latencies(raw, methods, where: str) -> dict:
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ConfigError("loop.latency_ms", f"expected a table of method = milliseconds, got {raw!r}")
+    out = {}
+    for k, v in raw.items():
+        if k not in METHODS:
+            raise ConfigError("loop.latency_ms", f"unknown method {k!r} (expected some of {', '.join(METHODS)})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= float(v) <= 1e5) or v != v:
+            raise ConfigError(f"loop.latency_ms.{k}", f"expected milliseconds in [0, 1e5], got {v!r}")
+        out[k] = float(v) * 1e-3
+    return out
+
+
+def load_loop_recipe(path: str | Path) -> LoopRecipe:
+    """The loop recipe at ``path``, validated (one line naming the field on the first problem)."""
+    path = Path(path)
+    raw = load_toml(path)
+    loop = raw.get("loop") if isinstance(raw.get("loop"), dict) else {}
+    latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(METHODS))
+    wind = raw.pop("wind", None)
+    v = parse(raw, SECTIONS, str(path))
+    lp = v["loop"]
+    if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
+        raise ConfigError("loop.methods", f"expected a list of method names, got {methods!r}")
+    methods = tuple(methods)
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods or len(set(methods)) != len(methods):
+        raise ConfigError("loop.methods", f"expected distinct methods among {', '.join(METHODS)}, got {list(methods)}")
+    d = v["device"]
+
+    def rel(p):
+        p = Path(p).expanduser()
+        return p if p.is_absolute() else path.parent / p
+
+    for k in ("design", "sensor", "turbulence"):
+        if not rel(d[k]).exists():
+            raise ConfigError(f"device.{k}", f"{rel(d[k])}: no such file")
+    model = rel(d["model"]) if d["model"] else None
+    if model is None and {"unet", "refine"} & set(methods):
+        raise ConfigError("device.model", "the unet and refine methods need a model")
+    if model is not None and not model.exists():
+        raise ConfigError("device.model", f"{model}: no such file")
+    if wind is not None and not isinstance(wind, dict):
+        raise ConfigError("wind", "expected a [wind] table")
+    wind = dict(wind or {"speed_m_s": 0.0})  # no [wind]: the turbulence stands still
+    wind_from_dict({"wind": wind}, load_scenario(rel(d["turbulence"])), str(path))  # its values checked now
+    section = LoopSection(**{k: lp[k] for k in ("rate_hz", "steps", "substeps", "rytov", "gain", "leak",
+                                                "noise_percent", "readout_frames", "dm_frames", "seed",
+                                                "threshold_db")},
+                          methods=methods, latency_ms=_latencies(latency, methods, str(path)))
+    return LoopRecipe(path.stem, path, rel(d["design"]), rel(d["sensor"]), rel(d["turbulence"]), model, section,
+                      DMSection(**v["dm"]), wind)

@@ -1,0 +1,109 @@
+"""The loop in time (issue #50) on a small path: a zero-gain loop is the open loop, a perfect sensor with the
+loop's shortest delay on standing turbulence converges to the zero-delay mirror-fitted oracle, the same seed
+gives the same bytes, and the loop recipe's bad values are one line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_main
+
+torch = pytest.importorskip("torch")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _world(speed: float, steps: int, substeps: int = 2, seed: int = 3):
+    from metadesign.reconstruction.dataset import received_crop
+    from metadesign.reconstruction.losses import PiB
+    from metadesign.studies.loop import LoopWorld
+    from metadesign.turbulence.frozen import FrozenFlow
+    from metadesign.turbulence.propagate import Turbulence
+    from metadesign.turbulence.scenario import scenario_from_dict
+    from metadesign.turbulence.temporal import Wind
+
+    sc = scenario_from_dict({"path": {"n_screens": 5, "rytov": 0.2, "length_m": 1000.0},
+                             "grid": {"n": 64, "spacing_mm": 5.0}, "receiver": {"aperture_cm": 10.0}})
+    tb = Turbulence(sc, check=False).at_rytov(0.2, check=False)
+    c0, a = received_crop(sc)
+    flow = FrozenFlow(tb.grid, tb.path.r0_screens, Wind.from_speeds([speed] * sc.n_screens), 1e-4,
+                      steps * substeps, seed)
+    return LoopWorld(tb, flow.screens, c0, a, PiB(sc, c0, a))
+
+
+def _dm(world):
+    from metadesign.optics.dm import DeformableMirror
+    from metadesign.sensing.device import ReceiverCrop
+
+    crop = ReceiverCrop.of_scenario(world.turbulence.sc, world.c0, world.a)
+    return DeformableMirror.for_crop(crop, n_act=8, coupling=0.15, regularisation=1e-4)
+
+
+def test_a_zero_gain_loop_is_the_open_loop_and_the_same_seed_the_same_bytes():
+    from metadesign.optics.control import Controller
+    from metadesign.studies.loop import IdealPhaseSensor, LoopTiming, run_loop
+
+    world, steps = _world(8.0, 6), 6
+    timing = LoopTiming(2000.0, substeps=2)
+    open_ = run_loop(world, timing, steps, "open")
+    zero = run_loop(world, timing, steps, "ideal", IdealPhaseSensor(), _dm(world), Controller(0.0, 1.0))
+    np.testing.assert_array_equal(zero["npib"], open_["npib"])
+    again = run_loop(_world(8.0, 6), timing, steps, "open")
+    np.testing.assert_array_equal(again["npib"], open_["npib"])
+    assert (open_["npib"] > 0).all() and np.isfinite(open_["residual_rms"]).all()
+
+
+def test_a_perfect_sensor_on_standing_turbulence_converges_to_the_fitted_oracle():
+    """No wind, the ideal sensor, gain 1 and the shortest delay: the loop iterates the fit of its residual,
+    frame after frame, to the zero-delay oracle's fixed point on the same (standing) phase."""
+    from metadesign.optics.control import Controller
+    from metadesign.studies.loop import IdealPhaseSensor, LoopTiming, run_loop
+
+    world, steps = _world(0.0, 12), 12
+    timing = LoopTiming(2000.0, substeps=2)
+    dm = _dm(world)
+    oracle = run_loop(world, timing, steps, "fitted", dm=dm)
+    closed = run_loop(world, timing, steps, "ideal", IdealPhaseSensor(), dm, Controller(1.0, 1.0))
+    open_ = run_loop(world, timing, steps, "open")
+    assert closed["npib"][0] == pytest.approx(open_["npib"][0])  # nothing applied yet
+    np.testing.assert_allclose(closed["npib"][8:], oracle["npib"][8:], rtol=0.01)
+    assert oracle["npib"].mean() > 1.5 * open_["npib"].mean()
+
+
+def test_the_loop_delay_follows_its_parts():
+    from metadesign.studies.loop import LoopTiming
+
+    t = LoopTiming(2000.0, substeps=4, readout_frames=0.5, latency_s=1e-3, dm_frames=0.25)
+    assert t.delay_frames == pytest.approx(1 + 0.5 + 2.0 + 0.25)
+    assert list(t.sub_steps(3)) == [12, 13, 14, 15]
+    with pytest.raises(ValueError):
+        LoopTiming(0.0)
+
+
+def _recipe(tmp_path: Path, loop: str = "", wind: str = "speed_m_s = 3.0\n") -> Path:
+    p = tmp_path / "loop.toml"
+    p.write_text(f'[device]\ndesign = "{REPO / "layouts" / "demo.toml"}"\nsensor = "{REPO / "sensing" / "demo.toml"}"\n'
+                 f'turbulence = "{REPO / "sensing" / "turbulence.toml"}"\n[loop]\nmethods = ["ideal", "open"]\n'
+                 f"{loop}[wind]\n{wind}")
+    return p
+
+
+@pytest.mark.parametrize("loop, wind, match", [
+    ("rate_hz = nan\n", "speed_m_s = 3.0\n", "loop.rate_hz"),
+    ("gain = -1\n", "speed_m_s = 3.0\n", "loop.gain"),
+    ('methods = ["ideal", "psychic"]\n', "speed_m_s = 3.0\n", "loop.methods"),
+    ('methods = ["unet"]\n', "speed_m_s = 3.0\n", "device.model"),
+    ("latency_ms = {ideal = -2}\n", "speed_m_s = 3.0\n", "loop.latency_ms"),
+    ("", "speed_m_s = -3.0\n", "wind.speed_m_s"),
+    ("", "speed_m_s = inf\n", "wind.speed_m_s"),
+])
+def test_bad_loop_recipes_are_one_line_and_write_nothing(loop, wind, match, tmp_path, capsys):
+    rec = _recipe(tmp_path, loop.replace('methods = ["ideal", "open"]\n', ""), wind)
+    text = rec.read_text()
+    if "methods" in loop:  # the bad list replaces the good one
+        text = text.replace('methods = ["ideal", "open"]\n', "")
+        rec.write_text(text)
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out"], capsys)
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+    assert not (tmp_path / "out").exists()
