@@ -19,16 +19,11 @@ field that is zero outside the crop).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..optics.propagation import cexp
 from .forward import CoarsePupil, _nonparaxial
 from .sensor import SensorSpec, area_weights, quadrant_slices
-
-if TYPE_CHECKING:  # the device builds its torch backend from this module
-    from .device import Device
 
 __all__ = ["rebin_pupil", "crop_interpolator", "crop_to_pupil", "TwinOperators", "twin_operators",
            "TorchTwin", "twin_error", "normalise", "render_tensor"]
@@ -172,7 +167,7 @@ class TorchTwin:
     pupil fields, :meth:`pupil_field` and :meth:`from_crop` of received crops."""
 
     @classmethod
-    def for_device(cls, dev: Device, rebin: int = 1, samples: int | None = None, device="cpu",
+    def for_device(cls, dev, rebin: int = 1, samples: int | None = None, device="cpu",
                    double: bool = False) -> "TorchTwin":
         """The twin of a :class:`~metadesign.sensing.device.Device` fed from its received-field crop."""
         return cls(twin_operators(dev.pupil, dev.sensor, dev.geometry, rebin, samples), device, double)

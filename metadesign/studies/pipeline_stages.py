@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..cards import model_card
@@ -41,14 +39,11 @@ from ..validation import ValidationError
 from .beacons import LABELS, fresh_beacons
 from .pipeline_check import check_cells
 
-if TYPE_CHECKING:
-    from .pipeline import Run
-
 __all__ = ["library", "design", "layout", "sensing", "turbulence", "dataset", "train", "evaluate", "beacons",
            "CAPTURED_MARGIN"]
 
 
-def library(run: "Run", key: str) -> None:
+def library(run, key: str) -> None:
     """The committed table (or one built from its recipe), a few of its cells solved again, Fig. S1."""
     p, out = run.rec.pipeline, run.out
     if p.library_recipe is not None:
@@ -82,7 +77,7 @@ def library(run: "Run", key: str) -> None:
         "pillars whose two phases cover 0-2 pi independently with high transmission.")])
 
 
-def design(run: "Run", key: str) -> None:
+def design(run, key: str) -> None:
     """The design (atoms per cell) on the pipeline's library, Fig. S2."""
     out = run.out
     dr = dataclasses.replace(load_design_recipe(run.rec.pipeline.design), library_path=run.lib_path)
@@ -121,7 +116,7 @@ def design(run: "Run", key: str) -> None:
         "atom. The phase error itself is in the table (RMSE against the 16-bin quantiser's).")])
 
 
-def layout(run: "Run", key: str) -> None:
+def layout(run, key: str) -> None:
     """The OASIS layout, read back (gdstk, and KLayout when asked) and checked against the design rules."""
     out, lay = run.out, run.lay
     klayout = run.rec.pipeline.klayout
@@ -162,7 +157,7 @@ def layout(run: "Run", key: str) -> None:
         "one pillar at its drawn width, as a mask shop would see it.")])
 
 
-def sensing(run: "Run", key: str) -> None:
+def sensing(run, key: str) -> None:
     """As-fabricated PSFs, the Table S1 focal check, a fab study and one scintillated beacon through
     the device."""
     out, p = run.out, run.rec.pipeline
@@ -230,7 +225,7 @@ def sensing(run: "Run", key: str) -> None:
         "into the other quadrants: how much a fab process may drift before the spots degrade.")])
 
 
-def turbulence(run: "Run", key: str) -> None:
+def turbulence(run, key: str) -> None:
     """The scenario's screens validated against theory (Figs. S5, S6)."""
     p, out = run.rec.pipeline, run.out
     sc = load_scenario(p.turbulence)
@@ -284,7 +279,7 @@ def turbulence(run: "Run", key: str) -> None:
          next((c for k, c in captions.items() if k in Path(f).stem), "")) for f in tu["figures"]])
 
 
-def dataset(run: "Run", key: str) -> None:
+def dataset(run, key: str) -> None:
     """The dataset (PSF tensors and received fields) through the pipeline's layout, sensor and turbulence."""
     p, d = run.rec.pipeline, run.rec.dataset
     ds_raw = d.document(run.lay, p.sensor, p.turbulence)
@@ -302,7 +297,7 @@ def dataset(run: "Run", key: str) -> None:
         {"quantity": "storage per sample", "value": f"{ds.get('bytes_per_sample', 0) / 1e3:.1f} kB"}]))
 
 
-def train(run: "Run", key: str) -> None:
+def train(run, key: str) -> None:
     """Training on the dataset (or the given model)."""
     t = run.rec.train
     if t.model is not None:
@@ -324,7 +319,7 @@ def train(run: "Run", key: str) -> None:
             "Loss and validation NPiB per epoch: validation should rise and level off, not fall (over-fitting).")])
 
 
-def evaluate(run: "Run", key: str) -> None:
+def evaluate(run, key: str) -> None:
     """The model on the dataset's split at each noise level (Figs. 3b-d), against the model card's figure."""
     ev_dir = run.out / "evaluation"
     ev_opts = run.rec.evaluate
@@ -392,7 +387,7 @@ def evaluate(run: "Run", key: str) -> None:
          next((c for k, c in captions.items() if k in Path(f).stem), "")) for f in ev["figures"]])
 
 
-def beacons(run: "Run", key: str) -> None:
+def beacons(run, key: str) -> None:
     """Fresh beacons through a second device (the ``[beacons]`` section) estimated by a given model:
     no dataset (:func:`metadesign.studies.beacons.fresh_beacons`)."""
     b, out = run.rec.beacons, run.out
