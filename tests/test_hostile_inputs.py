@@ -217,6 +217,8 @@ def test_absurd_patch_and_certified_requests_are_refused_with_their_estimate(des
              "of memory", tmp_path)
     _refused(["library", "coupling-check", design, "--certified", "1000000", "-o", tmp_path / "cc"], capsys,
              "more than the device's", tmp_path)
+    _refused(["library", "coupling-check", design, "--certified", "16", "--ring", "1000000", "-o", tmp_path / "cc"],
+             capsys, "at most --certified 16", tmp_path)
     _refused(["library", "coupling-check", design, "--certified", "16", "--peds",
               REPO / "library" / "paper-coupling.safetensors", "-o", tmp_path / "cc"], capsys,
              "not a PEDS supercell model", tmp_path)

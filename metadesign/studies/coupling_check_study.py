@@ -57,6 +57,9 @@ class CouplingCheckRequest:
         c, p = self.certified, self.pert
         if c.ring_supercells and not c.supercells:
             raise ValidationError("--ring: the neighbour ring adds to the certified model; give --certified N")
+        if c.ring_supercells > c.supercells:
+            raise ValidationError(f"--ring {c.ring_supercells}: the ring is solved on some of the certified sample's "
+                                  f"supercells, so at most --certified {c.supercells}")
         if c.ring_supercells and c.ring_supercells < c.replicates:
             raise ValidationError(f"--ring {c.ring_supercells}: at least one supercell per replicate (--replicates "
                                   f"{c.replicates})")
