@@ -107,3 +107,121 @@ def test_bad_loop_recipes_are_one_line_and_write_nothing(loop, wind, match, tmp_
     rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out"], capsys)
     assert rc == 2 and len(err) == 1 and match in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("loop, match", [
+    ('gain = "fast"\n', "loop.gain"),
+    ("gain = nan\n", "loop.gain"),
+    ("gain = 2.5\n", "loop.gain"),
+    ("seeds = 0\n", "loop.seeds"),
+    ("seeds = 1.5\n", "loop.seeds"),
+    ("gain_steps = 1\n", "loop.gain_steps"),
+    ('gain = "optimise"\nsteps = 50\ngain_steps = 60\n', "loop.gain_steps"),
+    ('pseudo_open_loop = "yes"\n', "loop.pseudo_open_loop"),
+])
+def test_bad_new_loop_keys_are_one_line_and_write_nothing(loop, match, tmp_path, capsys):
+    rec = _recipe(tmp_path, loop)
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out"], capsys)
+    assert rc == 2 and len(err) == 1 and match in err[0], err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
+
+
+def test_bad_loop_options_are_refused(tmp_path, capsys):
+    rec = _recipe(tmp_path)
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out", "-j", "0"], capsys)
+    assert rc == 2 and "--workers" in err[-1]
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out", "--scheduler", "nowhere"], capsys)
+    assert rc == 2 and len(err) == 1 and "--scheduler" in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def _numbers(out: Path) -> str:
+    """loop.json without its timings and paths (what must not depend on the worker count)."""
+    import json
+
+    def strip(d):
+        if isinstance(d, dict):
+            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe")}
+        if isinstance(d, list):
+            return [strip(v) for v in d]
+        return d
+
+    return json.dumps(strip(json.loads((out / "loop.json").read_text())), sort_keys=True)
+
+
+def test_many_seeds_same_bytes_on_any_worker_count_and_a_killed_run_resumes(tmp_path, capsys, monkeypatch):
+    """Two seeds x (ideal, open), 5 steps: the same numbers on 1 and 2 workers, and a run stopped after two
+    tasks resumes (computing only the rest) to the same numbers; the scratch folder is removed at the end."""
+    import functools
+    import json
+
+    from metadesign.execution import Execution
+    from metadesign.studies import cli_loop
+
+    rec = _recipe(tmp_path, "steps = 5\nsubsteps = 2\nseeds = 2\n")
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "j1", "-j", "1", "--json"], capsys)
+    assert rc == 0, err
+    rep = json.loads((tmp_path / "j1" / "loop.json").read_text())
+    assert rep["methods"]["ideal"]["seeds"] == 2 and rep["loop"]["seeds"] == 2
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "j2", "-j", "2", "--json"], capsys)
+    assert rc == 0, err
+    assert _numbers(tmp_path / "j1") == _numbers(tmp_path / "j2")
+    assert not (tmp_path / "j1.partial").exists() and not (tmp_path / "j2.partial").exists()
+
+    monkeypatch.setattr(cli_loop, "Execution", functools.partial(Execution, stop_after=2), raising=False)
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "k", "-j", "1", "--json"], capsys)
+    assert rc == 130 and "interrupted" in err[-1], err
+    kept = sorted(p.name for p in (tmp_path / "k.partial").glob("seed*.npz"))
+    assert len(kept) == 2, kept
+    monkeypatch.setattr(cli_loop, "Execution", Execution, raising=False)
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "k", "-j", "2"], capsys)
+    assert rc == 0, err
+    assert any("resuming: 2/4 tasks" in e for e in err), err
+    assert _numbers(tmp_path / "k") == _numbers(tmp_path / "j1")
+    assert not (tmp_path / "k.partial").exists()
+
+
+def test_one_seed_is_the_first_realisation_and_seeds_differ():
+    from metadesign.studies.loop import flow_seed, noise_stream
+
+    assert flow_seed(7, 0) == 7 and noise_stream(0) == ()
+    a, b = flow_seed(7, 1), flow_seed(7, 2)
+    assert a.spawn_key != b.spawn_key and a.entropy == b.entropy == 7
+    assert noise_stream(1) != noise_stream(2)
+
+
+def test_pseudo_open_loop_at_one_frame_of_delay_is_the_integrator():
+    """At one frame of delay the pseudo-open-loop controller's error ``w_k - c_k`` is the residual's fit (the
+    mirror holds the integrator's state): the same series; at two frames it differs, and its theory too."""
+    from metadesign.optics.control import Controller, rejection_tf
+    from metadesign.studies.loop import IdealPhaseSensor, LoopTiming, pol_rejection_tf, run_loop
+
+    world, steps = _world(8.0, 8), 8
+    timing = LoopTiming(2000.0, substeps=2)
+    dm = _dm(world)
+    plain = run_loop(world, timing, steps, "ideal", IdealPhaseSensor(), dm, Controller(0.5, 1.0, 0.99))
+    pol = run_loop(world, timing, steps, "ideal", IdealPhaseSensor(), dm, Controller(0.5, 1.0, 0.99),
+                   pseudo_open_loop=True)
+    np.testing.assert_allclose(pol["npib"], plain["npib"], rtol=1e-6)
+    f = np.linspace(10, 1000, 17)
+    np.testing.assert_allclose(pol_rejection_tf(f, 2000.0, 0.5, 1.0, 0.99), rejection_tf(f, 2000.0, 0.5, 1.0, 0.99))
+    two = run_loop(world, timing, steps, "ideal", IdealPhaseSensor(), dm, Controller(0.5, 2.0, 0.99),
+                   pseudo_open_loop=True)
+    assert not np.allclose(two["npib"], plain["npib"])
+    assert not np.allclose(pol_rejection_tf(f, 2000.0, 0.5, 2.0), rejection_tf(f, 2000.0, 0.5, 2.0))
+
+
+def test_the_gain_is_chosen_per_closed_loop_by_the_stated_search(tmp_path, capsys):
+    import json
+
+    from metadesign.studies.loop_study import GAIN_GRID
+
+    rec = _recipe(tmp_path, 'steps = 6\nsubsteps = 2\ngain = "optimise"\ngain_steps = 4\n')
+    rc, out, err = run_main(["loop", rec, "-o", tmp_path / "out", "--json"], capsys)
+    assert rc == 0, err
+    rep = json.loads((tmp_path / "out" / "loop.json").read_text())
+    s = rep["methods"]["ideal"]["gain_search"]
+    assert set(GAIN_GRID) <= set(s["gains"]) and len(s["gains"]) > len(GAIN_GRID)
+    best = s["gains"][int(np.argmax(s["npib_mean"]))]
+    assert s["gain"] == best == rep["methods"]["ideal"]["gain"] == rep["gain_search"]["chosen"]["ideal"]
+    assert "gain" not in rep["methods"]["open"]

@@ -28,13 +28,32 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..optics.control import pseudo_open_loop as _pol
 from ..reconstruction.dataset import normalise_psf
 
 __all__ = ["LoopTiming", "LoopWorld", "MetasurfaceSensor", "IdealPhaseSensor", "run_loop", "branch_points",
-           "fitted_oracle", "ORACLES"]
+           "fitted_oracle", "ORACLES", "flow_seed", "noise_stream", "pol_rejection_tf"]
 
 #: references that need no sensor, mirror or controller
 ORACLES = ("open", "fitted", "conjugate")
+
+#: the spawn-key tag of a loop's turbulence realisations after the first (``(REALISATION_TAG, r, ...)``)
+REALISATION_TAG = 0x4C4F4F50  # "LOOP"
+
+
+def flow_seed(seed: int, r: int) -> int | np.random.SeedSequence:
+    """The frozen-flow seed of realisation ``r`` of a loop seeded ``seed``: ``seed`` itself for the first
+    (realisation 0 is the one-seed loop's turbulence, bit for bit), else the SeedSequence of ``seed`` with the
+    spawn key ``(REALISATION_TAG, r, 0)`` (the flow spawns one child per screen below it: no stream is shared
+    with another realisation, another screen, or the sensors' noise)."""
+    return int(seed) if r == 0 else np.random.SeedSequence(int(seed), spawn_key=(REALISATION_TAG, int(r), 0))
+
+
+def noise_stream(r: int) -> tuple:
+    """The spawn-key prefix of realisation ``r``'s detector noise (a sensor's frame ``k`` draws from
+    ``SeedSequence(seed, spawn_key=(*stream, 11 or 12, k))``): empty for the first (the one-seed loop's noise),
+    ``(REALISATION_TAG, r, 1)`` after it."""
+    return () if r == 0 else (REALISATION_TAG, int(r), 1)
 
 
 @dataclass(frozen=True)
@@ -107,15 +126,17 @@ class MetasurfaceSensor:
     """The metasurface wavefront sensor in the loop: each frame the device's exposure of the residual crops
     (:meth:`~metadesign.sensing.device.Device.expose`: integrated over the sub-steps, read once by the
     detector, drawn from ``seed`` and the frame), normalised as the datasets are, and the estimator's phase
-    estimate of the residual (rad, on the crop)."""
+    estimate of the residual (rad, on the crop).  ``stream``: the noise's spawn-key prefix
+    (:func:`noise_stream`: one per turbulence realisation)."""
 
-    def __init__(self, device, estimator, detector=None, seed: int = 0):
+    def __init__(self, device, estimator, detector=None, seed: int = 0, stream: tuple = ()):
         self.device, self.estimator, self.detector, self.seed = device, estimator, detector, int(seed)
+        self.stream = tuple(stream)
 
     def expose(self, crops: list, k: int) -> dict:
         """Frame ``k`` as the camera records it: the estimator's input batch (the sensor's side)."""
         fields = [self.device.pupil_field(c) for c in crops]
-        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(11, int(k))))
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(*self.stream, 11, int(k))))
         shot = self.device.expose(fields, self.detector, rng)
         psf, _ = normalise_psf(shot.psfs)
         return {"psf": psf[None], "received": np.asarray(crops[-1])[None], "index": np.array([k])}
@@ -175,12 +196,33 @@ def _rms(phi: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((v - v.mean()) ** 2)))
 
 
+def pol_rejection_tf(f, fs: float, gain: float, delay_frames: float, leak: float = 1.0) -> np.ndarray:
+    """The rejection ``residual / disturbance`` of the pseudo-open-loop controller of :func:`run_loop` (a
+    perfect, linear sensor): the integrator's state ``c_{k+1} = (leak - gain) c_k + gain w_k`` driven by the
+    pseudo-open-loop disturbance ``w_k``, held ``delay - 1`` frames, so ``1 - gain z^-n ((1 - a) + a z^-1) /
+    (1 - (leak - gain) z^-1)`` (``delay = n + a``, ``z = exp(2 pi i f / fs)``); at one frame of delay it is the
+    integrator's ``1 / (1 + H_OL)``."""
+    d = float(delay_frames)
+    n = int(np.floor(d))
+    a = d - n
+    zi = np.exp(-2j * np.pi * np.asarray(f, float) / fs)
+    return 1 - gain * zi ** n * ((1 - a) + a * zi) / (1 - (leak - gain) * zi)
+
+
 def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sensor=None, dm=None,
-             controller=None, modes: np.ndarray | None = None, progress=None) -> dict:
+             controller=None, modes: np.ndarray | None = None, progress=None, *,
+             pseudo_open_loop: bool = False) -> dict:
     """``steps`` frames of the loop ``method`` (a closed loop with ``sensor``, ``dm`` and ``controller``, or one
     of :data:`ORACLES`) in ``world``: per step the NPiB, the residual phase's rms (rad, piston removed) and its
     branch points, and with ``modes`` (M, a, a: an orthonormal modal basis on the aperture) the residual's modal
-    coefficients (T, M).  Same world, same seed: the same turbulence for every method."""
+    coefficients (T, M).  Same world, same seed: the same turbulence for every method.
+
+    ``pseudo_open_loop``: the sensor still measures the residual (the field times the mirror's conjugate, as
+    the device sees it), but the controller integrates on the pseudo-open-loop disturbance, the residual's fit
+    plus the commands the mirror held during the frame (command space,
+    :func:`metadesign.optics.control.pseudo_open_loop`): its error is ``w_k - c_k`` (``c_k`` the integrator's
+    state), so ``c_{k+1} = (leak - gain) c_k + gain w_k``, the delay line after it as before (at one frame of
+    delay this is the plain integrator; see :func:`pol_rejection_tf`)."""
     mask = world.mask
     n = int(mask.sum())
     out = {"npib": np.empty(steps), "residual_rms": np.empty(steps), "branch_points": np.empty(steps, int)}
@@ -190,6 +232,7 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
     if closed and (sensor is None or dm is None or controller is None):
         raise ValueError(f"loop method {method!r}: a closed loop needs a sensor, a mirror and a controller")
     phi_dm = np.zeros(mask.shape)
+    held = None  # the commands the mirror holds during the frame (None: none yet)
     for k in range(steps):
         scr = [world.screens_at(j) for j in timing.sub_steps(k)]
         rec = [world.received(s) for s in scr]
@@ -206,7 +249,13 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
             out["modal"][k] = modes.reshape(len(modes), -1) @ ph.ravel() / n
         if closed:
             meas = sensor.measure([r * np.exp(-1j * phi_dm) for r in rec], k)
-            phi_dm = dm.surface(controller.step(dm.fit(meas, mask)))
+            e = dm.fit(meas, mask)
+            if pseudo_open_loop:
+                state = controller.integrator.state
+                w = _pol(e, dm.clip(held)) if held is not None else e
+                e = w - state if state is not None else w
+            held = controller.step(e)
+            phi_dm = dm.surface(held)
         if progress:
             progress(k + 1, steps)
     return out

@@ -14,7 +14,10 @@ to the recipe):
     steps = 400
     substeps = 4                  # exposure sub-steps (the turbulence moves during a frame)
     rytov = 0.5
-    gain = 0.4
+    gain = 0.4                    # or "optimise": chosen per closed loop (see gain_steps)
+    gain_steps = 100              # "optimise": the steps of each trial run (the first seed's first frames)
+    pseudo_open_loop = false      # the controller integrates the residual's fit plus the mirror's commands
+    seeds = 1                     # independent turbulence realisations (each method runs on every one)
     leak = 0.99
     noise_percent = 5.0
     readout_frames = 0.0
@@ -42,8 +45,10 @@ from ..config import Param, Section, load_toml, parse
 from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
 
-__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "load_loop_recipe", "SECTIONS"]
+__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "OPTIMISE", "load_loop_recipe", "SECTIONS"]
 
+#: the value of ``[loop] gain`` that has the study choose each closed loop's gain
+OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
 METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open")
 
@@ -56,7 +61,9 @@ SECTIONS = (
         Param("steps", int, 400, lo=2, hi=10_000_000),
         Param("substeps", int, 4, lo=1, hi=64),
         Param("rytov", float, 0.5, lo=0, open_lo=True, hi=5),
-        Param("gain", float, 0.4, lo=0, hi=2),
+        Param("gain_steps", int, 100, lo=2, hi=10_000_000),
+        Param("pseudo_open_loop", bool, False),
+        Param("seeds", int, 1, lo=1, hi=100_000),
         Param("leak", float, 0.99, lo=0, hi=1),
         Param("noise_percent", float, 5.0, lo=0, hi=100),
         Param("readout_frames", float, 0.0, lo=0, hi=1000),
@@ -87,6 +94,14 @@ class LoopSection:
     seed: int
     threshold_db: float
     latency_ms: dict = field(default_factory=dict)
+    seeds: int = 1
+    gain_steps: int = 100
+    pseudo_open_loop: bool = False
+
+    @property
+    def optimise_gain(self) -> bool:
+        """Whether each closed loop's gain is chosen (``gain = "optimise"``) rather than given."""
+        return self.gain == OPTIMISE
 
 
 @dataclass(frozen=True)
@@ -124,15 +139,29 @@ def _latencies(raw, methods, where: str) -> dict:
     return out
 
 
+def _gain(raw):
+    if raw is None:
+        return 0.4
+    if raw == OPTIMISE:
+        return OPTIMISE
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not (0 <= float(raw) <= 2):
+        raise ConfigError("loop.gain", f'expected a number in [0, 2] or "{OPTIMISE}", got {raw!r}')
+    return float(raw)
+
+
 def load_loop_recipe(path: str | Path) -> LoopRecipe:
     """The loop recipe at ``path``, validated (one line naming the field on the first problem)."""
     path = Path(path)
     raw = load_toml(path)
     loop = raw.get("loop") if isinstance(raw.get("loop"), dict) else {}
     latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(METHODS))
+    gain = loop.pop("gain", None)
     wind = raw.pop("wind", None)
     v = parse(raw, SECTIONS, str(path))
     lp = v["loop"]
+    gain = _gain(gain)
+    if gain == OPTIMISE and lp["gain_steps"] > lp["steps"]:
+        raise ConfigError("loop.gain_steps", f"expected at most loop.steps ({lp['steps']}), got {lp['gain_steps']}")
     if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
         raise ConfigError("loop.methods", f"expected a list of method names, got {methods!r}")
     methods = tuple(methods)
@@ -157,9 +186,9 @@ def load_loop_recipe(path: str | Path) -> LoopRecipe:
         raise ConfigError("wind", "expected a [wind] table")
     wind = dict(wind or {"speed_m_s": 0.0})  # no [wind]: the turbulence stands still
     wind_from_dict({"wind": wind}, load_scenario(rel(d["turbulence"])), str(path))  # its values checked now
-    section = LoopSection(**{k: lp[k] for k in ("rate_hz", "steps", "substeps", "rytov", "gain", "leak",
+    section = LoopSection(**{k: lp[k] for k in ("rate_hz", "steps", "substeps", "rytov", "leak",
                                                 "noise_percent", "readout_frames", "dm_frames", "seed",
-                                                "threshold_db")},
-                          methods=methods, latency_ms=_latencies(latency, methods, str(path)))
+                                                "threshold_db", "seeds", "gain_steps", "pseudo_open_loop")},
+                          gain=gain, methods=methods, latency_ms=_latencies(latency, methods, str(path)))
     return LoopRecipe(path.stem, path, rel(d["design"]), rel(d["sensor"]), rel(d["turbulence"]), model, section,
                       DMSection(**v["dm"]), wind)

@@ -2,21 +2,37 @@
 their power-in-bucket time series, fades and spectra, against the references, into one report.
 
 The device as made (the recipe's design, its sensor, the turbulence scenario at the loop's Rytov number) is
-built once; the frozen-flow screens are drawn once from the recipe's seed and shared by every method (same
-seed, same turbulence).  A method's delay is the loop's (:class:`~metadesign.studies.loop.LoopTiming`) with
-its reconstruction's latency: declared in the recipe (``latency_ms``), else measured on this machine (the
-median of single-frame estimates, batch 1)."""
+built once.  The recipe's ``seeds`` turbulence realisations are frozen flows drawn from the recipe's seed
+(:func:`~metadesign.studies.loop.flow_seed`: the first is the seed itself, the others SeedSequence spawn keys
+of it), and every method runs on each of them (same seed, same turbulence).  Each run (one realisation x one
+method) is a task (:meth:`metadesign.execution.Execution.run`): on ``-j`` local processes or a Dask
+scheduler, its series kept as ``OUT.partial/NAME.npz`` as it finishes, so a killed study resumes where it
+stopped, and the report, computed from the tasks' series in a fixed order, has the same bytes on any
+worker count.  The report pools the series over the realisations.
+
+A method's delay is the loop's (:class:`~metadesign.studies.loop.LoopTiming`) with its reconstruction's
+latency: declared in the recipe (``latency_ms``), else measured on this machine (the median of single-frame
+estimates, batch 1), once per study (kept in the resume folder: a resumed study keeps the delays it began
+with).
+
+``gain = "optimise"``: each closed loop's gain is chosen before the runs by a grid search of the mean NPiB
+over ``gain_steps`` frames of the first realisation (:data:`GAIN_GRID`, then :data:`GAIN_REFINE` around the
+grid's best: the best of all the trials wins, the lowest gain on a tie), the trials tasks like the runs."""
 
 from __future__ import annotations
 
+import copy
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..design.recipe import load_design_recipe
 from ..design.store import run_design
+from ..execution import SERIAL, Execution, scratch_path
 from ..io import atomic_write_text
 from ..optics.control import Controller, rejection_tf
 from ..optics.dm import DeformableMirror, ModalDM
@@ -33,31 +49,37 @@ from ..turbulence.frozen import FrozenFlow
 from ..turbulence.system import build_system
 from ..turbulence.scenario import wind_from_dict
 from ..turbulence.temporal import temporal_summary
-from .loop import ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, run_loop
+from ..tasks import TaskFolder, content_key, file_key
+from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, flow_seed, noise_stream,
+                   pol_rejection_tf, run_loop)
 from .loop_recipe import LoopRecipe
-from .loop_stats import cdf_points, fade_statistics, rejection_measured, welch_psd
+from .loop_stats import cdf_points, fade_statistics, welch_psd
 
-__all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor"]
+__all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE"]
 
 LABELS = {"unet": "metasurface + U-Net", "refine": "metasurface + learned refinement",
           "shack_hartmann": "Shack-Hartmann", "ideal": "ideal phase sensor", "fitted": "DM-fitted oracle (no delay)",
           "conjugate": "phase conjugate", "open": "open loop"}
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
+#: ``gain = "optimise"``: the gains tried first, then the refinement's offsets around the best of them
+GAIN_GRID = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+GAIN_REFINE = (-0.075, -0.05, -0.025, 0.025, 0.05, 0.075)
 
 
 class ShackHartmannLoopSensor:
     """A Shack-Hartmann in the received plane in the loop: its spots integrated over the exposure, read by its
-    detector (Gaussian noise of the frame's peak, drawn from ``seed`` and the frame), reconstructed by its
-    estimator."""
+    detector (Gaussian noise of the frame's peak, drawn from ``seed``, the ``stream`` and the frame),
+    reconstructed by its estimator."""
 
-    def __init__(self, estimator, noise_percent: float, seed: int):
+    def __init__(self, estimator, noise_percent: float, seed: int, stream: tuple = ()):
         self.est, self.noise, self.seed = estimator, float(noise_percent), int(seed)
+        self.stream = tuple(stream)
 
     def expose(self, crops: list, k: int) -> dict:
         sh = self.est.sh
         spots = np.mean([sh.frames(np.asarray(c)[None]) for c in crops], axis=0)
-        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(12, int(k))))
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(*self.stream, 12, int(k))))
         return {"sh_spots": sh.add_noise(spots, self.noise, rng), "index": np.array([k])}
 
     def reconstruct(self, frame: dict) -> np.ndarray:
@@ -86,8 +108,8 @@ def _latency(sensor, world: LoopWorld, repeats: int = 15) -> float:
     return float(np.median(ts))
 
 
-def _sensors(rec: LoopRecipe, device: Device, world: LoopWorld) -> dict:
-    """Each closed-loop method's sensor (its reconstruction included) and its latency (s)."""
+def _sensors(rec: LoopRecipe, device: Device) -> dict:
+    """Each closed-loop method's sensor (its reconstruction included)."""
     lp = rec.loop
     net = unet = refiner = None
     if rec.model is not None:
@@ -111,21 +133,216 @@ def _sensors(rec: LoopRecipe, device: Device, world: LoopWorld) -> dict:
         else:
             est = make_estimator(m, device, model=unet, refiner=refiner)
             s = MetasurfaceSensor(device, est, det, lp.seed)
-        lat = lp.latency_ms.get(m) if m in lp.latency_ms else (0.0 if m == "ideal" else _latency(s, world))
-        out[m] = (s, float(lat))
+        out[m] = s
     return out
 
 
-def _plot(rep: dict, series: dict, out: Path) -> list[Path]:
+@dataclass
+class LoopContext:
+    """What every task of a loop study shares, built once and sent to each worker once: the recipe, the
+    turbulence at the loop's Rytov number and its wind, the received crop and its bucket, the mirror, the
+    modal basis, the closed loops' sensors and each method's latency (s).  :meth:`world` draws a
+    realisation's frozen flow (the last one kept in the process: a worker runs a realisation's methods
+    without drawing it again)."""
+
+    rec: LoopRecipe
+    tb: Any
+    wind: Any
+    c0: int
+    a: int
+    pib: Any
+    dm: Any
+    modes: np.ndarray
+    sensors: dict
+    latency: dict = field(default_factory=dict)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __getstate__(self):
+        return {**self.__dict__, "_cache": {}}  # the drawn flow stays where it was drawn
+
+    def world(self, r: int) -> LoopWorld:
+        """Realisation ``r``'s world (the frozen flow of :func:`~metadesign.studies.loop.flow_seed`)."""
+        if r not in self._cache:
+            lp = self.rec.loop
+            self._cache.clear()
+            flow = FrozenFlow(self.tb.grid, self.tb.path.r0_screens, self.wind, 1.0 / (lp.rate_hz * lp.substeps),
+                              lp.steps * lp.substeps, flow_seed(lp.seed, r))
+            self._cache[r] = LoopWorld(self.tb, flow.screens, self.c0, self.a, self.pib)
+        return self._cache[r]
+
+    def timing(self, m: str) -> LoopTiming:
+        lp = self.rec.loop
+        return LoopTiming(lp.rate_hz, lp.substeps, lp.readout_frames, self.latency.get(m, 0.0), lp.dm_frames)
+
+    def sensor(self, m: str, r: int):
+        """Method ``m``'s sensor on realisation ``r`` (its detector noise drawn from that realisation's stream)."""
+        s = self.sensors.get(m)
+        if s is None or not hasattr(s, "stream"):
+            return s
+        s = copy.copy(s)
+        s.stream = noise_stream(r)
+        return s
+
+    def run(self, m: str, r: int, gain: float, steps: int, modal: bool = True) -> dict:
+        """``steps`` frames of method ``m`` at ``gain`` on realisation ``r``: its series (arrays) and ``seconds``."""
+        lp = self.rec.loop
+        timing = self.timing(m)
+        ctl = Controller(gain, timing.delay_frames, lp.leak) if m not in ORACLES else None
+        t0 = time.perf_counter()
+        s = run_loop(self.world(r), timing, steps, m, self.sensor(m, r), self.dm, ctl,
+                     self.modes if modal else None, pseudo_open_loop=lp.pseudo_open_loop)
+        return {**s, "seconds": np.array(time.perf_counter() - t0)}
+
+
+def _task(ctx: LoopContext, task: tuple) -> tuple[str, dict]:
+    """One task of a loop study: ``(name, method, realisation, gain, steps, modal)`` -> ``(name, series)``."""
+    name, m, r, gain, steps, modal = task
+    return name, ctx.run(m, r, gain, steps, modal)
+
+
+def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
+    """The device as made, the mirror, the sensors: the study's :class:`LoopContext` (latencies not yet
+    measured), its device and the turbulence's temporal summary."""
+    lp = rec.loop
+    tensor = None
+    if rec.model is not None:
+        net, _ = load_network(rec.model)
+        tensor = (net.unet if hasattr(net, "trajectory") else net).config.input_size
+    chain = _system(rec, out, tensor)
+    tb = chain.at(lp.rytov)
+    sc = tb.sc
+    wind = wind_from_dict({"wind": rec.wind}, sc, str(rec.source))
+    c0, a = received_crop(sc)
+    device = Device(chain.pupil, chain.sensing.sensor, ReceiverCrop.of_scenario(sc, c0, a))
+    temporal = temporal_summary(sc, wind)
+    log(f"loop: {rec.name}: Rytov {lp.rytov:g}, f_G {temporal['greenwood_hz']:.0f} Hz, {lp.rate_hz:g} Hz, {lp.steps} steps "
+        f"x {lp.substeps} sub-steps x {lp.seeds} seed{'s' if lp.seeds > 1 else ''}; methods {', '.join(lp.methods)}")
+    dm = DeformableMirror.for_crop(device.crop, n_act=rec.dm.actuators, coupling=rec.dm.coupling,
+                                   regularisation=rec.dm.regularisation)
+    modes = np.asarray(ModalDM.for_crop(device.crop, n_modes=MODES).influence, np.float64)  # unit-rms Zernikes
+    ctx = LoopContext(rec, tb, wind, c0, a, PiB(sc, c0, a), dm, modes, _sensors(rec, device))
+    return ctx, device, temporal
+
+
+def _job_key(rec: LoopRecipe) -> str:
+    """The content key of a loop study's tasks (what shapes their series; never where the files lie)."""
+    files = {k: file_key(p) for k, p in (("design", rec.design), ("sensor", rec.sensor),
+                                         ("turbulence", rec.turbulence), ("model", rec.model)) if p is not None}
+    lp = {**rec.loop.__dict__, "methods": list(rec.loop.methods)}
+    return content_key({"format": "metadesign.loop-tasks/1", "loop": lp, "dm": rec.dm.__dict__, "wind": rec.wind,
+                        "files": files})
+
+
+def _measure_latencies(ctx: LoopContext, folder: TaskFolder) -> dict:
+    """Each closed loop's latency (s): declared, else measured once (kept in the resume folder)."""
+    lp = ctx.rec.loop
+
+    def measure():
+        out = {}
+        for m, s in ctx.sensors.items():
+            out[m] = (float(lp.latency_ms[m]) if m in lp.latency_ms else 0.0 if m == "ideal" else
+                      _latency(s, ctx.world(0)))
+        return out
+
+    lat, _ = folder.step("latencies", folder.key, measure)
+    return {m: float(v) for m, v in lat.items()}
+
+
+def _gain_name(m: str, g: float) -> str:
+    return f"gain-{m}-{g:.4f}"
+
+
+def _search_gains(ctx: LoopContext, folder: TaskFolder, run: Execution) -> dict:
+    """``gain = "optimise"``: per closed loop, the mean NPiB of ``gain_steps`` frames of realisation 0 at each
+    gain of :data:`GAIN_GRID`, then at :data:`GAIN_REFINE` around the grid's best; ``{method: {"gain": best,
+    "gains": [...], "npib_mean": [...]}}`` (the trials in increasing gain)."""
+    lp = ctx.rec.loop
+    closed = list(ctx.sensors)
+    trials: dict = {m: {} for m in closed}
+    stages = [lambda m: GAIN_GRID,
+              lambda m: [round(_best(trials[m]) + d, 4) for d in GAIN_REFINE if 0 < _best(trials[m]) + d <= 2]]
+    for stage in stages:
+        tasks = {}
+        for m in closed:
+            for g in stage(m):
+                if g not in trials[m]:
+                    tasks[_gain_name(m, g)] = (_gain_name(m, g), m, 0, float(g), lp.gain_steps, False)
+        res, _ = run.run(_task, tasks, folder, shared=ctx, weight=lambda n: lp.gain_steps, unit="step")
+        for name, (_, m, _, g, _, _) in tasks.items():
+            trials[m][g] = float(np.mean(res[name]["npib"]))
+    out = {}
+    for m in closed:
+        gs = sorted(trials[m])
+        out[m] = {"gain": _best(trials[m]), "gains": gs, "npib_mean": [trials[m][g] for g in gs]}
+        run.log(f"  gain {LABELS[m]:<29} {out[m]['gain']:.3f} (mean NPiB {trials[m][out[m]['gain']]:.3f} over "
+                f"{lp.gain_steps} steps; {len(gs)} trials)")
+    return out
+
+
+def _best(trials: dict) -> float:
+    """The gain of the highest mean NPiB (the lowest such gain on a tie)."""
+    return min(trials, key=lambda g: (-trials[g], g))
+
+
+def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
+    """Every method of ``rec`` on each of its turbulence realisations, into ``out`` (``loop.json``,
+    ``loop.png``, the designed device in ``out/design``); the tasks resumable in ``OUT.partial`` (removed at
+    the end)."""
+    t_start = time.perf_counter()
+    lp = rec.loop
+    ctx, _, temporal = _build(rec, out, run.log)
+    folder = TaskFolder(scratch_path(out), _job_key(rec), log=run.log, what="loop study")
+    ctx.latency = _measure_latencies(ctx, folder)
+    ctx._cache.clear()
+    search = _search_gains(ctx, folder, run) if lp.optimise_gain else {}
+    gains = {m: (search[m]["gain"] if m in search else lp.gain) for m in ctx.sensors}
+    order = ["open"] + [m for m in lp.methods if m != "open"]
+    names = {(m, r): f"seed{r:05d}-{m}" for m in order for r in range(lp.seeds)}
+    tasks = {names[m, r]: (names[m, r], m, r, float(gains.get(m, 0.0)), lp.steps, True)
+             for r in range(lp.seeds) for m in order}
+    res, _ = run.run(_task, tasks, folder, shared=ctx, weight=lambda n: lp.steps, unit="step")
+    reports, firsts, pooled = {}, {}, {}
+    open_runs = [res[names["open", r]] for r in range(lp.seeds)]
+    for m in order:
+        runs = [res[names[m, r]] for r in range(lp.seeds)]
+        timing = ctx.timing(m)
+        reports[m] = _method_report(m, runs, ctx.latency.get(m, 0.0), timing, rec, gains.get(m),
+                                    open_runs if m != "open" else None)
+        if m in search:
+            reports[m]["gain_search"] = search[m]
+        firsts[m], pooled[m] = runs[0], np.concatenate([s["npib"] for s in runs])
+        run.log(f"  {LABELS[m]:<34} NPiB {reports[m]['npib_mean']:.3f}, P(fade {lp.threshold_db:g} dB) "
+                f"{reports[m]['fades']['probability']:.3g}, delay {reports[m]['delay_frames']:.2f} frames "
+                f"({reports[m]['seconds']:.0f} s)")
+    rep = {"format": "metadesign.loop/1", "recipe": str(rec.source), "loop": {**lp.__dict__, "methods": list(lp.methods)},
+           "dm": rec.dm.__dict__, "turbulence": {**temporal, "rytov": lp.rytov, "wind": rec.wind},
+           "methods": {m: reports[m] for m in lp.methods if m in reports} | ({"open": reports["open"]}),
+           "seconds": time.perf_counter() - t_start}
+    if search:
+        rep["gain_search"] = {"objective": f"mean NPiB over the first {lp.gain_steps} steps of the first seed",
+                              "grid": list(GAIN_GRID), "refine": list(GAIN_REFINE),
+                              "chosen": {m: v["gain"] for m, v in search.items()}}
+    rep["verdict"] = _verdict(rep)
+    rep["figures"] = [str(p) for p in _plot(rep, {m: firsts[m] for m in rep["methods"]},
+                                            {m: pooled[m] for m in rep["methods"]}, out)]
+    atomic_write_text(out / "loop.json", json.dumps(rep, indent=1, default=float))
+    folder.remove()
+    return rep
+
+
+def _plot(rep: dict, series: dict, pooled: dict, out: Path) -> list[Path]:
+    """The first realisation's NPiB in time, the pooled CDF, the measured and theoretical rejection."""
     plt = pyplot()
     lp = rep["loop"]
     fig, axs = plt.subplots(1, 3, figsize=(16, 4.2), constrained_layout=True)
     t = np.arange(lp["steps"]) / lp["rate_hz"] * 1e3
     for m, s in series.items():
         axs[0].plot(t, s["npib"], lw=0.8, label=LABELS[m])
-        v, p = cdf_points(s["npib"])
+        v, p = cdf_points(pooled[m])
         axs[1].semilogy(v, p, lw=1, label=LABELS[m])
-    axs[0].set(xlabel="time (ms)", ylabel="NPiB", title=f"{lp['rate_hz']:g} Hz loop, f_G {rep['turbulence']['greenwood_hz']:.0f} Hz")
+    seeds = f" (first of {lp['seeds']} seeds)" if lp["seeds"] > 1 else ""
+    axs[0].set(xlabel="time (ms)", ylabel="NPiB",
+               title=f"{lp['rate_hz']:g} Hz loop, f_G {rep['turbulence']['greenwood_hz']:.0f} Hz{seeds}")
     axs[1].set(xlabel="NPiB", ylabel="P(NPiB <= x)", title="CDF of the power in the bucket")
     for m, r in rep["methods"].items():
         if "rejection" in r:
@@ -139,73 +356,59 @@ def _plot(rep: dict, series: dict, out: Path) -> list[Path]:
     return [save_figure(fig, out / "loop.png")]
 
 
-def _method_report(m: str, s: dict, lat: float, timing: LoopTiming, rec: LoopRecipe, open_modal) -> dict:
+def _pooled_fades(runs: list, dt: float, threshold_db: float) -> dict:
+    """:func:`~metadesign.studies.loop_stats.fade_statistics` of the realisations' series pooled: the reference
+    their common mean, the fades counted in each series (none across two), the probability and the rate
+    over all the samples (one series: exactly its own statistics)."""
+    p = [np.asarray(s["npib"], float) for s in runs]
+    ref = float(np.mean(np.concatenate(p)))
+    each = [fade_statistics(x, dt, threshold_db, reference=ref) for x in p]
+    level = each[0]["threshold"]
+    prob = float((np.concatenate(p) < level).mean())
+    n_fades = int(sum(f["fades"] for f in each))
+    rate = n_fades / (sum(len(x) for x in p) * dt)
+    return {"threshold_db": float(threshold_db), "reference": ref, "threshold": level, "probability": prob,
+            "fades": n_fades, "fades_per_s": rate,
+            "mean_duration_s": float(prob / rate) if rate > 0 else float("nan"),
+            "max_duration_s": max(f["max_duration_s"] for f in each)}
+
+
+def _mean_psd(runs: list, fs: float, segment: int) -> tuple[np.ndarray, np.ndarray]:
+    """Welch PSDs of the realisations' modal series, averaged over them."""
+    psds = [welch_psd(s["modal"], fs, segment) for s in runs]
+    return psds[0][0], sum(P for _, P in psds) / len(psds)
+
+
+def _method_report(m: str, runs: list, lat: float, timing: LoopTiming, rec: LoopRecipe, gain, open_runs) -> dict:
+    """Method ``m``'s report from its series on each realisation (pooled: means and percentiles over every
+    sample, fades by :func:`_pooled_fades`, spectra averaged over the realisations)."""
     lp = rec.loop
-    r = {"label": LABELS[m], "latency_ms": lat * 1e3, "delay_frames": timing.delay_frames if m not in ORACLES else 0.0,
-         "npib_mean": float(np.mean(s["npib"])), "npib_p01": float(np.percentile(s["npib"], 1)),
-         "residual_rms_rad": float(np.mean(s["residual_rms"])),
-         "branch_points_mean": float(np.mean(s["branch_points"])),
-         "fades": fade_statistics(s["npib"], timing.dt, lp.threshold_db)}
-    if m not in ORACLES and open_modal is not None and len(s["npib"]) >= 64:
-        f, rtf = rejection_measured(s["modal"], open_modal, lp.rate_hz, segment=min(256, len(s["npib"]) // 2))
-        theory = np.abs(rejection_tf(f, lp.rate_hz, lp.gain, timing.delay_frames, lp.leak)) ** 2
+    npib = np.concatenate([s["npib"] for s in runs])
+    closed = m not in ORACLES
+    r = {"label": LABELS[m], "latency_ms": lat * 1e3, "delay_frames": timing.delay_frames if closed else 0.0,
+         "npib_mean": float(np.mean(npib)), "npib_p01": float(np.percentile(npib, 1)),
+         "residual_rms_rad": float(np.mean(np.concatenate([s["residual_rms"] for s in runs]))),
+         "branch_points_mean": float(np.mean(np.concatenate([s["branch_points"] for s in runs]))),
+         "fades": _pooled_fades(runs, timing.dt, lp.threshold_db)}
+    if closed:
+        r["gain"] = float(gain)
+    r["seeds"] = len(runs)
+    r["seconds"] = float(sum(float(s["seconds"]) for s in runs))
+    steps = len(runs[0]["npib"])
+    segment = min(256, steps // 2)
+    if closed and open_runs is not None and steps >= 64:
+        f, pc = _mean_psd(runs, lp.rate_hz, segment)
+        _, po = _mean_psd(open_runs, lp.rate_hz, segment)
+        rtf = pc.sum(axis=1) / np.maximum(po.sum(axis=1), 1e-300)
+        tf = (pol_rejection_tf(f, lp.rate_hz, gain, timing.delay_frames, lp.leak) if lp.pseudo_open_loop else
+              rejection_tf(f, lp.rate_hz, gain, timing.delay_frames, lp.leak))
+        theory = np.abs(tf) ** 2
         r["rejection"] = {"f_hz": f.tolist(), "measured_db": (10 * np.log10(np.maximum(rtf, 1e-30))).tolist(),
                           "theory_db": (10 * np.log10(np.maximum(theory, 1e-30))).tolist()}
-    if len(s["npib"]) >= 64:
-        f, P = welch_psd(s["modal"], lp.rate_hz, segment=min(256, len(s["npib"]) // 2))
+    if steps >= 64:
+        f, P = _mean_psd(runs, lp.rate_hz, segment)
         r["modal_psd"] = {"f_hz": f.tolist(), "noll": list(range(2, 2 + P.shape[1])), "psd_rad2_hz": P.T.tolist()}
     return r
-
-
-def run_loop_study(rec: LoopRecipe, out: Path, log=print, progress=None) -> dict:
-    """Every method of ``rec`` on the same turbulence, into ``out`` (``loop.json``, ``loop.png``, the
-    designed device in ``out/design``)."""
-    t_start = time.perf_counter()
-    lp = rec.loop
-    tensor = None
-    if rec.model is not None:
-        net, _ = load_network(rec.model)
-        tensor = (net.unet if hasattr(net, "trajectory") else net).config.input_size
-    chain = _system(rec, out, tensor)
-    tb = chain.at(lp.rytov)
-    sc = tb.sc
-    wind = wind_from_dict({"wind": rec.wind}, sc, str(rec.source))
-    c0, a = received_crop(sc)
-    flow = FrozenFlow(tb.grid, tb.path.r0_screens, wind, 1.0 / (lp.rate_hz * lp.substeps), lp.steps * lp.substeps,
-                      lp.seed)
-    world = LoopWorld(tb, flow.screens, c0, a, PiB(sc, c0, a))
-    device = Device(chain.pupil, chain.sensing.sensor, ReceiverCrop.of_scenario(sc, c0, a))
-    temporal = temporal_summary(sc, wind)
-    log(f"loop: {rec.name}: Rytov {lp.rytov:g}, f_G {temporal['greenwood_hz']:.0f} Hz, {lp.rate_hz:g} Hz, {lp.steps} steps "
-        f"x {lp.substeps} sub-steps; methods {', '.join(lp.methods)}")
-    dm = DeformableMirror.for_crop(device.crop, n_act=rec.dm.actuators, coupling=rec.dm.coupling,
-                                   regularisation=rec.dm.regularisation)
-    sensors = _sensors(rec, device, world)
-    modes = np.asarray(ModalDM.for_crop(device.crop, n_modes=MODES).influence, np.float64)  # unit-rms Zernikes
-    series, reports = {}, {}
-    order = ["open"] + [m for m in lp.methods if m != "open"]
-    for m in order:
-        if m not in lp.methods and m != "open":
-            continue
-        sensor, lat = sensors.get(m, (None, 0.0))
-        timing = LoopTiming(lp.rate_hz, lp.substeps, lp.readout_frames, lat, lp.dm_frames)
-        ctl = Controller(lp.gain, timing.delay_frames, lp.leak) if m not in ORACLES else None
-        t0 = time.perf_counter()
-        s = run_loop(world, timing, lp.steps, m, sensor, dm, ctl, modes, progress)
-        series[m] = s
-        reports[m] = _method_report(m, s, lat, timing, rec, series["open"]["modal"] if m != "open" else None)
-        reports[m]["seconds"] = time.perf_counter() - t0
-        log(f"  {LABELS[m]:<34} NPiB {reports[m]['npib_mean']:.3f}, P(fade {lp.threshold_db:g} dB) "
-            f"{reports[m]['fades']['probability']:.3g}, delay {reports[m]['delay_frames']:.2f} frames "
-            f"({reports[m]['seconds']:.0f} s)")
-    rep = {"format": "metadesign.loop/1", "recipe": str(rec.source), "loop": {**lp.__dict__, "methods": list(lp.methods)},
-           "dm": rec.dm.__dict__, "turbulence": {**temporal, "rytov": lp.rytov, "wind": rec.wind},
-           "methods": {m: reports[m] for m in lp.methods if m in reports} | ({"open": reports["open"]}),
-           "seconds": time.perf_counter() - t_start}
-    rep["verdict"] = _verdict(rep)
-    rep["figures"] = [str(p) for p in _plot(rep, {m: series[m] for m in rep["methods"]}, out)]
-    atomic_write_text(out / "loop.json", json.dumps(rep, indent=1, default=float))
-    return rep
 
 
 def _verdict(rep: dict) -> dict:
