@@ -44,6 +44,13 @@ def _cmd_loop(a: argparse.Namespace) -> int:
         gain = format(r["gain"], "6.3f") if "gain" in r else format("", "6")
         lines.append(f"  {r['label']:<34} {r['npib_mean']:6.3f} {f['probability']:16.3g} {f['fades_per_s']:8.1f} "
                      f"{r['delay_frames']:6.2f} {r['latency_ms']:10.2f} {gain}")
+    if "gain_search" in rep:
+        lines.append(f"  gain search: {rep['gain_search']['objective']} (grid 0.1..0.9, then +-0.075 around its best)")
+        for m, r in rep["methods"].items():
+            if "gain_search" in r:
+                g = r["gain_search"]
+                trials = " ".join(f"{x:g}:{v:.3f}" for x, v in zip(g["gains"], g["npib_mean"]))
+                lines.append(f"    {r['label']:<32} {g['gain']:.3f}  [{trials}]")
     if rep["loop"]["seeds"] > 1:
         lines.append(f"  pooled over {rep['loop']['seeds']} seeds x {rep['loop']['steps']} steps")
     lines.append(f"  figures: {', '.join(Path(p).name for p in rep['figures'])}")
