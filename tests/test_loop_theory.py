@@ -112,7 +112,10 @@ def test_v6_weak_scintillation_is_the_rytov_variance_and_fades_are_lognormal(wor
     three seeds: scintillation index within 25 % of sigma_R^2 = 4 x rytov; the probability of a 1 and a
     3 dB fade within 3 standard errors (batch means over 12 blocks: the frames are not independent) of the
     lognormal model with log-variance ln(1 + sigma_R^2)."""
-    from metadesign.studies.loop_stats import lognormal_fade_probability, scintillation_index
+    from metadesign.studies.loop_stats import (
+        lognormal_fade_probability,
+        scintillation_index,
+    )
 
     c = world.a // 2
     series = []
