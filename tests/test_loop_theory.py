@@ -18,11 +18,10 @@
 * V2, in the loop: the measured rejection (closed- over open-loop modal PSDs of the same turbulence) is
   :func:`~metadesign.optics.control.rejection_tf`'s.
 
-Note (V2, V6): the engine's :class:`~metadesign.studies.loop.IdealPhaseSensor` and its residual statistics
-take ``np.angle`` of the received field, whose absolute phase (piston, ~rad per frame at 20 m/s under a
-100 m outer scale) wraps: a residual with a 2 pi cut across the aperture is a fixed point of the fit, so the
-loop stalls (residual ~1 rad rms where the fitting error is 0.07).  The world here references each received
-field to its own piston (physically a no-op: piston changes neither the bucket nor the irradiance).
+Note (V2, V6): the engine references every phase it measures to the field's piston
+(:func:`~metadesign.studies.loop.phase_of`); with the raw ``np.angle`` (the absolute phase drifts by radians
+at 20 m/s under a 100 m outer scale) a residual with a 2 pi cut across the aperture was a fixed point of
+the fit and the loop stalled (residual ~1 rad rms where the fitting error is 0.07).
 """
 
 from __future__ import annotations
@@ -49,20 +48,12 @@ def _weak_world(seed: int, steps: int = STEPS):
     from metadesign.turbulence.scenario import scenario_from_dict
     from metadesign.turbulence.temporal import Wind
 
-    class PistonReferenced(LoopWorld):
-        """The loop's world with each received crop referenced to its own piston (see the module's note)."""
-
-        def received(self, screens):
-            u = super().received(screens)
-            s = complex(u.sum())
-            return (u * (s.conjugate() / abs(s))).astype(np.complex64) if s else u
-
     sc = scenario_from_dict({"path": {"n_screens": 5, "rytov": RYTOV, "length_m": 1000.0, "inner_scale_cm": 0.1},
                              "grid": {"n": 128, "spacing_mm": 2.5}, "receiver": {"aperture_cm": 10.0}})
     tb = Turbulence(sc, check=False)
     c0, a = received_crop(sc)
     flow = FrozenFlow(tb.grid, tb.path.r0_screens, Wind.from_speeds([SPEED] * sc.n_screens), 1 / FS, steps, seed)
-    return PistonReferenced(tb, flow.screens, c0, a, PiB(sc, c0, a))
+    return LoopWorld(tb, flow.screens, c0, a, PiB(sc, c0, a))  # the engine references phases to their piston
 
 
 @pytest.fixture(scope="module")

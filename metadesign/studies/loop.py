@@ -32,7 +32,7 @@ from ..optics.control import pseudo_open_loop as _pol
 from ..reconstruction.dataset import normalise_psf
 
 __all__ = ["LoopTiming", "LoopWorld", "MetasurfaceSensor", "IdealPhaseSensor", "run_loop", "branch_points",
-           "fitted_oracle", "ORACLES", "flow_seed", "noise_stream", "pol_rejection_tf"]
+           "fitted_oracle", "phase_of", "ORACLES", "flow_seed", "noise_stream", "pol_rejection_tf"]
 
 #: references that need no sensor, mirror or controller
 ORACLES = ("open", "fitted", "conjugate")
@@ -157,10 +157,19 @@ class IdealPhaseSensor:
         return np.mean(np.asarray(crops), axis=0)
 
     def reconstruct(self, frame) -> np.ndarray:
-        return np.angle(frame).astype(np.float64)
+        return phase_of(frame)
 
     def measure(self, crops: list, k: int) -> np.ndarray:
         return self.reconstruct(self.expose(crops, k))
+
+
+def phase_of(field: np.ndarray) -> np.ndarray:
+    """The phase of ``field`` (zero outside the aperture) referenced to its piston: ``angle(u conj(sum u))``.
+    The absolute phase drifts by radians (the outer scale, the wind); wrapped as it is, a 2 pi cut across the
+    aperture is a fixed point of a mirror's fit and the loop stalls.  Referenced to the field's mean it wraps
+    only where the field itself has a cut (branch points), not because of its piston."""
+    u = np.asarray(field)
+    return np.angle(u * np.conj(u.sum())).astype(np.float64)
 
 
 def branch_points(field: np.ndarray, mask: np.ndarray) -> int:
@@ -185,9 +194,10 @@ def fitted_oracle(dm, field: np.ndarray, mask: np.ndarray, iterations: int = ORA
     """The mirror's best phase for ``field`` with no delay: the fit of a perfect sensor's measurement, iterated
     on the residual (a wrapped phase's 2 pi jumps shrink as the residual does: the loop of an ideal sensor with
     zero delay, gain 1, run to its fixed point)."""
-    c = dm.fit(np.angle(field), mask)
+    u = field * mask
+    c = dm.fit(phase_of(u), mask)
     for _ in range(iterations - 1):
-        c = c + dm.fit(np.angle(field * np.exp(-1j * dm.surface(c))), mask)
+        c = c + dm.fit(phase_of(u * np.exp(-1j * dm.surface(c))), mask)
     return dm.surface(c)
 
 
@@ -239,10 +249,10 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
         if method == "fitted":
             phi_dm = fitted_oracle(dm, rec[0], mask)
         elif method == "conjugate":
-            phi_dm = np.angle(rec[0]) * mask
+            phi_dm = phase_of(rec[0] * mask) * mask
         res0 = rec[0] * np.exp(-1j * phi_dm)
         out["npib"][k] = world.npib(phi_dm, scr[0])
-        ph = np.angle(res0) * mask
+        ph = phase_of(res0 * mask) * mask
         out["residual_rms"][k] = _rms(ph, mask)
         out["branch_points"][k] = branch_points(res0, mask)
         if modes is not None:
