@@ -97,6 +97,8 @@ def _recipe(tmp_path: Path, loop: str = "", wind: str = "speed_m_s = 3.0\n") -> 
     ("latency_ms = {ideal = -2}\n", "speed_m_s = 3.0\n", "loop.latency_ms"),
     ("", "speed_m_s = -3.0\n", "wind.speed_m_s"),
     ("", "speed_m_s = inf\n", "wind.speed_m_s"),
+    ("", 'speed_m_s = 3.0\n[dm]\nkind = "magic"\n', "dm.kind"),
+    ("", "speed_m_s = 3.0\n[dm]\nkind = \"modal\"\nmodes = 1\n", "dm.modes"),
 ])
 def test_bad_loop_recipes_are_one_line_and_write_nothing(loop, wind, match, tmp_path, capsys):
     rec = _recipe(tmp_path, loop.replace('methods = ["ideal", "open"]\n', ""), wind)

@@ -72,6 +72,9 @@ SECTIONS = (
         Param("threshold_db", float, 3.0, lo=0, open_lo=True, hi=60),
     ), optional=True),
     Section("dm", (
+        Param("kind", str, "zonal", choices=("zonal", "modal"),
+              help="zonal: Gaussian influence functions on an actuator grid; modal: Zernike modes Noll 2..modes+1"),
+        Param("modes", int, 20, lo=2, hi=300),
         Param("actuators", int, 12, lo=2, hi=256),
         Param("coupling", float, 0.15, lo=0, open_lo=True, hi=0.9),
         Param("regularisation", float, 1e-3, lo=0, hi=1e6),
@@ -106,6 +109,8 @@ class LoopSection:
 
 @dataclass(frozen=True)
 class DMSection:
+    kind: str
+    modes: int
     actuators: int
     coupling: float
     regularisation: float

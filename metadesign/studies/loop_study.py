@@ -217,8 +217,10 @@ def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
     temporal = temporal_summary(sc, wind)
     log(f"loop: {rec.name}: Rytov {lp.rytov:g}, f_G {temporal['greenwood_hz']:.0f} Hz, {lp.rate_hz:g} Hz, {lp.steps} steps "
         f"x {lp.substeps} sub-steps x {lp.seeds} seed{'s' if lp.seeds > 1 else ''}; methods {', '.join(lp.methods)}")
-    dm = DeformableMirror.for_crop(device.crop, n_act=rec.dm.actuators, coupling=rec.dm.coupling,
-                                   regularisation=rec.dm.regularisation)
+    dm = (ModalDM.for_crop(device.crop, n_modes=rec.dm.modes, regularisation=rec.dm.regularisation)
+          if rec.dm.kind == "modal" else
+          DeformableMirror.for_crop(device.crop, n_act=rec.dm.actuators, coupling=rec.dm.coupling,
+                                    regularisation=rec.dm.regularisation))
     modes = np.asarray(ModalDM.for_crop(device.crop, n_modes=MODES).influence, np.float64)  # unit-rms Zernikes
     ctx = LoopContext(rec, tb, wind, c0, a, PiB(sc, c0, a), dm, modes, _sensors(rec, device))
     return ctx, device, temporal
