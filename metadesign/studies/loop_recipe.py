@@ -45,12 +45,15 @@ from ..config import Param, Section, load_toml, parse
 from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
 
-__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "OPTIMISE", "load_loop_recipe", "SECTIONS"]
+__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "OPTIMISE", "load_loop_recipe",
+           "SECTIONS"]
 
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
-METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open")
+METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear")
+#: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor of issue #51, on request)
+DEFAULT_METHODS = tuple(m for m in METHODS if m != "linear")
 
 SECTIONS = (
     Section("device", (
@@ -159,7 +162,7 @@ def load_loop_recipe(path: str | Path) -> LoopRecipe:
     path = Path(path)
     raw = load_toml(path)
     loop = raw.get("loop") if isinstance(raw.get("loop"), dict) else {}
-    latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(METHODS))
+    latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(DEFAULT_METHODS))
     gain = loop.pop("gain", None)
     wind = raw.pop("wind", None)
     v = parse(raw, SECTIONS, str(path))
