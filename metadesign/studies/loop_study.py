@@ -39,6 +39,7 @@ from ..optics.dm import DeformableMirror, ModalDM
 from ..plotting import pyplot, save_figure
 from ..reconstruction.dataset import received_crop
 from ..reconstruction.estimators import make_estimator
+from ..reconstruction.linear import LinearEstimator, LinearReconstructor
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
 from ..reconstruction.shack_hartmann import SHConfig
@@ -143,8 +144,6 @@ def _linear_estimator(rec: LoopRecipe, device: Device):
     """The push-pull linear reconstructor (:mod:`metadesign.reconstruction.linear`) of the first
     ``[dm] modes`` unit-rms Zernikes (Noll 2..) on the crop, PSFs binned 8 x 8 (or the largest divisor of the
     tensor's side below 8), as the loop's estimator."""
-    from ..reconstruction.linear import LinearEstimator, LinearReconstructor
-
     s = device.sensor.tensor_size
     b = max(d for d in range(1, 9) if s % d == 0)
     basis = ModalDM.for_crop(device.crop, n_modes=rec.dm.modes).influence
