@@ -29,6 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..optics.control import pseudo_open_loop as _pol
+from ..optics.propagation import cexp
 from ..reconstruction.dataset import normalise_psf
 
 __all__ = ["LoopTiming", "LoopWorld", "MetasurfaceSensor", "IdealPhaseSensor", "run_loop", "branch_points",
@@ -197,7 +198,7 @@ def fitted_oracle(dm, field: np.ndarray, mask: np.ndarray, iterations: int = ORA
     u = field * mask
     c = dm.fit(phase_of(u), mask)
     for _ in range(iterations - 1):
-        c = c + dm.fit(phase_of(u * np.exp(-1j * dm.surface(c))), mask)
+        c = c + dm.fit(phase_of(u * cexp(-dm.surface(c))), mask)
     return dm.surface(c)
 
 
@@ -250,7 +251,9 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
             phi_dm = fitted_oracle(dm, rec[0], mask)
         elif method == "conjugate":
             phi_dm = phase_of(rec[0] * mask) * mask
-        res0 = rec[0] * np.exp(-1j * phi_dm)
+        corr = cexp(-phi_dm)  # the mirror's conjugate, once per frame
+        res = [r * corr for r in rec]  # what the sensor sees during the frame
+        res0 = res[0]
         out["npib"][k] = world.npib(phi_dm, scr[0])
         ph = phase_of(res0 * mask) * mask
         out["residual_rms"][k] = _rms(ph, mask)
@@ -258,7 +261,7 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
         if modes is not None:
             out["modal"][k] = modes.reshape(len(modes), -1) @ ph.ravel() / n
         if closed:
-            meas = sensor.measure([r * np.exp(-1j * phi_dm) for r in rec], k)
+            meas = sensor.measure(res, k)
             e = dm.fit(meas, mask)
             if pseudo_open_loop:
                 state = controller.integrator.state

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.signal import welch
 
 __all__ = ["fade_statistics", "lognormal_fade_probability", "welch_psd", "rejection_measured", "cdf_points",
            "scintillation_index"]
@@ -83,28 +84,12 @@ def cdf_points(p: np.ndarray, lowest: float = 1e-3) -> tuple[np.ndarray, np.ndar
 
 def welch_psd(x: np.ndarray, fs: float, segment: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(f, one-sided PSD)`` of ``x`` (T,) or of each column of ``x`` (T, M), sampled at ``fs`` Hz, by Welch's
-    method with Hann windows of ``segment`` samples (default: ``T // 8``, at least 16) overlapping by half;
-    the mean of each segment removed.  ``sum(PSD) df`` is the variance."""
+    method (:func:`scipy.signal.welch`) with Hann windows of ``segment`` samples (default: ``T // 8``, at least
+    16) overlapping by half, the mean of each segment removed.  ``sum(PSD) df`` is the variance."""
     x = np.asarray(x, float)
-    one = x.ndim == 1
-    if one:
-        x = x[:, None]
-    T = x.shape[0]
-    n = int(segment or max(16, T // 8))
-    n = min(n, T)
-    step = max(1, n // 2)
-    w = np.hanning(n)
-    scale = 1.0 / (fs * (w**2).sum())
-    acc, count = 0.0, 0
-    for a in range(0, T - n + 1, step):
-        seg = x[a:a + n] - x[a:a + n].mean(axis=0)
-        X = np.fft.rfft(seg * w[:, None], axis=0)
-        acc = acc + np.abs(X) ** 2
-        count += 1
-    psd = acc / count * scale
-    psd[1:-1 if n % 2 == 0 else None] *= 2  # one-sided: the negative frequencies folded in
-    f = np.fft.rfftfreq(n, 1 / fs)
-    return f, (psd[:, 0] if one else psd)
+    n = min(int(segment or max(16, len(x) // 8)), len(x))
+    return welch(x, fs, window=np.hanning(n), nperseg=n, noverlap=n - max(1, n // 2), detrend="constant",
+                 scaling="density", axis=0)
 
 
 def rejection_measured(closed: np.ndarray, open_: np.ndarray, fs: float,
