@@ -267,4 +267,64 @@ def test_dataset_round_trips_through_netcdf(tiny_dataset, tmp_path):
                                   ref["received"].values)
     np.testing.assert_array_equal(back["seed"].values, open_dataset(tiny_dataset).seed)
     assert list(back["channel"].values)[0] == "x-pol QI"
-    assert json.loads(back.attrs["provenance"])["layout_sha256"] == ref.attrs["provenance"]["layout_sha256"]
+    assert json.loads(back.attrs["provenance"])["layout_sha256"] == open_dataset(tiny_dataset).attrs["provenance"][
+        "layout_sha256"]
+
+
+def test_plain_open_zarr_writes_plain_netcdf(tiny_dataset, tmp_path):
+    """#52: what plain ``xarray.open_zarr`` gives writes with plain ``to_netcdf()`` (no nested dict, None or
+    bool among the attributes), and the file's attributes decode to the store's own."""
+    xr = pytest.importorskip("xarray")
+    from metadesign.reconstruction.dataset import decoded_attrs, open_dataset
+
+    xr.open_zarr(tiny_dataset).to_netcdf(tmp_path / "plain.nc")
+    back = xr.open_dataset(tmp_path / "plain.nc")
+    info = open_dataset(tiny_dataset)
+    got = decoded_attrs(back.attrs)
+    assert got["rytov"] == info.attrs["rytov"] and isinstance(got["rytov"], dict)
+    assert got["provenance"]["layout_sha256"] == info.attrs["provenance"]["layout_sha256"]
+    assert got["received_crop"] == info.attrs["received_crop"] and got["complete"] == 1
+    assert list(back.attrs["split_fractions"]) == info.attrs["split_fractions"]  # a flat list stays a list
+
+
+def test_stored_attributes_are_netcdf_safe_and_decode_back():
+    """store_attrs keeps strings, numbers and flat number lists as they are, and turns what netCDF cannot hold
+    into JSON text that decoded_attrs parses back (both idempotent); an older store's nested dicts pass
+    through decoded_attrs unchanged."""
+    from metadesign.reconstruction.dataset import JSON_ATTRS, decoded_attrs, store_attrs
+
+    plain = {"name": "d", "samples": 12, "fractions": [0.9, 0.1], "rytov": {"range": [0.25, 0.6], "values": None},
+             "none": None, "empty": [], "labels": ["a", "b"], "nested": [[1, 2]], "complete": True}
+    stored = store_attrs(plain)
+    for k, v in stored.items():
+        ok = isinstance(v, (str, int, float)) and not isinstance(v, bool) or \
+            isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        assert ok, (k, v)
+    assert stored["name"] == "d" and stored["fractions"] == [0.9, 0.1] and stored["complete"] == 1
+    assert set(stored[JSON_ATTRS].split()) == {"rytov", "none", "empty", "labels", "nested"}
+    assert decoded_attrs(stored) == {**plain, "complete": 1}
+    assert store_attrs(stored) == stored and decoded_attrs(decoded_attrs(stored)) == decoded_attrs(stored)
+    old = {"name": "d", "rytov": {"range": [0.25, 0.6], "values": None}}
+    assert decoded_attrs(old) == old
+
+
+def test_a_store_with_the_older_nested_attributes_still_opens(tiny_dataset, tmp_path):
+    """A dataset written before its attributes were netCDF-safe (nested dicts in zarr.json, ``complete: true``)
+    opens through the project's readers with the same attributes."""
+    import json
+    import shutil
+
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.dataset import JSON_ATTRS, decoded_attrs
+
+    old = tmp_path / "old"
+    shutil.copytree(tiny_dataset, old)
+    meta = json.loads((old / "zarr.json").read_text())
+    attrs = decoded_attrs(meta["attributes"])
+    meta["attributes"] = {**attrs, "complete": True}
+    (old / "zarr.json").write_text(json.dumps(meta))
+    assert isinstance(meta["attributes"]["provenance"], dict) and JSON_ATTRS not in meta["attributes"]
+    info = open_dataset(old)
+    assert info.attrs["provenance"] == open_dataset(tiny_dataset).attrs["provenance"]
+    assert info.sensor() == open_dataset(tiny_dataset).sensor() and info.crop() == open_dataset(tiny_dataset).crop()
+    np.testing.assert_array_equal(PSFDataset(old, "train").get(0)["psf"], PSFDataset(tiny_dataset, "train").get(0)["psf"])

@@ -3,7 +3,6 @@ finite differences; a changed focal length equals a device designed with it; the
 against closed forms (a Gaussian pupil's tilt) and phase diversity's defining property (an in-focus
 symmetric pupil cannot see the sign of defocus)."""
 
-import json
 
 import numpy as np
 import pytest
@@ -16,12 +15,12 @@ from conftest import REPO  # noqa: E402
 @pytest.fixture(scope="module")
 def setup(tiny_dataset):
     from metadesign.reconstruction.data import PSFDataset
-    from metadesign.reconstruction.dataset import load_device
+    from metadesign.reconstruction.dataset import load_device, read_attrs
     from metadesign.sensing.diversity import diversity_operators, lens_table
 
     torch.set_num_threads(1)
     dev = load_device(tiny_dataset)
-    attrs = json.loads((tiny_dataset / "zarr.json").read_text())["attributes"]
+    attrs = read_attrs(tiny_dataset)
     lenses = lens_table(attrs["provenance"]["channels"])
     pd = PSFDataset(tiny_dataset, "train")
     crops = np.stack([pd.get(i)["received"] for i in range(3)])

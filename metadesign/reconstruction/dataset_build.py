@@ -34,8 +34,8 @@ from ..turbulence.path import check_sampling, solve_path
 from ..turbulence.scenario import load_scenario
 from ..validation import ValidationError
 from .dataset_recipe import DatasetRecipe, expected_sizes, received_crop, sample_rytov, sample_seed, split_labels
-from .dataset_store import (DATASET_FORMAT, consolidate, create_store, open_dataset, open_store, read_attrs,
-                            read_store_pupil, write_store_pupil)
+from .dataset_store import (DATASET_FORMAT, consolidate, create_store, mark_complete, open_dataset, open_store,
+                            read_attrs, read_store_pupil, write_store_pupil)
 
 __all__ = ["build_dataset", "ShardContext", "make_sample", "measured_rytov", "normalise_psf", "make_shard",
            "shard_folder", "shard_name", "run_shards", "ensure_layout", "execution_of"]
@@ -252,6 +252,8 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
         parts["fab_library_sha256"] = fab.fab_lib.identity
     if fab.coupling_card is not None:  # absent for the LPA: those datasets keep their hash
         parts["coupling_model_sha256"] = fab.coupling_card["weights_sha256"]
+    if sensing.camera is not None:  # a polarisation camera's frames (absent for the ideal camera: same hash)
+        parts["camera"] = sensing.camera.to_dict()
     rhash = content_key(parts)  # what shapes the dataset's bytes (sha256 of json.dumps(parts, sort_keys=True))
     if existing is not None and existing.get("recipe_hash") != rhash:
         if not overwrite:
@@ -298,7 +300,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
         for k, v in results[nm]["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
     sweep = time.perf_counter() - t_sweep
-    open_store(out, "r+").attrs.update({"complete": True})
+    mark_complete(out)
     folder.remove()
     consolidate(out)
     info = open_dataset(out)

@@ -37,11 +37,64 @@ from ..sensing.sensor import CHANNELS, SensorSpec
 from ..turbulence.scenario import scenario_from_dict
 from ..validation import ValidationError
 
-__all__ = ["DATASET_FORMAT", "OPERATOR_ARRAY", "operator_info", "has_operators", "open_store", "consolidate",
+__all__ = ["DATASET_FORMAT", "OPERATOR_ARRAY", "JSON_ATTRS", "store_attrs", "decoded_attrs", "mark_complete",
+           "operator_info", "has_operators", "open_store", "consolidate",
            "open_xarray", "create_store", "DatasetInfo", "open_dataset", "damaged", "check_psf", "verify_dataset",
            "PUPIL_GROUP", "write_store_pupil", "read_store_pupil", "load_device"]
 
 DATASET_FORMAT = "metadesign.dataset/1"
+
+#: the root attribute that names the attributes stored as JSON text (space-separated)
+JSON_ATTRS = "json_attributes"
+
+
+def _netcdf_value(v) -> bool:
+    """Whether a netCDF file holds ``v`` as an attribute as it is: a string, a number (not a bool) or a
+    non-empty flat list of numbers."""
+    def number(x):
+        return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+
+    if isinstance(v, str) or number(v):
+        return True
+    return isinstance(v, (list, tuple)) and len(v) > 0 and all(number(x) for x in v)
+
+
+def store_attrs(attrs: dict) -> dict:
+    """A dataset's root attributes as the store keeps them, in the forms a netCDF file can hold, so that
+    ``xarray.open_zarr(DATASET).to_netcdf(FILE)`` writes: strings, numbers and flat lists of numbers as
+    they are, booleans as 0/1, everything else (the nested provenance, ``rytov``, ``received_crop``,
+    None, lists of strings) as JSON text, named in :data:`JSON_ATTRS`.  Its inverse: :func:`decoded_attrs`
+    (idempotent on both sides)."""
+    plain = decoded_attrs(attrs)
+    out, coded = {}, []
+    for k, v in plain.items():
+        if isinstance(v, (bool, np.bool_)):
+            out[k] = int(v)
+        elif _netcdf_value(v):
+            out[k] = list(v) if isinstance(v, tuple) else v
+        else:
+            out[k] = json.dumps(v, sort_keys=True)
+            coded.append(k)
+    if coded:
+        out[JSON_ATTRS] = " ".join(coded)
+    return out
+
+
+def decoded_attrs(attrs) -> dict:
+    """The root attributes of a dataset as the project reads them: the ones :data:`JSON_ATTRS` names parsed
+    back from JSON; stores written before the attributes were netCDF-safe (nested dicts as they are) pass
+    through unchanged.  Every reader of a dataset's attributes goes through here (:func:`read_attrs`,
+    :func:`open_dataset`)."""
+    attrs = dict(attrs)
+    names = attrs.pop(JSON_ATTRS, "")
+    for k in str(names).split():
+        if isinstance(attrs.get(k), str):
+            try:
+                attrs[k] = json.loads(attrs[k])
+            except ValueError:
+                pass  # a damaged attribute: left as text for the reader's own one-line error
+    return attrs
+
 
 #: the stored bucket operators' array (``metadesign dataset operators``, :mod:`.operators`)
 OPERATOR_ARRAY = "pib_operator"
@@ -132,22 +185,32 @@ def open_store(path: str | Path, mode: str = "r"):
 
 def consolidate(path: str | Path) -> None:
     """Consolidate the store's metadata (what ``xarray.open_zarr`` reads in one request, without a
-    warning); done when a build, an import or an operators run completes."""
+    warning); done when a build, an import or an operators run completes.  The root attributes are first
+    brought to their netCDF-safe form (:func:`store_attrs`), whoever wrote them."""
     import warnings
 
     import zarr
 
+    g = open_store(path, "r+")
+    safe = store_attrs(g.attrs.asdict())  # whatever a writer set since (``complete: True``, a nested block)
+    if safe != g.attrs.asdict():
+        g.attrs.put(safe)
     with warnings.catch_warnings():  # "not part of the Zarr format 3 specification": xarray reads it all the same
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         zarr.consolidate_metadata(str(path))
 
 
+def mark_complete(path: str | Path) -> None:
+    """Set the store's ``complete`` attribute (1: netCDF has no boolean) at the end of a build or an import."""
+    open_store(path, "r+").attrs.update({"complete": 1})
+
+
 def open_xarray(path: str | Path):
-    """The dataset as a netCDF-ready ``xarray.Dataset``: structured attributes (the provenance, ...) as
-    JSON strings, each complex variable as ``NAME_real`` and ``NAME_imag`` (netCDF has no complex type),
-    the channel names as plain strings; so ``open_xarray(DATASET).to_netcdf(FILE)`` writes a netCDF-4 file
-    (h5netcdf).  The store itself opens with plain ``xarray.open_zarr(DATASET)`` (consolidated, every axis
-    labelled, CF units and long names, complex ``received``)."""
+    """The dataset as a strict netCDF-4 ``xarray.Dataset``: each complex variable as ``NAME_real`` and
+    ``NAME_imag`` (netCDF has no complex type; h5netcdf writes HDF5's), the channel names as plain strings,
+    structured attributes as JSON strings (stores written before their attributes were netCDF-safe
+    included).  The store itself opens with plain ``xarray.open_zarr(DATASET)`` (consolidated, every axis
+    labelled, CF units and long names, complex ``received``) and writes with plain ``.to_netcdf(FILE)``."""
     import xarray as xr
 
     open_dataset(path)  # a missing, damaged or unfinished store: one line
@@ -165,7 +228,7 @@ def open_xarray(path: str | Path):
             f"{name}_imag": v.imag.assign_attrs({**v.attrs, "long_name": f"imaginary part of {name}: "
                                                  + v.attrs.get("long_name", name)})})
     ds = ds.assign_coords(channel=np.asarray(ds["channel"].values, dtype=object))
-    ds.attrs = safe(ds.attrs)
+    ds.attrs = store_attrs(ds.attrs)
     for v in ds.variables.values():
         v.attrs = safe(v.attrs)
     return ds
@@ -216,7 +279,7 @@ def create_store(out: Path, attrs: dict, split: np.ndarray, rytov_fill: float = 
     for k, v in CF_ATTRS.items():
         if k in g:
             g[k].attrs.update(v)
-    g.attrs.update(attrs)
+    g.attrs.update(store_attrs(attrs))
     return g
 
 
@@ -254,12 +317,16 @@ def _write_coordinates(g, n: int, s: int, a: int, attrs: dict) -> None:
 
 
 def read_attrs(out: Path) -> dict | None:
+    """The dataset's root attributes, decoded (:func:`decoded_attrs`); None for a folder that is not a
+    metadesign dataset."""
     try:
         meta = json.loads((Path(out) / "zarr.json").read_text())
     except (OSError, ValueError):
         return None
     attrs = meta.get("attributes", {}) if isinstance(meta, dict) else {}
-    return attrs if attrs.get("format") == DATASET_FORMAT else None
+    if not isinstance(attrs, dict) or attrs.get("format") != DATASET_FORMAT:
+        return None
+    return decoded_attrs(attrs)
 
 
 _ARRAYS = ("psf", "psf_power", "received", "rytov", "rytov_measured", "seed", "split")

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..config import load_toml
+from ..reconstruction.dataset_store import decoded_attrs
 from ..tasks import content_key, file_key
 
 __all__ = ["made_with", "model_record", "dataset_record", "recipe_record"]
@@ -31,7 +32,7 @@ def dataset_record(folder: str | Path | None = None, recipe=None) -> dict | None
         return None
     rec: dict = {}
     if folder is not None:
-        attrs = json.loads((Path(folder) / "zarr.json").read_text()).get("attributes", {})
+        attrs = decoded_attrs(json.loads((Path(folder) / "zarr.json").read_text()).get("attributes", {}))
         rec.update({"name": attrs.get("name"), "recipe_hash": attrs.get("recipe_hash"),
                     "recipe_key": attrs.get("recipe_key"), "root_seed": attrs.get("root_seed")})
     if recipe is not None:
