@@ -193,3 +193,53 @@ def test_the_recipe_is_typed_and_each_stage_key_follows_from_its_inputs(tmp_path
         (tmp_path / "r.toml").write_text(src.replace(old, new))
         keys = stage_keys(load_pipeline_recipe(tmp_path / "r.toml"), tmp_path / "out")
         assert {k for k in base if keys[k] != base[k]} == changed, (old, new)
+
+
+def test_the_provenance_names_the_stage6_device_and_the_beacon_seed(tmp_path):
+    """#52: the report's provenance names the device stage 6 ran on (the [beacons] design and sensor, and the
+    design file its device is built from) and the beacons' root seed; paths relative to the recipe's folder
+    (products of the run: to the run folder), so the record does not depend on where the checkout lies."""
+    from metadesign.studies.pipeline_recipe import load_pipeline_recipe
+    from metadesign.studies.pipeline_report import provenance, report_html
+    from metadesign.tasks import file_key
+
+    rec = load_pipeline_recipe(REPO / "sensing" / "demo-run.toml")
+    dev = tmp_path / "out" / "beacon-design" / "design.npz"
+    dev.parent.mkdir(parents=True)
+    dev.write_bytes(b"a design file")
+    pv = provenance(rec, REPO / "library" / "paper.npz", None, 1.0, out=tmp_path / "out", beacon_device=dev)
+    assert pv["beacons_design"]["path"] == "../layouts/paper-5mm.toml"
+    assert pv["beacons_design"]["sha256"] == file_key(REPO / "layouts" / "paper-5mm.toml")
+    assert pv["beacons_sensor"]["path"] == "paper.toml" and pv["beacon_seed"] == rec.beacons.seed == 2026
+    assert pv["beacons_device"] == {"path": "beacon-design/design.npz", "relative_to": "run",
+                                    "sha256": file_key(dev)}
+    assert pv["design_recipe"]["path"] == "../layouts/demo.toml" and pv["library"]["path"] == "../library/paper.npz"
+    assert pv["model"]["path"] == "models/demo-refine.safetensors" and pv["recipe"]["path"] == "demo-run.toml"
+    assert not any(str(REPO) in str(v) for v in pv.values())  # nothing names the checkout's own folder
+    html = report_html("x", {"stages": {}, "provenance": pv})
+    assert "stage-6 device (fresh beacons): design recipe" in html and file_key(dev) in html
+
+
+def test_the_scintillated_beacon_caption_says_what_its_frames_show():
+    """spot_changes measures what the caption states: a spot moved by a known number of pixels (its
+    centroid moves by that many pitches) and a dimmed spot (its peak over the frame's brightest)."""
+    import numpy as np
+
+    from metadesign.sensing.sensor import SensorSpec
+    from metadesign.studies.pipeline_stages import beacon_caption, spot_changes
+
+    sensor = SensorSpec(64, 48, 15e-6, 10.0, 50e-3, 16)
+    yy, xx = np.indices((48, 64))
+
+    def frame(dx, scale):
+        f = np.zeros((48, 64))
+        for k, (cy, cx) in enumerate(((12, 16), (12, 48), (36, 16), (36, 48))):
+            f += (scale if k == 3 else 1.0) * np.exp(-((yy - cy) ** 2 + (xx - cx - dx) ** 2) / 4.0)
+        return np.stack([f, f])
+
+    got = spot_changes(frame(0, 1.0), frame(3, 0.5), sensor)
+    np.testing.assert_allclose(got["moved_um"], 3 * 15.0, rtol=1e-6)
+    np.testing.assert_allclose(got["peaks"], [1, 1, 1, 0.5] * 2, rtol=1e-9)
+    assert got["peaks_without"] == [1.0] * 8
+    text = beacon_caption({"seed": 1, "rytov": 0.3, **got})
+    assert "nominal Rytov 0.3" in text and "45-45 um" in text and "0.50-1.00" in text

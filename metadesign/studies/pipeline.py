@@ -162,7 +162,10 @@ def run_pipeline(recipe_path: str | Path, out: Path, log: Callable[[str], None] 
     for st in STAGES:
         if st.when(rec):
             st.run(run, run.keys.stage(st))
-    run.report["provenance"] = provenance(rec, run.lib_path, run.model, time.perf_counter() - t_start)
+    run.report["provenance"] = provenance(
+        rec, run.lib_path, run.model, time.perf_counter() - t_start, out=out,
+        layout=run.lay if rec.dataset is not None else None,
+        beacon_device=out / stages.BEACON_DESIGN / "design.npz" if rec.beacons is not None else None)
     html_path = out / "report.html"
     atomic_write_text(html_path, report_html(rec.name, run.report))
     run.report["report"] = str(html_path)

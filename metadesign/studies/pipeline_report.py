@@ -56,28 +56,62 @@ def _git_commit() -> str | None:
     return r.stdout.strip() if r.returncode == 0 else None
 
 
-def provenance(rec, library: Path, model: Path | None, elapsed: float) -> dict:
+def provenance(rec, library: Path, model: Path | None, elapsed: float, out: Path | None = None,
+               layout: Path | None = None, beacon_device: Path | None = None) -> dict:
     """What the report of ``rec`` (a :class:`~.pipeline_recipe.PipelineRecipe`) is a record of: recipe,
-    design, ``library`` and ``model`` (the files used), seeds, code, machine, date, time taken."""
+    design, ``library`` and ``model`` (the files used), the stage-6 device (the design, sensor and layout
+    the dataset was made with, ``layout``; or the ``[beacons]`` design, sensor and the design file its device
+    was built from, ``beacon_device``), seeds, code, machine, date, time taken.  Each file by its sha256 and
+    a path relative to the recipe's folder, or, for a product of the run, to the run folder ``out`` (where
+    the report lies): the record reads the same wherever the checkout lies."""
     import os
     import platform
 
+    base = Path(rec.source).resolve().parent
+    run_dir = Path(out).resolve() if out is not None else None
+
     def named(p):
-        p = Path(p)
-        return {"path": str(p), "sha256": file_key(p) if p.is_file() else None}
+        if p is None:
+            return None
+        p = Path(p).resolve()
+        in_run = run_dir is not None and p.is_relative_to(run_dir)
+        return {"path": os.path.relpath(p, run_dir if in_run else base), "relative_to": "run" if in_run else "recipe",
+                "sha256": file_key(p) if p.is_file() else None}
 
     model = model or (rec.beacons.model if rec.beacons is not None else None)
-    t = rec.train
-    return {"recipe": named(rec.source), "design_recipe": named(rec.pipeline.design),
-            "library": named(library), "sensor": named(rec.pipeline.sensor),
-            "turbulence": named(rec.pipeline.turbulence),
-            "model": named(model) if model is not None else None,
-            "training_recipe": named(t.recipe) if t is not None and t.recipe else None,
-            "dataset_seed": rec.dataset.seed if rec.dataset is not None else None, "metadesign": __version__,
-            "commit": _git_commit(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-            "machine": f"{platform.node()} ({platform.system()} {platform.machine()}, {os.cpu_count()} cores, "
-                       f"Python {platform.python_version()})",
-            "elapsed_seconds": round(elapsed, 1)}
+    t, b = rec.train, rec.beacons
+    pv = {"recipe": {**named(rec.source), "path": Path(rec.source).name}, "design_recipe": named(rec.pipeline.design),
+          "library": named(library), "sensor": named(rec.pipeline.sensor),
+          "turbulence": named(rec.pipeline.turbulence),
+          "model": named(model) if model is not None else None,
+          "training_recipe": named(t.recipe) if t is not None and t.recipe else None,
+          "dataset_seed": rec.dataset.seed if rec.dataset is not None else None}
+    if rec.dataset is not None:  # stage 6 reads the dataset made on the run's own device
+        pv |= {"stage6_design": named(rec.pipeline.design), "stage6_sensor": named(rec.pipeline.sensor),
+               "stage6_layout": named(layout)}
+    if b is not None:  # fresh beacons through a second device, designed in the run
+        pv |= {"beacons_design": named(b.design), "beacons_sensor": named(b.sensor),
+               "beacons_device": named(beacon_device), "beacon_seed": b.seed, "beacon_samples": b.samples}
+    return pv | {"metadesign": __version__, "commit": _git_commit(), "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                 "machine": f"{platform.node()} ({platform.system()} {platform.machine()}, {os.cpu_count()} cores, "
+                            f"Python {platform.python_version()})",
+                 "elapsed_seconds": round(elapsed, 1)}
+
+
+#: the provenance rows' labels in the report (other keys: their name in words)
+_LABELS = {"design_recipe": "design recipe (stages 2-5)", "sensor": "sensor (stage 4)",
+           "stage6_design": "stage-6 device: design recipe", "stage6_sensor": "stage-6 device: sensor",
+           "stage6_layout": "stage-6 device: layout the dataset was made from",
+           "beacons_design": "stage-6 device (fresh beacons): design recipe",
+           "beacons_sensor": "stage-6 device (fresh beacons): sensor",
+           "beacons_device": "stage-6 device (fresh beacons): the design file it is built from (no layout written)",
+           "beacon_seed": "fresh beacons: root seed", "beacon_samples": "fresh beacons: samples",
+           "dataset_seed": "dataset: root seed"}
+
+
+def _file_cell(v: dict) -> str:
+    where = " (in the run folder)" if v.get("relative_to") == "run" else ""
+    return f"{v['path']}{where}" + (f", sha256 {v['sha256']}" if v.get("sha256") else ", not found")
 
 
 def report_html(name: str, rep: dict) -> str:
@@ -111,9 +145,10 @@ def report_html(name: str, rep: dict) -> str:
         rows = []
         for k, v in pv.items():
             if isinstance(v, dict):
-                v = f"{v['path']}" + (f" (sha256 {v['sha256'][:16]}...)" if v.get("sha256") else "")
-            rows.append({"what": k.replace("_", " "), "value": "-" if v is None else str(v)})
-        parts.append("<h2>Provenance</h2>" + _table(rows))
+                v = _file_cell(v)
+            rows.append({"what": _LABELS.get(k, k.replace("_", " ")), "value": "-" if v is None else str(v)})
+        parts.append("<h2>Provenance</h2><p class='small'>Files by their sha256; paths relative to the recipe's "
+                     "folder, or to this report's for what the run made.</p>" + _table(rows))
     parts.append("<p class='small'>metadesign " + html.escape(__version__) + "; stages: " + ", ".join(
         f"{k} ({'up to date, ran in %.1f s' % v.get('ran_seconds', float('nan')) if v.get('skipped') else '%.1f s' % v['seconds']})"
         for k, v in rep["stages"].items()) + "</p>")

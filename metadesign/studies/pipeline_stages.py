@@ -32,6 +32,7 @@ from ..reconstruction.train import train as train_network
 from ..sensing.model import load_sensing_recipe
 from ..sensing.plot import plot_fab_study, plot_frames
 from ..sensing.render import FabCases, fab_study, render_psf, save_psf
+from ..sensing.sensor import quadrant_slices
 from ..turbulence.scenario import load_scenario
 from ..turbulence.system import build_system
 from ..turbulence.validate import plot_validation, validate
@@ -40,7 +41,12 @@ from .beacons import LABELS, fresh_beacons
 from .pipeline_check import check_cells
 
 __all__ = ["library", "design", "layout", "sensing", "turbulence", "dataset", "train", "evaluate", "beacons",
-           "CAPTURED_MARGIN"]
+           "CAPTURED_MARGIN", "BEACON_DESIGN", "BEACON_SEED", "BEACON_RYTOV"]
+
+#: the folder of the run where the ``[beacons]`` device is designed (its ``design.npz`` is the device)
+BEACON_DESIGN = "beacon-design"
+#: the scintillated beacon of the sensing stage's figure: its screens' seed and nominal Rytov number
+BEACON_SEED, BEACON_RYTOV = 1, 0.3
 
 
 def library(run, key: str) -> None:
@@ -176,9 +182,10 @@ def sensing(run, key: str) -> None:
             for r in fab_study(fab, sr, FabCases((b,), (j,), seed=seed)):
                 rows.append({**r, "case": i, "label": label})
         plot_fab_study(rows, figs[1])
-        smp = system.chain().sample(seed=1, rytov=0.3)
+        smp = system.chain().sample(seed=BEACON_SEED, rytov=BEACON_RYTOV)
         plot_frames(smp.frames, sr.sensor, figs[2], fab.channels,
-                    "scintillated beacon at Rytov 0.3 through the as-fabricated device")
+                    f"one scintillated beacon (seed {BEACON_SEED}, nominal Rytov {BEACON_RYTOV:g}) through the "
+                    "as-fabricated device")
         nominal = [r for r in rows if r["label"] == "nominal"]
         focal = [{"pol": r["pol"], "k": r["k"], "design_f_mm": r["design_focal_length_mm"],
                   "best_focus_mm": r["design_focal_length_mm"] + r["focal_shift_mm"], "strehl": r["strehl"]}
@@ -188,14 +195,15 @@ def sensing(run, key: str) -> None:
                   "mean_efficiency": float(np.mean([r["focusing_efficiency"] for r in rows if r["case"] == i]))}
                  for i, (label, b, j, _) in enumerate(cases)]
         return {"focal_check": focal, "fab_study": study, "channels": nominal,
+                "beacon": {"seed": BEACON_SEED, "rytov": BEACON_RYTOV, **spot_changes(res.frames, smp.frames, sr.sensor)},
                 "figures": [str(f) for f in figs]}
 
     ps = run.stage("sensing", key, figs, do_sensing)
     nom = ps["channels"]
     run.say("sensing", f"8 PSFs from the layout file: focusing efficiency "
-            f"{np.mean([r['focusing_efficiency'] for r in nom]):.3f} per channel, Strehl "
+            f"{100 * np.mean([r['focusing_efficiency'] for r in nom]):.2f} % per channel, Strehl "
             f"{min(r['strehl'] for r in nom):.3f}..{max(r['strehl'] for r in nom):.3f}, crosstalk "
-            f"{max(r['crosstalk'] for r in nom):.3f}; fab study: Strehl "
+            f"{100 * max(r['crosstalk'] for r in nom):.1f} %; fab study: Strehl "
             + ", ".join(f"{r['case']} {r['mean_strehl']:.3f}" for r in ps["fab_study"]))
     focal = [{"channel": f"{r['pol']}-pol {['QI', 'QII', 'QIII', 'QIV'][r['k'] - 1]}",
               "design f (mm)": f"{r['design_f_mm']:.4f}",
@@ -215,14 +223,50 @@ def sensing(run, key: str) -> None:
         "Fig. 2c: sensor frames", figs[0],
         "The 8 spots on the sensor (2 polarisations x 4 quadrants), each with its own defocus: all 8 should be "
         "compact and centred in their quadrant."), (
-        "A scintillated beacon", figs[2],
-        "One beacon through the turbulence (Rytov 0.3) onto the same sensor: the 8 spots break up, each "
-        "differently, and that difference is what the reconstruction reads.")])
+        "A scintillated beacon", figs[2], beacon_caption(ps.get("beacon")))])
     run.section("4. As-fabricated sensor", ("Fab study", study), raw=ps["fab_study"], figures=[(
         "Fab study", figs[1],
         "Per spot (8 markers per device, x-pol filled, y-pol open) and per fabrication case: focusing "
         "efficiency, Strehl ratio at best focus, best-focus shift from the design focal length, and crosstalk "
         "into the other quadrants: how much a fab process may drift before the spots degrade.")])
+
+
+def spot_changes(frames, beacon_frames, sensor) -> dict:
+    """How one beacon's frames differ from the device's own: per quadrant (x-pol QI..QIV, y-pol QI..QIV) the
+    peak over its frame's brightest, with and without the turbulence, and how far the spot's intensity
+    centroid moved on the camera (um)."""
+    def spots(fr):
+        peaks, cents = [], []
+        for f in np.asarray(fr, np.float64):
+            top = max(float(f.max()), 1e-30)
+            for k in range(1, 5):
+                r, c = quadrant_slices(sensor, k)
+                q = f[r, c]
+                w = max(float(q.sum()), 1e-30)
+                y, x = np.indices(q.shape)
+                peaks.append(float(q.max()) / top)
+                cents.append((float((q * y).sum()) / w, float((q * x).sum()) / w))
+        return peaks, np.array(cents)
+
+    p0, c0 = spots(frames)
+    p1, c1 = spots(beacon_frames)
+    moved = np.hypot(*(c1 - c0).T) * sensor.pixel_pitch * 1e6
+    return {"peaks": p1, "peaks_without": p0, "moved_um": [float(v) for v in moved]}
+
+
+def beacon_caption(b: dict | None) -> str:
+    """The scintillated-beacon figure's caption, from what its frames show (:func:`spot_changes`)."""
+    if not b or "moved_um" not in b:  # a run folder made before the figure was measured
+        return ("One scintillated beacon through the turbulence onto the same sensor, each quadrant on its own "
+                "scale: the 8 spots move and change brightness, each differently; those differences are what "
+                "the reconstruction reads.")
+    mv = b["moved_um"]
+    return (f"One beacon (screens' seed {b['seed']}, nominal Rytov {b['rytov']:g}) through the turbulence onto the "
+            "same sensor, each quadrant on its own scale (compare Fig. 2c): the turbulence tilts and scintillates "
+            f"the received wave, so the spots move off their places ({min(mv):.0f}-{max(mv):.0f} um on the camera) "
+            f"and their peaks spread to {min(b['peaks']):.2f}-1.00 of their frame's brightest (without turbulence "
+            f"{min(b['peaks_without']):.2f}-1.00), each spot differently since each has its own defocus: those "
+            "differences are what the reconstruction reads.")
 
 
 def turbulence(run, key: str) -> None:
@@ -393,7 +437,7 @@ def beacons(run, key: str) -> None:
     b, out = run.rec.beacons, run.out
     fig = out / "fig-3b-beacons.png"
     info = run.stage("beacons", key, [fig], lambda: fresh_beacons(
-        b, run.rec.pipeline.turbulence, out / "beacon-design", fig, library=run.lib_path))
+        b, run.rec.pipeline.turbulence, out / BEACON_DESIGN, fig, library=run.lib_path))
     run.say("beacons", info["line"])
     m, cap = info["npib"], info["captured_fraction"]
     rows = []
