@@ -81,7 +81,7 @@ def read_manifest(path: Path, need: tuple[str, ...], what: str = "manifest") -> 
     base = path.parent
     for n, r in enumerate(rows, 2):
         for c in need:
-            if c in ("frame_x", "frame_y", "slm_phase"):
+            if c in ("frame_x", "frame_y", "frame_raw", "slm_phase"):
                 v = (r.get(c) or "").strip()
                 if not v:
                     raise ValidationError(f"{path}: line {n}: empty {c}")

@@ -11,6 +11,12 @@ Inputs (paths in the CSVs are relative to the CSV):
   the receiver crop of the reference's turbulence grid (A x A samples spanning ``A dx``: ``dataset show
   REFERENCE`` prints both) or, with ``slm_extent_mm`` (the map's side length), on any square grid centred on
   the aperture, resampled area-weighted onto the crop; another size without an extent is refused.
+* ``--mosaic CAMERA.toml``: a polarisation (mosaic) camera's raw captures instead (issue #52): the manifest and
+  the calibration list name one raw capture per sample in a ``frame_raw`` column, darks are raw too, and the
+  vendor's layout (size, bit depth, packing, the micro-polariser pattern, the demosaic) is the recipe's
+  (:mod:`.mosaic_frames`); darks and hot pixels are handled on the raw mosaic, saturation at its bit depth's full
+  scale, then each capture is demosaicked into the x and y frames (the reference sensor's size: a raw capture has
+  twice its pixels along each side).
 * ``--calibration FLAT.csv``: flat-wavefront captures (columns ``frame_x, frame_y``; averaged).
 * ``--dark FILE ...``: dark frames (averaged): subtracted from every frame; pixels brighter than the dark
   median by ``--hot-sigma`` robust sigmas are hot and replaced by the median of their non-hot neighbours.
@@ -63,6 +69,7 @@ from .camera_frames import (aligned_tensor,
 from .dataset_build import normalise_psf
 from .dataset_recipe import split_labels
 from .dataset_store import DATASET_FORMAT, consolidate, create_store, load_device, open_dataset, open_store
+from .mosaic_frames import demosaic_counts, load_mosaic_layout, read_raw
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
@@ -124,9 +131,12 @@ def _phase(path: Path, crop, per_count: float, extent_m: float | None = None) ->
     return np.arctan2(im, re)
 
 
-def _read_counts(path, what, neg: dict | None):
+def _read_counts(path, what, neg: dict | None, mosaic=None):
     """A frame's counts with negative values clipped at zero (a camera counts photo-electrons: a negative
-    count is a signed-integer or BZERO artefact of the file); their number goes into ``neg``."""
+    count is a signed-integer or BZERO artefact of the file); their number goes into ``neg``.  ``mosaic``: a
+    raw capture of that layout (:func:`~.mosaic_frames.read_raw`, every count checked)."""
+    if mosaic is not None:
+        return read_raw(path, mosaic, what)
     f, full = read_frame(path, what)
     bad = f < 0
     if bad.any():
@@ -137,10 +147,10 @@ def _read_counts(path, what, neg: dict | None):
     return f, full
 
 
-def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None):
+def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None, mosaic=None):
     acc = np.zeros(shape)
     for p in paths:
-        f, _ = _read_counts(p, what, neg)
+        f, _ = _read_counts(p, what, neg, mosaic)
         if f.shape != shape:
             raise ValidationError(f"{p}: {what}: {f.shape[1]} x {f.shape[0]} pixels, the sensor has "
                                   f"{shape[1]} x {shape[0]}")
@@ -155,18 +165,21 @@ def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None):
 
 def import_captures(folder: str | Path, out: str | Path, calibration: str | Path, reference: str | Path,
                     darks: list | None = None, options: ImportOptions = ImportOptions(),
-                    run: Execution = SERIAL) -> dict:
+                    run: Execution = SERIAL, mosaic: str | Path | None = None) -> dict:
     """Import a capture folder into a dataset at ``out`` (see the module docstring); returns a report.
-    ``run``: its progress (per sample) and log; ``options.overwrite`` replaces an existing ``out``."""
+    ``run``: its progress (per sample) and log; ``options.overwrite`` replaces an existing ``out``; ``mosaic``:
+    the recipe of a polarisation camera's raw captures (:mod:`.mosaic_frames`)."""
+    layout = load_mosaic_layout(mosaic) if mosaic is not None else None
     folder, out = Path(folder), Path(out)
     if options.saturated not in ("flag", "drop", "error"):
         raise ValidationError(f"--saturated: expected flag, drop or error, got {options.saturated!r}")
     if out.exists() and not options.overwrite:
         raise ValidationError(f"{out}: exists (use --overwrite to replace it)")
     with product(out, "dataset", {"captures": folder, "--calibration": calibration, "--reference": reference,
-                                  **{f"--dark {d}": d for d in (darks or [])}},
+                                  **{f"--dark {d}": d for d in (darks or [])},
+                                  **({"--mosaic": mosaic} if mosaic is not None else {})},
                  scratch=(scratch_path(out),)):
-        return _import(folder, out, calibration, reference, darks, options, run)
+        return _import(folder, out, calibration, reference, darks, options, run, layout)
 
 
 def _split_column(rows: list[dict], manifest: Path, options: "ImportOptions") -> np.ndarray:
@@ -207,11 +220,13 @@ def _manifest_numbers(rows: list[dict], manifest: Path) -> tuple[list[float], li
     return rytov_all, slm_extent
 
 
-def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None) -> tuple[list[np.ndarray], bool]:
-    """A sample's two frames, checked, dark-subtracted and hot-pixel-fixed, and whether one saturated."""
+def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None,
+                   mosaic=None) -> tuple[list[np.ndarray], bool]:
+    """A sample's two frames, checked, dark-subtracted and hot-pixel-fixed, and whether one saturated (``mosaic``:
+    from its one raw capture, demosaicked after the darks and hot pixels)."""
     fr, sat = [], False
-    for p in "xy":
-        f, full = _read_counts(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}", neg)
+    for p in ("raw",) if mosaic is not None else "xy":
+        f, full = _read_counts(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}", neg, mosaic)
         if f.shape != shape:
             raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
                                   f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
@@ -226,6 +241,8 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
         if hot is not None:
             f = fix_hot_pixels(f, hot)
         fr.append(f)
+    if mosaic is not None:
+        fr = list(demosaic_counts(fr[0], mosaic))
     return fr, sat
 
 
@@ -239,6 +256,7 @@ class _Camera:
     hot: np.ndarray | None
     neg: dict
     alignment: object
+    mosaic: object = None  # a raw mosaic's layout (shape, dark and hot pixels are then the raw mosaic's)
 
 
 @dataclass
@@ -262,10 +280,11 @@ def _convert(rows: list[dict], manifest: Path, ref, tensor_size: int, cam: _Came
     ap = ref.crop.aperture_mask()
     kept, flagged, psf, power, rec, outside_max = [], [], [], [], [], 0.0
     for j, r in enumerate(rows):
-        fr, sat = _sample_frames(r, cam.shape, options, cam.dark, cam.hot, cam.neg)
+        fr, sat = _sample_frames(r, cam.shape, options, cam.dark, cam.hot, cam.neg, cam.mosaic)
+        first = r["frame_raw"] if cam.mosaic is not None else r["frame_x"]
         if sat:
             if options.saturated == "error":
-                raise ValidationError(f"{r['frame_x'].parent}: sample {r['sample']}: saturated frame "
+                raise ValidationError(f"{first.parent}: sample {r['sample']}: saturated frame "
                                       f"(--saturated error)")
             flagged.append(r["sample"])
             if options.saturated == "drop":
@@ -275,7 +294,7 @@ def _convert(rows: list[dict], manifest: Path, ref, tensor_size: int, cam: _Came
         outside_max = max(outside_max, outside)
         x, pw = normalise_psf(t)
         if not pw > 0:
-            raise ValidationError(f"{r['frame_x']}: sample {r['sample']}: no light after dark subtraction")
+            raise ValidationError(f"{first}: sample {r['sample']}: no light after dark subtraction")
         psf.append(x)
         power.append(pw)
         rec.append(np.where(ap, np.cos(phi) + 1j * np.sin(phi), 0).astype(np.complex64))
@@ -337,30 +356,41 @@ def _fill_store(path: Path, conv: _Converted, rows: list[dict]) -> None:
     g.attrs.update({"complete": True})
 
 
-def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, run: Execution) -> dict:
+def _import(folder: Path, out: Path, calibration, reference, darks, options: ImportOptions, run: Execution,
+            mosaic=None) -> dict:
     t0 = time.perf_counter()
     manifest = folder / "manifest.csv" if folder.is_dir() else folder
-    rows = read_manifest(manifest, ("sample", "frame_x", "frame_y", "slm_phase"))
+    cols = ("frame_raw",) if mosaic is not None else ("frame_x", "frame_y")
+    rows = read_manifest(manifest, ("sample", *cols, "slm_phase"))
     names = [r["sample"] for r in rows]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise ValidationError(f"{manifest}: sample {dup!r} is listed twice")
-    flats = read_manifest(Path(calibration), ("frame_x", "frame_y"), "calibration list")
+    flats = read_manifest(Path(calibration), cols, "calibration list")
     ref = load_device(reference)
     ref_info = open_dataset(reference)
     sensor = ref.sensor
     shape = (sensor.height_px, sensor.width_px)
+    raw_shape = shape if mosaic is None else (2 * shape[0], 2 * shape[1])  # the x and y frames: half its sides
+    if mosaic is not None and mosaic.width_px and (mosaic.height_px, mosaic.width_px) != raw_shape:
+        raise ValidationError(f"--mosaic: a {mosaic.width_px} x {mosaic.height_px} raw mosaic gives "
+                              f"{mosaic.width_px // 2} x {mosaic.height_px // 2} frames, the reference's sensor has "
+                              f"{shape[1]} x {shape[0]} pixels")
     S = ref_info.tensor_size
 
     # darks and hot pixels
     dark = hot = None
     neg: dict = {}
     if darks:
-        dark = _mean_frames([Path(p) for p in darks], shape, "dark frame", neg=neg)
+        dark = _mean_frames([Path(p) for p in darks], raw_shape, "dark frame", neg=neg, mosaic=mosaic)
         hot = hot_pixel_map(dark, options.hot_sigma)
     # calibration
-    flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot, neg)
-                     for p in "xy"])
+    if mosaic is not None:
+        flat = demosaic_counts(_mean_frames([r["frame_raw"] for r in flats], raw_shape, "flat capture", dark, hot,
+                                            neg, mosaic), mosaic)
+    else:
+        flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot, neg)
+                         for p in "xy"])
     ref_frames = Device(ref.pupil, sensor).frames()
     c_ref = spot_centroids(ref_frames, sensor, options.threshold)
     al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
@@ -371,7 +401,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
             "a wrong reference?)")
 
     split_all = _split_column(rows, manifest, options)
-    conv = _convert(rows, manifest, ref, S, _Camera(shape, dark, hot, neg, al), options, run.progress)
+    conv = _convert(rows, manifest, ref, S, _Camera(raw_shape, dark, hot, neg, al, mosaic), options, run.progress)
     if neg:
         run.log(f"warning: {neg['pixels']} negative counts in {len(neg['frames'])} frame(s) (first: "
                 f"{neg['frames'][0]}) clipped at zero: a camera counts photo-electrons (a signed or BZERO-less FITS "
@@ -388,6 +418,8 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
              "hot_pixels": int(hot.sum()) if hot is not None else None, "window_outside_frame_max": conv.outside_max}
     parts = {"format": DATASET_FORMAT, "source": "captures", "manifest_sha256": file_key(manifest),
              "calibration": calib, "options": options.hashed()}
+    if mosaic is not None:  # absent for two frames per sample: those imports keep their hash
+        parts["mosaic"] = mosaic.to_dict()
     attrs = _store_attrs(out.name, parts, conv, split, ref_info, options,
                          {"captures": str(folder), "reference": str(reference)})
     tmp = fresh_scratch(out, "store")  # OUT.partial/store: zarr empties its own folder, so the marker stays outside

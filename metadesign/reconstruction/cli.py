@@ -223,7 +223,7 @@ def _cmd_import(a: argparse.Namespace) -> int:
                         phase_per_count=a.phase_per_count, split=tuple(a.split or (0.9, 0.05, 0.05)), seed=a.seed,
                         overwrite=a.overwrite)
     rep = import_captures(a.folder, out, a.calibration, a.reference, a.dark, opt,
-                          Execution(progress=progress_bar("import", unit="sample"), log=log_to(a.json)))
+                          Execution(progress=progress_bar("import", unit="sample"), log=log_to(a.json)), a.mosaic)
     al = rep["calibration"]["alignment"]
     text = (f"wrote {out}: {rep['samples']} of {rep['listed']} samples (8 x {rep['tensor'][1]}^2), split "
             + "/".join(str(v) for v in rep["split_counts"].values())
@@ -385,6 +385,10 @@ def _register_import(dsub) -> None:
     im.add_argument("--reference", required=True, metavar="DATASET",
                     help="synthetic dataset of the design (sensor, tensor size, path, reference spots)")
     im.add_argument("--dark", nargs="+", metavar="FILE", help="dark frame(s), averaged")
+    im.add_argument("--mosaic", metavar="CAMERA_TOML",
+                    help="raw captures of a polarisation (mosaic) camera: one frame_raw per sample (manifest and "
+                         "calibration list), its vendor layout in this recipe ([raw] width_px, height_px, bit_depth, "
+                         "packing, msb_aligned; [camera] pattern, extinction_ratio, unmix, ...)")
     im.add_argument("--fit", choices=("similarity", "shift"), default="similarity",
                     help="relay model fitted to the spot centres (default similarity: shift, rotation, scale)")
     im.add_argument("--hot-sigma", type=num(1, 1000), default=8.0, help="hot pixel threshold, robust sigmas (8)")

@@ -26,7 +26,12 @@ field at a time; :meth:`Device.frames` and :meth:`Device.render` also give the c
 :meth:`Device.twin` (:class:`~.twin.TorchTwin`, batched and differentiable, the same operators); the
 learnable diversity's :class:`~.twin_diversity.DiversityTwin`.  Noise is the detector's alone, after
 rendering (:class:`~.detector.Detector`: :meth:`Device.render` with a detector in numpy,
-``Detector.read_torch`` in torch); estimators receive frames, never noise settings."""
+``Detector.read_torch`` in torch); estimators receive frames, never noise settings.
+
+**The camera.**  ``camera = None`` is today's ideal camera: the x-pol and y-pol frames rendered as two frames.  A
+:class:`~.mosaic.MosaicCamera` (a polarisation camera: micro-polarisers on the pixels, issue #52) renders one raw
+mosaic (:meth:`Device.raw`), which the detector reads (one exposure for both polarisations) and the camera
+demosaics into the two frames on its own grid (:attr:`Device.frame_sensor`); the torch twins stay ideal."""
 
 from __future__ import annotations
 
@@ -40,6 +45,7 @@ from ..io import read_npz, write_npz
 from ..validation import ValidationError, check_int, check_number
 from .detector import Detector
 from .forward import CoarsePupil, sensor_frames
+from .mosaic import MosaicCamera, render_raw
 from .sensor import SensorSpec, psf_tensor
 from .twin import TorchTwin, crop_to_pupil
 
@@ -100,55 +106,80 @@ class ReceiverCrop:
 @dataclass(frozen=True)
 class Exposure:
     """One rendered exposure: the camera frames ``(2, H, W)`` (x- and y-polarisation; power per pixel for unit
-    incident intensity, after the detector) and the PSF tensor ``(8, S, S)`` made from them."""
+    incident intensity, after the detector) and the PSF tensor ``(8, S, S)`` made from them; ``raw``: a mosaic
+    camera's raw capture ``(2H, 2W)`` as the detector read it (None for the ideal camera)."""
 
     frames: np.ndarray
     psfs: np.ndarray
+    raw: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class Device:
     """A metasurface as made, its sensor, and the received-field crop it is fed from (None: a device fed
-    with fields on its pupil grid only, e.g. the stage-4 PSF of a layout)."""
+    with fields on its pupil grid only, e.g. the stage-4 PSF of a layout); ``camera``: a polarisation camera
+    (:class:`~.mosaic.MosaicCamera`) in place of today's two ideal frames (None)."""
 
     pupil: CoarsePupil
     sensor: SensorSpec
     crop: ReceiverCrop | None = None
+    camera: MosaicCamera | None = None
 
     def __post_init__(self):
         if not isinstance(self.pupil, CoarsePupil) or not isinstance(self.sensor, SensorSpec) \
-                or not (self.crop is None or isinstance(self.crop, ReceiverCrop)):
-            raise TypeError("Device(pupil: CoarsePupil, sensor: SensorSpec, crop: ReceiverCrop | None)")
+                or not (self.crop is None or isinstance(self.crop, ReceiverCrop)) \
+                or not (self.camera is None or isinstance(self.camera, MosaicCamera)):
+            raise TypeError("Device(pupil: CoarsePupil, sensor: SensorSpec, crop: ReceiverCrop | None, "
+                            "camera: MosaicCamera | None)")
 
     # -- the forward-model contract (numpy backend) -------------------------------------------------
     def frames(self, e_in: np.ndarray | None = None) -> np.ndarray:
         """Noise-free camera frames ``(2, H, W)`` for the incident field ``e_in`` on the pupil grid (None: a
-        flat unit plane wave)."""
-        return sensor_frames(self.pupil, self.sensor, e_in)
+        flat unit plane wave); a mosaic camera's demosaicked frames (on :attr:`frame_sensor`)."""
+        if self.camera is None:
+            return sensor_frames(self.pupil, self.sensor, e_in)
+        return self.camera.demosaic(self.raw(e_in), self.sensor)
+
+    def raw(self, e_in: np.ndarray | None = None) -> np.ndarray:
+        """A mosaic camera's noise-free raw capture ``(2H, 2W)`` (power per pixel)."""
+        if self.camera is None:
+            raise ValidationError("this device has an ideal camera (two frames): no raw mosaic")
+        return render_raw(self.pupil, self.sensor, self.camera, e_in)
+
+    @property
+    def frame_sensor(self) -> SensorSpec:
+        """The grid of the frames: the sensor's, or a mosaic camera's super-pixels over its field."""
+        return self.sensor if self.camera is None else self.camera.frame_sensor(self.sensor)
+
+    def _read(self, frames: np.ndarray, detector: Detector | None, rng) -> Exposure:
+        """What the camera records of noise-free ``frames`` (a mosaic camera's: its raw capture)."""
+        if detector is not None:
+            frames = detector.read(frames, rng)
+        if self.camera is None:
+            return Exposure(frames, psf_tensor(frames, self.sensor))
+        f = self.camera.demosaic(frames, self.sensor)
+        return Exposure(f, psf_tensor(f, self.frame_sensor), frames)
 
     def render(self, e_in: np.ndarray | None = None, detector: Detector | None = None,
                rng: np.random.Generator | None = None) -> Exposure:
         """The one call per frame: the frames of ``e_in``, read by the ``detector`` (None: noise-free; ``rng``
-        its draws, else its seed's), and the PSF tensor of what it read."""
-        frames = self.frames(e_in)
-        if detector is not None:
-            frames = detector.read(frames, rng)
-        return Exposure(frames, psf_tensor(frames, self.sensor))
+        its draws, else its seed's), and the PSF tensor of what it read (a mosaic camera: its raw capture is
+        read, then demosaicked)."""
+        return self._read(self.frames(e_in) if self.camera is None else self.raw(e_in), detector, rng)
 
     def expose(self, fields, detector: Detector | None = None, rng: np.random.Generator | None = None) -> Exposure:
         """One exposure over moving turbulence: the mean of the noise-free frames of each incident field of
         ``fields`` (the exposure's sub-steps), read once by the ``detector`` (its photon budget is the
         frame's), and the PSF tensor of what it read.  One field: :meth:`render`."""
-        frames = np.mean([self.frames(e) for e in fields], axis=0, dtype=np.float64).astype(np.float32)
-        if detector is not None:
-            frames = detector.read(frames, rng)
-        return Exposure(frames, psf_tensor(frames, self.sensor))
+        one = self.frames if self.camera is None else self.raw
+        frames = np.mean([one(e) for e in fields], axis=0, dtype=np.float64).astype(np.float32)
+        return self._read(frames, detector, rng)
 
     def psfs(self, e_in: np.ndarray | None = None) -> np.ndarray:
         """The noise-free PSF tensor ``(8, S, S)`` (or ``(B, 8, S, S)`` for a batch of fields)."""
         if e_in is not None and np.ndim(e_in) == 3:
             return np.stack([self.psfs(e) for e in e_in])
-        return psf_tensor(self.frames(e_in), self.sensor)
+        return psf_tensor(self.frames(e_in), self.frame_sensor)
 
     def pupil_field(self, crop: np.ndarray) -> np.ndarray:
         """Received crop(s) ``(..., A, A)`` -> the incident field(s) on the pupil grid (the cubic resampling
@@ -164,7 +195,10 @@ class Device:
 
     def twin(self, rebin: int = 1, samples: int | None = None, device="cpu", double: bool = False):
         """The torch backend of this device (:class:`~metadesign.sensing.twin.TorchTwin`: the same three
-        calls, batched, differentiable)."""
+        calls, batched, differentiable; an ideal camera's)."""
+        if self.camera is not None:
+            raise ValidationError("the torch twin renders an ideal camera's two frames: a device with a mosaic "
+                                  "camera has no twin (use Device(pupil, sensor, crop) for it)")
         return TorchTwin.for_device(self, rebin, samples, device, double)
 
     def _need_crop(self) -> ReceiverCrop:

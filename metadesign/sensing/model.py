@@ -20,15 +20,50 @@ from ..library.surrogates import CouplingNet
 from ..parallel import run_tasks
 from .device import Device
 from .forward import CoarsePupil, block_size_for, coarse_pupil, quadrant_fields
+from .mosaic import IMX250MZR_PATTERN, INCIDENT, MosaicCamera
 from .sensor import NoiseSpec, SensorSpec, quadrant_slices
 from .transmission import Perturbation, pillar_transmission
 
 __all__ = ["COUPLINGS", "SensingRecipe", "load_sensing_recipe", "sensing_from_dict", "AsFabricated", "channel_metrics",
-           "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "read_tiled_contents"]
+           "spot_metrics", "render_frames", "SENSING_SECTIONS", "IndexRows", "read_tiled_contents", "CAMERA_SECTION",
+           "camera_from_values"]
 
 #: the supercell models a device's pupil can take (``"coupling"``: the coupling network, ``"supercell"`` its
 #: historic name, which records keep)
 COUPLINGS = ("lpa", "supercell", "coupling", "peds")
+
+#: the sensing recipe's ``[camera]``: today's two ideal frames, or a polarisation (mosaic) camera (issue #52)
+CAMERA_SECTION = Section("camera", (
+    Param("kind", str, "ideal", choices=("ideal", "mosaic"),
+          help="ideal: the x-pol and y-pol frames as two ideal frames (today); mosaic: one raw capture of a "
+               "division-of-focal-plane polarisation camera, demosaicked (metadesign.sensing.mosaic)"),
+    Param("extinction_ratio", float, 0.0, lo=0, hi=1e9, help="of each micro-polariser; 0: ideal (infinite)"),
+    Param("transmission", float, 1.0, lo=0, open_lo=True, hi=1, help="the pass axis's intensity transmittance"),
+    Param("crosstalk_percent", float, 0.0, lo=0, hi=50, open_hi=True,
+          help="% of a pixel's power leaking to its four neighbours"),
+    Param("pixel_pitch_um", float, 0.0, lo=0, hi=1000,
+          help="the mosaic's pixel pitch on the camera; 0: half the sensor's (the frames keep its grid)"),
+    Param("pattern", list, [list(r) for r in IMX250MZR_PATTERN], rows=True, lo=0, hi=180,
+          help="the 2 x 2 super-pixel, rows of angles in degrees (the IMX250MZR's: [[90, 45], [135, 0]])"),
+    Param("use_diagonal", bool, False, help="demosaic through the Stokes parameters of all four pixels"),
+    Param("unmix", bool, False, help="correct the known extinction leak of the 0 and 90 degree pixels"),
+    Param("offsets", bool, True, help="each pixel samples its own centre (false: every pixel of a super-pixel "
+                                      "its centre)"),
+    Param("incident", str, "circular", choices=tuple(INCIDENT), help="the incident beam's polarisation"),
+), optional=True)
+
+
+def camera_from_values(c: dict) -> MosaicCamera | None:
+    """The camera of a parsed ``[camera]`` section (None: today's ideal two frames)."""
+    if c["kind"] == "ideal":
+        return None
+    er = c["extinction_ratio"]
+    if 0 < er <= 1:
+        raise ConfigError("camera.extinction_ratio", f"expected a number > 1, or 0 for ideal polarisers, got {er!r}")
+    return MosaicCamera(c["pattern"], float("inf") if er == 0 else er, c["transmission"],
+                        c["crosstalk_percent"] / 100, c["pixel_pitch_um"] or None, c["use_diagonal"], c["unmix"],
+                        c["offsets"], c["incident"])
+
 
 SENSING_SECTIONS = (
     Section("sensor", (
@@ -55,6 +90,7 @@ SENSING_SECTIONS = (
         Param("bit_depth", int, 0, lo=0, hi=32),
         Param("seed", int, 0, lo=0),
     ), optional=True),
+    CAMERA_SECTION,
 )
 
 
@@ -65,6 +101,7 @@ class SensingRecipe:
     noise: NoiseSpec
     coupling: str = "lpa"  # "lpa" | "supercell" (the coupling network; "coupling" in a recipe) | "peds"
     coupling_model: Path | None = None  # None: the model fitted against the device's library
+    camera: MosaicCamera | None = None  # None: today's two ideal frames ([camera] kind = "ideal")
 
 
 def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
@@ -85,8 +122,11 @@ def sensing_from_dict(data: dict, source: str = "recipe") -> SensingRecipe:
     kind = "supercell" if pu["coupling"] == "coupling" else pu["coupling"]  # one spelling downstream
     if pu["coupling_model"] is not None and kind == "lpa":
         raise ConfigError("pupil.coupling_model", 'needs pupil.coupling = "supercell" (or "coupling", "peds")')
+    camera = camera_from_values(v["camera"])
+    if camera is not None:
+        camera.frame_sensor(sensor)  # the mosaic's pitch must tile the sensor's field: one line now
     return SensingRecipe(sensor, pu["grid"], noise, kind,
-                         None if pu["coupling_model"] is None else Path(pu["coupling_model"]))
+                         None if pu["coupling_model"] is None else Path(pu["coupling_model"]), camera)
 
 
 def load_sensing_recipe(path: str | Path) -> SensingRecipe:

@@ -42,7 +42,8 @@ class BeaconChain:
     def __init__(self, pupil: CoarsePupil, sensing: SensingRecipe, scenario: Scenario, aperture: float):
         check_wavelengths(pupil.wavelength, scenario.wavelength, "turbulence scenario")  # one wavelength per chain
         self.pupil, self.sensing = pupil, sensing
-        self.device = Device(pupil, sensing.sensor)  # the forward-model contract: one render per sample
+        # the forward-model contract: one render per sample (through the recipe's camera, if it names one)
+        self.device = Device(pupil, sensing.sensor, camera=sensing.camera)
         self.turbulence = Turbulence(replace(scenario, metasurface_aperture=aperture))
 
     @classmethod

@@ -1,0 +1,238 @@
+"""The polarisation (mosaic) camera of issue #52 (metadesign.sensing.mosaic): the micro-polariser against Malus's law
+and an explicit Jones-matrix partial polariser, the extinction-ratio limits, crosstalk's power balance, the demosaic
+of a uniform polarised field (with the pattern's geometry), the forward model at ideal polarisers equal to today's
+frames, the raw 12-bit reader, and the recipes' bad values (one line, exit 2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_baselines import _smooth_field, synthetic_device
+
+from metadesign.sensing.mosaic import (IMX250MZR_PATTERN, MosaicCamera, demosaic, interleave, pixel_crosstalk,
+                                       polariser_intensity, stokes, unmix)
+
+
+def _jones(theta_deg, T, er):
+    """A partial polariser's Jones matrix: R(theta) diag(sqrt T, sqrt(T / ER)) R(-theta) (the textbook form)."""
+    t = math.radians(theta_deg)
+    R = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    return R @ np.diag([math.sqrt(T), math.sqrt(T / er) if math.isfinite(er) else 0.0]) @ R.T
+
+
+def _through(E, theta, T=1.0, er=math.inf):
+    """``(I_theta, ix, iy, cross)`` of a field ``E = (Ex, Ey)`` (complex) through the Jones matrix."""
+    out = _jones(theta, T, er) @ E
+    return float(np.sum(np.abs(out) ** 2)), abs(E[0]) ** 2, abs(E[1]) ** 2, float(np.real(E[0] * np.conj(E[1])))
+
+
+def test_malus_law():
+    """Linear light at alpha through an ideal polariser at theta: T cos^2(theta - alpha), every angle."""
+    for alpha in (0.0, 20.0, 45.0, 90.0, 133.0):
+        a = math.radians(alpha)
+        ix, iy, cross = math.cos(a) ** 2, math.sin(a) ** 2, math.cos(a) * math.sin(a)
+        for theta in np.arange(0.0, 180.0, 7.5):
+            got = polariser_intensity(ix, iy, cross, theta, 0.8)
+            assert got == pytest.approx(0.8 * math.cos(math.radians(theta) - a) ** 2, abs=1e-12)
+
+
+def test_partial_polariser_matches_jones_matrix_and_its_limits():
+    """Random coherent fields through the partial polariser equal the Jones-matrix reference; light along the pass
+    axis passes T, across it T / ER; unpolarised light (no cross term) passes T (1 + 1/ER) / 2 of its power at any
+    angle; ER -> inf is the ideal polariser."""
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        E = rng.normal(size=2) + 1j * rng.normal(size=2)
+        theta, T, er = rng.uniform(0, 180), rng.uniform(0.3, 1), rng.choice([2.0, 30.0, 300.0, math.inf])
+        ref, ix, iy, cross = _through(E, theta, T, er)
+        assert polariser_intensity(ix, iy, cross, theta, T, er) == pytest.approx(ref, rel=1e-12)
+    T, er = 0.9, 100.0
+    assert polariser_intensity(1.0, 0.0, 0.0, 0.0, T, er) == pytest.approx(T)
+    assert polariser_intensity(1.0, 0.0, 0.0, 90.0, T, er) == pytest.approx(T / er)
+    assert polariser_intensity(0.0, 1.0, 0.0, 45.0, T, er) == pytest.approx(T * (1 + 1 / er) / 2)
+    for theta in (0.0, 30.0, 45.0, 135.0):
+        assert polariser_intensity(0.5, 0.5, 0.0, theta, T, er) == pytest.approx(T * (1 + 1 / er) / 2)
+    assert polariser_intensity(0.3, 0.7, 0.1, 60.0, 1.0, 1e12) == pytest.approx(
+        polariser_intensity(0.3, 0.7, 0.1, 60.0), rel=1e-9)
+
+
+def test_crosstalk_conserves_power_and_shares_a_quarter_with_each_neighbour():
+    rng = np.random.default_rng(1)
+    raw = np.zeros((20, 24))
+    raw[1:-1, 1:-1] = rng.uniform(0, 1, (18, 22))  # nothing at the edge: no light leaks off the array
+    out = pixel_crosstalk(raw, 0.08)
+    assert out.sum() == pytest.approx(raw.sum(), rel=1e-12)
+    one = np.zeros((5, 5))
+    one[2, 2] = 1.0
+    d = pixel_crosstalk(one, 0.08)
+    assert d[2, 2] == pytest.approx(0.92)
+    for r, c in ((1, 2), (3, 2), (2, 1), (2, 3)):
+        assert d[r, c] == pytest.approx(0.02)
+    assert d.sum() == pytest.approx(1.0) and d[1, 1] == 0.0
+    edge = np.zeros((4, 4))
+    edge[0, 0] = 1.0
+    assert pixel_crosstalk(edge, 0.08).sum() == pytest.approx(1.0 - 0.04)  # two of its neighbours are off the array
+
+
+def test_demosaic_of_a_uniform_polarised_field():
+    """A uniform field linearly polarised at alpha, through the IMX250MZR's pattern (0 degrees at the bottom right of
+    each super-pixel) with ER 50 and T 0.7: the x and y frames are T (cos^2 + sin^2 / ER) and T (sin^2 + cos^2 /
+    ER); the Stokes estimate from all four pixels equals them, S2 is T (1 - 1/ER) sin 2 alpha; unmixing gives cos^2
+    and sin^2."""
+    T, er, alpha = 0.7, 50.0, math.radians(30.0)
+    E = np.array([math.cos(alpha), math.sin(alpha)], complex)
+    imgs = {a: np.full((3, 4), _through(E, a, T, er)[0]) for a in (0, 45, 90, 135)}
+    raw = interleave(imgs, IMX250MZR_PATTERN)
+    assert raw.shape == (6, 8)
+    assert raw[1, 1] == imgs[0][0, 0] and raw[0, 0] == imgs[90][0, 0] and raw[0, 1] == imgs[45][0, 0]
+    c2, s2 = math.cos(alpha) ** 2, math.sin(alpha) ** 2
+    f = demosaic(raw, IMX250MZR_PATTERN)
+    np.testing.assert_allclose(f[0], T * (c2 + s2 / er), rtol=1e-12)
+    np.testing.assert_allclose(f[1], T * (s2 + c2 / er), rtol=1e-12)
+    np.testing.assert_allclose(demosaic(raw, IMX250MZR_PATTERN, use_diagonal=True), f, rtol=1e-12)
+    s = stokes(*(imgs[a] for a in (0, 45, 90, 135)))
+    np.testing.assert_allclose(s[2], T * (1 - 1 / er) * math.sin(2 * alpha), rtol=1e-12)
+    x, y = unmix(f[0], f[1], T, er)
+    np.testing.assert_allclose(x, c2, rtol=1e-12)
+    np.testing.assert_allclose(y, s2, rtol=1e-12)
+
+
+def _device(**cam):
+    """The synthetic device of the baselines' tests behind a mosaic camera of ``cam``."""
+    from metadesign.sensing.device import Device
+
+    cp, sensor = synthetic_device(n=24)
+    return Device(cp, sensor, camera=MosaicCamera(**cam)), cp, sensor
+
+
+def test_ideal_mosaic_equals_todays_frames_exactly():
+    """Ideal polarisers (ER inf, T 1), no crosstalk, the half-pitch mosaic (frames on the sensor's grid), each
+    super-pixel sampled at its centre: the frames, the PSF tensor and the exposure are today's, bit for bit (so is a
+    sensing recipe whose [camera] says so).  With the pixels' own centres (offsets) the x frame is today's renderer
+    on the grid shifted to the 0 degree pixels."""
+    from metadesign.sensing.device import Device
+    from metadesign.sensing.forward import quadrant_fields
+    from metadesign.sensing.model import sensing_from_dict
+    from metadesign.sensing.sensor import quadrant_slices
+
+    dev, cp, sensor = _device(offsets=False)
+    today = Device(cp, sensor)
+    e = _smooth_field((24, 24), np.random.default_rng(0), 2).astype(np.complex64)
+    assert dev.frame_sensor == sensor
+    np.testing.assert_array_equal(dev.frames(e), today.frames(e))
+    np.testing.assert_array_equal(dev.psfs(e), today.psfs(e))
+    np.testing.assert_array_equal(dev.render(e).psfs, today.render(e).psfs)
+    np.testing.assert_array_equal(dev.expose([e, 0.5 * e]).frames, today.expose([e, 0.5 * e]).frames)
+    rec = sensing_from_dict({"camera": {"kind": "mosaic", "offsets": False}})
+    assert rec.camera == MosaicCamera(offsets=False)
+    assert sensing_from_dict({}).camera is None and sensing_from_dict({"camera": {"kind": "ideal"}}).camera is None
+    # the pixels' own centres: the 0 degree pixel is the super-pixel's bottom right, +p/2 along x and y
+    shifted, _, _ = _device(offsets=True)
+    q = sensor.pixel_pitch / 2 / sensor.magnification / 2
+    X, Y = sensor.coords()
+    ref = np.zeros((sensor.height_px, sensor.width_px), np.float32)
+    for k in range(1, 5):
+        r, c = quadrant_slices(sensor, k)
+        ref[r, c] = quadrant_fields(cp, 0, X[c] + q, Y[r] + q, sensor.quadrant_centre(k), e) * sensor.focal_pitch**2
+    np.testing.assert_allclose(shifted.frames(e)[0], ref, rtol=1e-6, atol=1e-7 * ref.max())
+    assert np.abs(shifted.frames(e)[0] - today.frames(e)[0]).max() > 1e-2 * ref.max()  # the offsets matter
+
+
+def test_mosaic_camera_composes_with_the_detector_and_keeps_power():
+    """A real camera renders one raw mosaic that the one detector reads, then demosaics; the 2x coarser mosaic
+    gives half-size frames; finite ER leaks the other polarisation into each frame; the twin refuses a mosaic."""
+    from metadesign.sensing.detector import Detector
+    from metadesign.validation import ValidationError
+
+    e = _smooth_field((24, 24), np.random.default_rng(2), 2).astype(np.complex64)
+    dev, cp, sensor = _device(extinction_ratio=30.0, crosstalk=0.02, pixel_pitch=sensor_pitch(), use_diagonal=True)
+    shot = dev.render(e, Detector.gaussian(5.0, seed=3))
+    assert shot.raw.shape == (sensor.height_px, sensor.width_px) and shot.frames.shape == (2, 32, 32)
+    assert shot.psfs.shape == (8, sensor.tensor_size, sensor.tensor_size)
+    ideal, _, _ = _device(offsets=False)
+    leaky, _, _ = _device(offsets=False, extinction_ratio=10.0)
+    fi, fl = ideal.frames(e), leaky.frames(e)
+    np.testing.assert_allclose(fl[0], fi[0] + fi[1] / 10, rtol=0, atol=1e-6 * fi.max())  # I_0 = I_x + I_y / ER
+    np.testing.assert_allclose(fl[1], fi[1] + fi[0] / 10, rtol=0, atol=1e-6 * fi.max())
+    with pytest.raises(ValidationError, match="twin"):
+        dev.twin()
+
+
+def sensor_pitch() -> float:
+    return 15e-6  # the synthetic sensor's pixel: a mosaic of that pitch makes 2x coarser frames
+
+
+def test_raw_12bit_round_trip(tmp_path):
+    """Mono12p (2 pixels in 3 bytes) and little-endian 16-bit raw files, MSB-aligned 16-bit PNGs: written, read back
+    to the same counts; a count above 12 bits, a wrong size and stray low bits are one line each."""
+    from PIL import Image
+
+    from metadesign.reconstruction.mosaic_frames import (MosaicLayout, demosaic_counts, pack_mono12p, read_raw,
+                                                         unpack_mono12p, write_raw)
+    from metadesign.validation import ValidationError
+
+    rng = np.random.default_rng(4)
+    counts = rng.integers(0, 4096, (6, 8)).astype(np.uint16)
+    counts[0, 0], counts[0, 1] = 4095, 0
+    assert pack_mono12p(np.array([0xABC, 0x123])) == bytes([0xBC, 0x3A, 0x12])  # GenICam's Mono12p, by hand
+    np.testing.assert_array_equal(unpack_mono12p(pack_mono12p(counts), counts.size).reshape(6, 8), counts)
+    for packing, msb in (("mono12p", False), ("uint16le", False), ("uint16le", True)):
+        lay = MosaicLayout(MosaicCamera(), 8, 6, 12, packing, msb)
+        write_raw(tmp_path / f"{packing}{msb}.raw", counts, lay)
+        got, full = read_raw(tmp_path / f"{packing}{msb}.raw", lay)
+        np.testing.assert_array_equal(got, counts)
+        assert full == 4095
+    png = tmp_path / "msb.png"
+    Image.fromarray((counts << 4).astype(np.uint16)).save(png)
+    lay = MosaicLayout(MosaicCamera(), 8, 6, 12, "uint16le", True)
+    np.testing.assert_array_equal(read_raw(png, lay)[0], counts)
+    f = demosaic_counts(counts, lay)
+    np.testing.assert_array_equal(f[0], counts[1::2, 1::2])  # 0 degrees: the bottom right of the IMX250MZR's
+    np.testing.assert_array_equal(f[1], counts[0::2, 0::2])
+    Image.fromarray(counts.astype(np.uint16) * 16 + 1).save(tmp_path / "bits.png")
+    with pytest.raises(ValidationError, match="low 4 bits"):
+        read_raw(tmp_path / "bits.png", lay)
+    Image.fromarray((counts + 4096).astype(np.uint16)).save(tmp_path / "over.png")
+    with pytest.raises(ValidationError, match="outside"):
+        read_raw(tmp_path / "over.png", MosaicLayout(MosaicCamera(), 8, 6, 12, "uint16le"))
+    (tmp_path / "short.raw").write_bytes(b"\0" * 10)
+    with pytest.raises(ValidationError, match="bytes"):
+        read_raw(tmp_path / "short.raw", MosaicLayout(MosaicCamera(), 8, 6))
+
+
+@pytest.mark.parametrize("section,key,value", [
+    ("raw", "bit_depth", "17"), ("raw", "packing", '"mono10"'), ("raw", "width_px", "7"),
+    ("camera", "extinction_ratio", "0.5"), ("camera", "extinction_ratio", "nan"),
+    ("camera", "pattern", "[[0, 45], [90, 90]]"), ("camera", "crosstalk_percent", "60.0"),
+    ("camera", "transmission", "0.0"), ("camera", "kind", '"ideal"')])
+def test_bad_mosaic_recipe_is_one_line(tmp_path, section, key, value, capsys):
+    """A bad value in the vendor recipe of `dataset import --mosaic`: one line naming the field, exit 2, nothing
+    written."""
+    from conftest import run_main
+
+    rec = {"raw": {"width_px": "8", "height_px": "6", "bit_depth": "12"}, "camera": {"kind": '"mosaic"'}}
+    rec[section][key] = value
+    path = tmp_path / "cam.toml"
+    path.write_text("".join(f"[{s}]\n" + "".join(f"{k} = {v}\n" for k, v in kv.items()) for s, kv in rec.items()))
+    code, _, err = run_main(["dataset", "import", tmp_path / "none", "-o", tmp_path / "out", "--calibration",
+                             tmp_path / "flat.csv", "--reference", tmp_path / "ref", "--mosaic", path], capsys)
+    assert code == 2 and len(err) == 1, err
+    assert f"{section}.{key}" in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("text,field", [
+    ('[camera]\nkind = "mosaic"\nextinction_ratio = 0.5\n', "camera.extinction_ratio"),
+    ('[camera]\nkind = "mosaic"\npixel_pitch_um = 7.0\n', "camera.pixel_pitch_um"),
+    ('[camera]\nkind = "polarised"\n', "camera.kind"),
+    ('[camera]\nkind = "mosaic"\nincident = "elliptic"\n', "camera.incident")])
+def test_bad_camera_section_of_a_sensing_recipe(text, field):
+    import tomllib
+
+    from metadesign.sensing.model import sensing_from_dict
+    from metadesign.validation import ConfigError
+
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        sensing_from_dict(tomllib.loads(text))
