@@ -94,6 +94,7 @@ def _recipe(tmp_path: Path, loop: str = "", wind: str = "speed_m_s = 3.0\n") -> 
     ("gain = -1\n", "speed_m_s = 3.0\n", "loop.gain"),
     ('methods = ["ideal", "psychic"]\n', "speed_m_s = 3.0\n", "loop.methods"),
     ('methods = ["unet"]\n', "speed_m_s = 3.0\n", "device.model"),
+    ('methods = ["realtime"]\n', "speed_m_s = 3.0\n", "device.realtime"),
     ("latency_ms = {ideal = -2}\n", "speed_m_s = 3.0\n", "loop.latency_ms"),
     ("", "speed_m_s = -3.0\n", "wind.speed_m_s"),
     ("", "speed_m_s = inf\n", "wind.speed_m_s"),
@@ -227,3 +228,25 @@ def test_the_gain_is_chosen_per_closed_loop_by_the_stated_search(tmp_path, capsy
     best = s["gains"][int(np.argmax(s["npib_mean"]))]
     assert s["gain"] == best == rep["methods"]["ideal"]["gain"] == rep["gain_search"]["chosen"]["ideal"]
     assert "gain" not in rep["methods"]["open"]
+
+
+def test_the_realtime_method_runs_a_modal_network_in_the_loop(tmp_path, capsys):
+    """`[device] realtime` names a modal network; the loop renders its tensor size and runs it through
+    ONNX Runtime as the method "realtime" (measured latency, delay and NPiB reported)."""
+    import json
+
+    import torch
+
+    from metadesign.reconstruction.modal_net import ModalNet, ModalNetConfig
+    from metadesign.reconstruction.model import save_model
+
+    torch.manual_seed(0)
+    save_model(ModalNet(ModalNetConfig(input_size=32, aperture_size=41, modes=10, stride=2, width=4, hidden=8,
+                                       bin=4)), tmp_path / "rt.safetensors", {"epoch": 0})
+    rec = _recipe(tmp_path, 'steps = 4\nsubsteps = 1\nmethods = ["realtime", "open"]\n')
+    rec.write_text(rec.read_text().replace('methods = ["ideal", "open"]\n', "").replace(
+        "[loop]", f'realtime = "{tmp_path / "rt.safetensors"}"\n[loop]'))
+    rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out", "--json"], capsys)
+    assert rc == 0, err
+    r = json.loads((tmp_path / "out" / "loop.json").read_text())["methods"]["realtime"]
+    assert r["latency_ms"] > 0 and r["delay_frames"] > 1 and 0 <= r["npib_mean"] <= 1.5

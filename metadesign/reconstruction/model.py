@@ -20,9 +20,10 @@ import torch.nn.functional as F
 
 from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
+from .modal_net import ModalNet, ModalNetConfig
 
 __all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
-           "check_sizes", "widen_unet", "field_phase"]
+           "check_sizes", "widen_unet", "field_phase", "build_network", "network_config"]
 
 MODEL_FORMAT = "metadesign.unet/1"
 
@@ -131,6 +132,19 @@ def build_unet(cfg: "UNetConfig") -> UNet:
     return UNet(cfg)
 
 
+def network_config(architecture: dict) -> "UNetConfig | ModalNetConfig":
+    """The config of a card's ``architecture`` object: a U-Net, or (``kind = "modal"``) the real-time
+    :class:`~.modal_net.ModalNet`."""
+    if architecture.get("kind", "unet") == "modal":
+        return ModalNetConfig(**architecture)
+    return UNetConfig(**{k: v for k, v in architecture.items() if k != "kind"})
+
+
+def build_network(cfg: "UNetConfig | ModalNetConfig"):
+    """The network of a config: (B, 8, S, S) -> (B, A, A) phase (rad), 0 outside the aperture."""
+    return ModalNet(cfg) if isinstance(cfg, ModalNetConfig) else UNet(cfg)
+
+
 
 
 def widen_unet(model: UNet, factor: int = 2, noise: float = 0.0, seed: int = 0) -> UNet:
@@ -179,11 +193,11 @@ def load_model(path: str | Path, device: str = "cpu"):
     try:
         if not isinstance(card.get("architecture"), dict):
             raise ValueError("no architecture object")
-        cfg = UNetConfig(**card["architecture"])
+        cfg = network_config(card["architecture"])
     except (ValueError, KeyError, TypeError) as exc:
         raise ValidationError(f"{card_path}: not a metadesign model card ({exc})") from None
     state = load_weights(path, device, "model")
-    model = build_unet(cfg)
+    model = build_network(cfg)
     load_into(model, state, path, "model")
     return model.to(device).eval(), card
 

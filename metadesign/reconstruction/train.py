@@ -34,6 +34,8 @@ from .data import PSFDataset
 from .dataset_store import load_device
 from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
+from .linear import LinearReconstructor
+from .modal_net import ModalNet, ModalNetConfig, commands_record, modal_basis
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
 from .operators import has_operators
 from .refine import build_refiner, deepen_refiner, load_refiner, save_refiner
@@ -170,7 +172,7 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
     if recipe.refine is not None:
         model, init_card = _build_refiner(recipe, dataset, tr.info.tensor_size, a, init, device)
     else:
-        model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device)
+        model, init_card = _build_model(recipe, tr.info.tensor_size, a, init, device, dataset)
         if recipe.codesign is not None:
             model = build_codesign(model, recipe.codesign, dataset, recipe.noise_percent).to(device)
     pib = PiB(tr.scenario(), c0, a, device)
@@ -364,6 +366,8 @@ def _save_best(st: _Training, rec_row: dict) -> None:
     if recipe.codesign is not None:  # the U-Net alone (for the co-designed device) and its diversity
         extra = {"codesign": diversity_record(model)}
         atomic_write_text(st.run / "diversity.json", json.dumps(extra["codesign"], indent=1))
+    if isinstance(model, ModalNet):  # a real-time network: what its commands are
+        extra = {"commands": commands_record(model.config)}
     save(getattr(model, "unet", model) if recipe.codesign is not None else model, st.run / "model.safetensors", {
         **extra,
         "dataset": {"path": str(st.dataset), "recipe_hash": attrs.get("recipe_hash"),
@@ -441,11 +445,39 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
     return model, record
 
 
-def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device):
-    """The recipe's U-Net (seeded), from ``--init`` weights of the same architecture when given; and the
-    init's record for the model card."""
+def _build_modal(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device,
+                 dataset: Path | None):
+    """The recipe's real-time modal network (seeded); its linear path from the reconstructor measured on the
+    dataset's device (``linear_init``) or from ``--init`` weights of the same architecture."""
     import torch
 
+    cfg = ModalNetConfig(input_size=tensor_size, aperture_size=aperture, **recipe.modal)
+    torch.manual_seed(recipe.seed)
+    model = ModalNet(cfg)
+    record = None
+    if init is not None:
+        src, card = load_model(init)
+        if asdict(src.config) != asdict(cfg):
+            raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
+                                  f"{asdict(cfg)}")
+        model.load_state_dict(src.state_dict())
+        record = {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+    elif recipe.linear_init and cfg.bin:
+        lin = LinearReconstructor.build(load_device(dataset), modal_basis(cfg), bin=cfg.bin)
+        model.set_linear(lin.R, lin.reference)
+        record = {"linear_init": {"amplitude_rad": lin.amplitude, "regularisation": lin.regularisation,
+                                  "bin": lin.bin, "basis": cfg.basis, "commands": lin.n_modes}}
+    return model.to(device), record
+
+
+def _build_model(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device,
+                 dataset: Path | None = None):
+    """The recipe's network (seeded): a U-Net from ``--init`` weights of the same architecture when given
+    (or the modal network, :func:`_build_modal`); and the init's record for the model card."""
+    import torch
+
+    if recipe.modal is not None:
+        return _build_modal(recipe, tensor_size, aperture, init, device, dataset)
     cfg = UNetConfig(8, recipe.base, recipe.depth, tensor_size, aperture, recipe.norm, recipe.output)
     torch.manual_seed(recipe.seed)
     model = build_unet(cfg).to(device)

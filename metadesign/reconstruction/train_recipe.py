@@ -25,12 +25,25 @@ SECTIONS = (
         Param("loader_workers", int, 0, lo=0, hi=64),
     ), optional=True),
     Section("model", (
+        Param("kind", str, "unet", choices=["unet", "modal"]),
         Param("base", int, 64, lo=1, hi=256),
         Param("depth", int, 5, lo=2, hi=8),
         Param("norm", str, "group", choices=["group", "batch", "none"]),
         Param("output", str, "phase", choices=["phase", "field"]),
-    ), optional=True, help="the U-Net (metadesign.reconstruction.model); output = \"field\": the phase of "
-                           "exp(i phi) + a learned field, which can hold branch points"),
+        Param("basis", str, "zernike", choices=["zernike", "dm"]),
+        Param("modes", int, 100, lo=1, hi=2000),
+        Param("actuators", int, 12, lo=2, hi=128),
+        Param("coupling", float, 0.15, lo=0, hi=1, open_lo=True, open_hi=True),
+        Param("stride", int, 4, lo=1, hi=64),
+        Param("width", int, 32, lo=1, hi=1024),
+        Param("hidden", int, 256, lo=1, hi=8192),
+        Param("bin", int, 8, lo=0, hi=4096),
+        Param("linear_init", bool, True),
+    ), optional=True, help="the network: kind = \"unet\" (metadesign.reconstruction.model; output = \"field\": "
+                           "the phase of exp(i phi) + a learned field, which can hold branch points) or \"modal\" "
+                           "(the real-time metadesign.reconstruction.modal_net: basis, modes | actuators + coupling, "
+                           "stride, width, hidden, bin; linear_init: its linear path starts as the measured "
+                           "least-squares reconstructor)"),
     Section("train", (
         Param("epochs", int, 500, lo=1, hi=100000),
         Param("batch", int, 64, lo=1, hi=65536),
@@ -76,6 +89,10 @@ SECTIONS = (
 )
 
 
+_UNET_KEYS = ("base", "depth", "norm", "output")
+_MODAL_KEYS = ("basis", "modes", "actuators", "coupling", "stride", "width", "hidden", "bin")
+
+
 @dataclass(frozen=True)
 class TrainRecipe:
     name: str
@@ -108,6 +125,8 @@ class TrainRecipe:
     refine_init: Path | None = None  # a trained refiner to start from
     codesign: object = None  # CodesignConfig when the recipe co-designs the sensor's diversity
     output: str = "phase"  # the U-Net's output (model.UNetConfig.output)
+    modal: dict | None = None  # kind = "modal": the ModalNetConfig keys (less the tensor and crop sizes)
+    linear_init: bool = False  # kind = "modal": its linear path from the measured reconstructor
     max_steps: int | None = None  # stop after this many optimiser steps (the CLI's --max-steps; no recipe key)
 
     def noise(self) -> dict:
@@ -122,8 +141,9 @@ class TrainRecipe:
         """A training recipe for another run of this architecture (a fine-tune, a retraining): the same
         [model], batch and weight decay, seed 0, the given [data] keys and [train] keys (checked as a
         recipe is)."""
-        raw = {"data": dict(data or {}), "model": {"base": self.base, "depth": self.depth, "norm": self.norm,
-                                                 "output": self.output},
+        model = ({"kind": "modal", **self.modal, "linear_init": False} if self.modal is not None else
+                 {"base": self.base, "depth": self.depth, "norm": self.norm, "output": self.output})
+        raw = {"data": dict(data or {}), "model": model,
                "train": {"batch": self.batch, "weight_decay": self.weight_decay, "seed": 0, **train}}
         return train_recipe_from_dict(raw, name, self.source)
 
@@ -147,6 +167,19 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
             return None if not q else Path(q) if Path(q).is_absolute() else (source.parent if source else Path.cwd()) / q
 
         refine_unet, refine_init = rel(r["unet"]), rel(r["init"])
+    modal = None
+    given = set((data.get("model") or {}) if isinstance(data.get("model"), dict) else ())
+    if m["kind"] == "modal":
+        wrong = sorted(given & set(_UNET_KEYS))
+        if wrong:
+            raise ConfigError(f"model.{wrong[0]}", "is a U-Net key; a modal network takes " + ", ".join(_MODAL_KEYS))
+        modal = {k: m[k] for k in _MODAL_KEYS}  # checked with the tensor's size when the network is built
+        if "refine" in data or "codesign" in data:
+            raise ConfigError("model.kind", "a modal network is trained alone (no [refine] or [codesign])")
+    else:
+        wrong = sorted(given & (set(_MODAL_KEYS) | {"linear_init"}))
+        if wrong:
+            raise ConfigError(f"model.{wrong[0]}", "applies to kind = \"modal\" only")
     codesign = None
     if "codesign" in data:
         c = v["codesign"]
@@ -171,7 +204,7 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
                        photons_at_peak=None if d["photons_at_peak"][1] == 0 else d["photons_at_peak"],
                        read_noise_e=d["read_noise_e"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
-                       output=m["output"],
+                       output=m["output"], modal=modal, linear_init=modal is not None and m["linear_init"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],
                        pretrain_loss=t["pretrain_loss"],

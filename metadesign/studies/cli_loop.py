@@ -21,7 +21,7 @@ def _cmd_loop(a: argparse.Namespace) -> int:
     rec = load_loop_recipe(path)
     out = out_dir(a.output or Path.cwd() / f"{path.stem}-out")
     inputs = {"recipe": path, "design": rec.design, "sensor": rec.sensor, "turbulence": rec.turbulence,
-              "model": rec.model}
+              "model": rec.model, "realtime": rec.realtime}
     run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
                     progress=None if a.json else progress_bar("loop", unit="step"))
     with product(out, "loop", inputs, scratch=(scratch_path(out),)):

@@ -51,13 +51,15 @@ __all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
-METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear")
-#: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor of issue #51, on request)
-DEFAULT_METHODS = tuple(m for m in METHODS if m != "linear")
+METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear", "realtime")
+#: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, and ``realtime``, the
+#: real-time modal network of ``[device] realtime`` (issue #51), on request)
+DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime"))
 
 SECTIONS = (
     Section("device", (
         Param("design", str), Param("sensor", str), Param("turbulence", str), Param("model", str, None),
+        Param("realtime", str, None),
     )),
     Section("loop", (
         Param("rate_hz", float, 2000.0, lo=1, hi=1e6),
@@ -130,6 +132,7 @@ class LoopRecipe:
     loop: LoopSection
     dm: DMSection
     wind: dict
+    realtime: Path | None = None  # the real-time modal network (method "realtime")
 
 
 def _latencies(raw, methods, where: str) -> dict:
@@ -190,6 +193,11 @@ def load_loop_recipe(path: str | Path) -> LoopRecipe:
         raise ConfigError("device.model", "the unet and refine methods need a model")
     if model is not None and not model.exists():
         raise ConfigError("device.model", f"{model}: no such file")
+    realtime = rel(d["realtime"]) if d["realtime"] else None
+    if realtime is None and "realtime" in methods:
+        raise ConfigError("device.realtime", "the realtime method needs a real-time model (a modal network)")
+    if realtime is not None and not realtime.exists():
+        raise ConfigError("device.realtime", f"{realtime}: no such file")
     if wind is not None and not isinstance(wind, dict):
         raise ConfigError("wind", "expected a [wind] table")
     wind = dict(wind or {"speed_m_s": 0.0})  # no [wind]: the turbulence stands still
@@ -199,4 +207,4 @@ def load_loop_recipe(path: str | Path) -> LoopRecipe:
                                                 "threshold_db", "seeds", "gain_steps", "pseudo_open_loop")},
                           gain=gain, methods=methods, latency_ms=_latencies(latency, methods, str(path)))
     return LoopRecipe(path.stem, path, rel(d["design"]), rel(d["sensor"]), rel(d["turbulence"]), model, section,
-                      DMSection(**v["dm"]), wind)
+                      DMSection(**v["dm"]), wind, realtime)

@@ -40,6 +40,7 @@ from ..plotting import pyplot, save_figure
 from ..reconstruction.dataset import received_crop
 from ..reconstruction.estimators import make_estimator
 from ..reconstruction.linear import LinearEstimator, LinearReconstructor
+from ..reconstruction.realtime import RealtimeEstimator
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
 from ..reconstruction.shack_hartmann import SHConfig
@@ -51,6 +52,7 @@ from ..turbulence.system import build_system
 from ..turbulence.scenario import wind_from_dict
 from ..turbulence.temporal import temporal_summary
 from ..tasks import TaskFolder, content_key, file_key
+from ..validation import ConfigError
 from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, flow_seed, noise_stream,
                    pol_rejection_tf, run_loop)
 from .loop_recipe import LoopRecipe
@@ -60,7 +62,8 @@ __all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext",
 
 LABELS = {"unet": "metasurface + U-Net", "refine": "metasurface + learned refinement",
           "shack_hartmann": "Shack-Hartmann", "ideal": "ideal phase sensor", "fitted": "DM-fitted oracle (no delay)",
-          "conjugate": "phase conjugate", "open": "open loop", "linear": "metasurface + linear reconstructor"}
+          "conjugate": "phase conjugate", "open": "open loop", "linear": "metasurface + linear reconstructor",
+          "realtime": "metasurface + real-time modal net"}
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
 #: ``gain = "optimise"``: the gains tried first, then the refinement's offsets around the best of them
@@ -131,6 +134,11 @@ def _sensors(rec: LoopRecipe, device: Device) -> dict:
             s = ShackHartmannLoopSensor(est, lp.noise_percent, lp.seed)
         elif m == "linear":
             s = MetasurfaceSensor(device, _linear_estimator(rec, device), det, lp.seed)
+        elif m == "realtime":
+            rt, _ = load_network(rec.realtime)
+            if not hasattr(rt, "commands"):
+                raise ConfigError("device.realtime", f"{rec.realtime} is not a modal network (model.kind = \"modal\")")
+            s = MetasurfaceSensor(device, RealtimeEstimator(rt), det, lp.seed)
         elif m == "refine" and refiner is None:
             raise ValueError("loop.methods: refine needs a refiner as the model")
         else:
@@ -217,10 +225,15 @@ def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
     """The device as made, the mirror, the sensors: the study's :class:`LoopContext` (latencies not yet
     measured), its device and the turbulence's temporal summary."""
     lp = rec.loop
-    tensor = None
-    if rec.model is not None:
-        net, _ = load_network(rec.model)
-        tensor = (net.unet if hasattr(net, "trajectory") else net).config.input_size
+    sizes = {}
+    for key, path in (("device.model", rec.model), ("device.realtime", rec.realtime)):
+        if path is not None:
+            net, _ = load_network(path)
+            sizes[key] = (net.unet if hasattr(net, "trajectory") else net).config.input_size
+    if len(set(sizes.values())) > 1:
+        raise ConfigError("device.realtime", f"its input ({sizes['device.realtime']}^2) differs from device.model's "
+                          f"({sizes['device.model']}^2); the loop renders one tensor size")
+    tensor = next(iter(sizes.values()), None)
     chain = _system(rec, out, tensor)
     tb = chain.at(lp.rytov)
     sc = tb.sc
@@ -242,7 +255,8 @@ def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
 def _job_key(rec: LoopRecipe) -> str:
     """The content key of a loop study's tasks (what shapes their series; never where the files lie)."""
     files = {k: file_key(p) for k, p in (("design", rec.design), ("sensor", rec.sensor),
-                                         ("turbulence", rec.turbulence), ("model", rec.model)) if p is not None}
+                                         ("turbulence", rec.turbulence), ("model", rec.model),
+                                         ("realtime", rec.realtime)) if p is not None}
     lp = {**rec.loop.__dict__, "methods": list(rec.loop.methods)}
     return content_key({"format": "metadesign.loop-tasks/1", "loop": lp, "dm": rec.dm.__dict__, "wind": rec.wind,
                         "files": files})
@@ -430,7 +444,7 @@ def _verdict(rep: dict) -> dict:
     """The headline: the metasurface loops' mean NPiB against the ideal-phase loop's and the Shack-Hartmann
     loop's (the issue's goals: >= 0.8 of the ideal, >= 2x the Shack-Hartmann)."""
     ms = rep["methods"]
-    best = max((m for m in ("refine", "unet", "linear") if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
+    best = max((m for m in ("refine", "unet", "linear", "realtime") if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
     out = {"best_metasurface": best}
     if best is None:
         return out
