@@ -227,3 +227,24 @@ def _phase(ctx, phi, b, rec):
 @register_loss("mse", "MSE against the least-squares unwrapped received phase (mse_loss; Table S2's baseline)")
 def _mse(ctx, phi, b, rec):
     return mse_loss(phi, rec, ctx.pib.ap), None
+
+
+@register_loss("distill", "piston-free MSE against a teacher network's estimate on the same frames (train.teacher): "
+                          "a student of the U-Net or the learned refinement")
+def _distill(ctx, phi, b, rec):
+    """The teacher's estimate is computed the first time a sample is drawn and kept (per sample index: a later
+    epoch's noise draw meets the same target); both are continuous phases, so the MSE is well posed."""
+    import torch
+
+    idx = [int(i) for i in b["index"]]
+    miss = [k for k, i in enumerate(idx) if i not in ctx.targets]
+    if miss:
+        with torch.no_grad():
+            t = ctx.teacher(b["psf"][miss].to(ctx.device)).float()
+        for k, v in zip(miss, t):
+            ctx.targets[idx[k]] = v.cpu()
+    target = torch.stack([ctx.targets[i] for i in idx]).to(phi.device)
+    ap = ctx.pib.ap
+    d = (phi - target) * ap
+    d = (d - d.sum(dim=(-2, -1), keepdim=True) / ap.sum()) * ap
+    return ((d ** 2).sum(dim=(-2, -1)) / ap.sum()).mean(), None

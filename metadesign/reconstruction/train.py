@@ -38,7 +38,7 @@ from .linear import LinearReconstructor
 from .modal_net import ModalNet, ModalNetConfig, commands_record, modal_basis
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
 from .operators import has_operators
-from .refine import build_refiner, deepen_refiner, load_refiner, save_refiner
+from .refine import build_refiner, deepen_refiner, load_network, load_refiner, save_refiner
 from .train_recipe import SECTIONS, TrainRecipe, load_train_recipe, train_recipe_from_dict
 
 __all__ = ["TrainRecipe", "load_train_recipe", "train_recipe_from_dict", "train", "pick_device"]
@@ -115,6 +115,7 @@ def train(recipe: TrainRecipe, run: Path, dataset: Path | None = None, resume: b
     rank = int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
     inputs = {"the dataset": Input(dataset or recipe.dataset, members=None) if (dataset or recipe.dataset) else None,
               "--init": init, "refine.unet": recipe.refine_unet, "refine.init": recipe.refine_init,
+              "train.teacher": recipe.teacher,
               "the recipe": recipe.source}
     with product(run, "training-run", inputs) if rank == 0 else claim(run):
         return _train(recipe, run, dataset, resume, init, log, progress)
@@ -181,7 +182,14 @@ def _train(recipe: TrainRecipe, run: Path, dataset: Path | None, resume: bool, i
         check_memory("train.pib_operator = \"quadratic\"", len(tr) * len(pib.bucket) * n_ap * 8,
                      "use pib_operator = \"split_step\" or data.train_limit")
     opt, sched = _optimiser(recipe, model)
-    st = _Training(recipe, run, ckpt, dataset, model, opt, sched, tr, va, pib, _BatchLoss(pib, stored, quadratic, device),
+    teacher = None
+    if recipe.teacher is not None:
+        teacher, tcard = load_network(recipe.teacher, str(device))
+        check_sizes(getattr(teacher, "unet", teacher).config, tr.info.tensor_size, a, f"train.teacher {recipe.teacher}")
+        init_card = {**(init_card or {}), "teacher": {"path": str(recipe.teacher),
+                                                      "weights_sha256": tcard.get("weights_sha256")}}
+    st = _Training(recipe, run, ckpt, dataset, model, opt, sched, tr, va, pib,
+                   _BatchLoss(pib, stored, quadratic, device, teacher),
                    device, init_card, log, progress, stored, quadratic, rank, world)
     start = 0
     if resume:
@@ -510,9 +518,11 @@ class _BatchLoss:
     """A batch's loss by the name of the epoch's loss (:data:`~.losses.LOSSES`), and its training NPiB for
     the end-to-end one; the bucket operators of the "quadratic" mode are kept here, per sample."""
 
-    def __init__(self, pib, stored: bool, quadratic: bool, device):
+    def __init__(self, pib, stored: bool, quadratic: bool, device, teacher=None):
         self.pib, self.stored, self.quadratic, self.device = pib, stored, quadratic, device
         self.ops: dict[int, object] = {}
+        self.teacher = teacher  # the distill loss's network (eval mode), and its estimates by sample index
+        self.targets: dict[int, object] = {}
 
     def __call__(self, name: str, phi, b: dict, rec):
         return LOSSES[name].fn(self, phi, b, rec)

@@ -56,6 +56,7 @@ SECTIONS = (
         Param("pretrain_epochs", int, 0, lo=0, hi=100000),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
         Param("max_minutes", float, 0.0, lo=0, hi=1e6),
+        Param("teacher", str, None),
     ), optional=True),
     Section("refine", (
         Param("unet", str, None),
@@ -127,6 +128,7 @@ class TrainRecipe:
     output: str = "phase"  # the U-Net's output (model.UNetConfig.output)
     modal: dict | None = None  # kind = "modal": the ModalNetConfig keys (less the tensor and crop sizes)
     linear_init: bool = False  # kind = "modal": its linear path from the measured reconstructor
+    teacher: Path | None = None  # loss "distill": the network whose estimates the model learns
     max_steps: int | None = None  # stop after this many optimiser steps (the CLI's --max-steps; no recipe key)
 
     def noise(self) -> dict:
@@ -180,6 +182,16 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
         wrong = sorted(given & (set(_MODAL_KEYS) | {"linear_init"}))
         if wrong:
             raise ConfigError(f"model.{wrong[0]}", "applies to kind = \"modal\" only")
+    teacher = t["teacher"]
+    if teacher is not None and not Path(teacher).is_absolute():
+        teacher = (source.parent if source else Path.cwd()) / teacher
+    distills = "distill" in (t["loss"], t["pretrain_loss"] if t["pretrain_epochs"] else None)
+    if distills and teacher is None:
+        raise ConfigError("train.teacher", "the distill loss needs a teacher network (a .safetensors path)")
+    if teacher is not None and not distills:
+        raise ConfigError("train.teacher", "is read by the distill loss only (train.loss or train.pretrain_loss)")
+    if teacher is not None and not Path(teacher).exists():
+        raise ConfigError("train.teacher", f"{teacher}: no such file")
     codesign = None
     if "codesign" in data:
         c = v["codesign"]
@@ -204,6 +216,7 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
                        photons_at_peak=None if d["photons_at_peak"][1] == 0 else d["photons_at_peak"],
                        read_noise_e=d["read_noise_e"], train_limit=d["train_limit"], val_limit=d["val_limit"],
                        loader_workers=d["loader_workers"], base=m["base"], depth=m["depth"], norm=m["norm"],
+                       teacher=Path(teacher) if teacher else None,
                        output=m["output"], modal=modal, linear_init=modal is not None and m["linear_init"],
                        epochs=t["epochs"], batch=t["batch"], lr=t["lr"], weight_decay=t["weight_decay"],
                        lr_halve_every=t["lr_halve_every"], loss=t["loss"], pib_operator=t["pib_operator"],
