@@ -16,6 +16,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "_ext"))
 
+from measured import measured  # noqa: E402
+
 import metadesign  # noqa: E402
 
 project = "metadesign"
@@ -30,11 +32,15 @@ extensions = [
     "sphinx.ext.mathjax",
     "sphinx_gallery.gen_gallery",
     "cli_reference",
+    "measured",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 exclude_patterns = ["_build", "examples/README.txt", "gallery/*.ipynb", "gallery/*.py", "gallery/*.zip",
                     "gallery/*.json", "gallery/*.md5", "gallery/*.pickle"]
-myst_enable_extensions = ["dollarmath"]
+myst_enable_extensions = ["dollarmath", "substitution"]
+# the measured results the pages quote ({{ name }}), read from the committed JSON records at build time
+# (docs/_ext/measured.py: one source; a missing record fails the build)
+myst_substitutions = measured()
 myst_heading_anchors = 3
 suppress_warnings = ["myst.xref_missing"] if os.environ.get("METADESIGN_DOCS_LAX") else []
 

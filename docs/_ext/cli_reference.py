@@ -1,6 +1,8 @@
 """A Sphinx extension: the CLI reference, generated from the parsers the ``metadesign`` command builds (so it
 cannot drift from the code).  Directive ``.. metadesign-cli::`` (MyST: a ``{metadesign-cli}`` block)
-renders every command's ``--help`` with a section per command, in the order ``metadesign --help`` lists them.
+renders every command's ``--help`` with a section per command, in the order ``metadesign --help`` lists them;
+each section is a label (``metadesign-library-coupling-check``), which the results page's ``{reproduce}``
+role links to.
 """
 from __future__ import annotations
 
@@ -44,9 +46,11 @@ class MetadesignCli(Directive):
     def run(self):
         out = []
         for name, text in command_helps():
-            sec = nodes.section(ids=[nodes.make_id(name)])
+            label = nodes.make_id(name)
+            sec = nodes.section(ids=[label], names=[label])
             sec += nodes.title(text=name)
             sec += nodes.literal_block(text, text)
+            self.state.document.note_explicit_target(sec)  # a label: {ref}`metadesign-library-peds`
             out.append(sec)
         return out
 

@@ -31,17 +31,25 @@ print("measured / theory:", np.round(sf["ratio"], 3))
 
 # %%
 # A beacon at Rytov 0.5 through the paper's 5 mm design (the design, not the layout file: the device
-# is built from the atom map directly, the way the demo's stage 6 does).
+# is built from the atom map directly, the way the demo's stage 6 does).  What to see: the received
+# amplitude is patchy (scintillation: bright and dark regions across the aperture), the phase wraps
+# across the aperture, and where the amplitude nearly vanishes (blank) it can wind around the dark spot
+# (a branch point); on the sensor the spots of the flat wavefront (previous example) have broken into
+# speckled patterns that differ from spot to spot.
 design, _ = run_design(load_design_recipe(repo_root() / "layouts" / "paper-5mm.toml"))
 chain = build_system(AsFabricated.from_design(design), repo_root() / "sensing" / "paper.toml", sc).chain()
 smp = chain.sample(seed=3, rytov=0.5)
 a = np.abs(smp.e_in)
-fig, axes = plt.subplots(1, 3, figsize=(13, 4), constrained_layout=True)
-axes[0].imshow(a / a.max(), cmap="gray")
+fig, axes = plt.subplots(1, 3, figsize=(14, 4.2), constrained_layout=True)
+im = axes[0].imshow(a / a.max(), cmap="gray", vmin=0, vmax=1)
+fig.colorbar(im, ax=axes[0], label="amplitude / its maximum", shrink=0.85)
 axes[0].set_title("received amplitude on the metasurface")
-axes[1].imshow(np.where(a > 0.05 * a.max(), np.angle(smp.e_in), np.nan), cmap="twilight")
-axes[1].set_title("received phase (wrapped)")
-axes[2].imshow(np.sqrt(smp.frames[0]), cmap="magma")
-axes[2].set_title("x-pol sensor frame (sqrt)")
+im = axes[1].imshow(np.where(a > 0.05 * a.max(), np.angle(smp.e_in), np.nan), cmap="twilight",
+                    vmin=-np.pi, vmax=np.pi)
+fig.colorbar(im, ax=axes[1], label="phase (rad, wrapped)", shrink=0.85)
+axes[1].set_title("received phase (wrapped; blank where the amplitude < 5 %)")
+im = axes[2].imshow(np.sqrt(smp.frames[0] / smp.frames[0].max()), cmap="magma", vmin=0, vmax=1)
+fig.colorbar(im, ax=axes[2], label="sqrt(intensity / the frame's peak)", shrink=0.85)
+axes[2].set_title("x-pol sensor frame")
 for ax in axes:
     ax.axis("off")

@@ -34,8 +34,12 @@ c0, a = received_crop(chain.turbulence.sc)
 pib = PiB(chain.turbulence.sc, c0, a)
 
 # %%
-# Each beacon: the 8-channel tensor with 5 % noise in, a phase out, the NPiB of its conjugate.
-fig, axes = plt.subplots(3, 4, figsize=(12, 9), constrained_layout=True)
+# Each beacon (columns): the 8-channel tensor with 5 % noise in (top: its first channel), the received
+# phase the turbulence made (middle) and the U-Net's estimate of it (bottom), with the NPiB of its
+# conjugate against no correction.  What to see: the estimate follows the large-scale shape of the
+# received phase, not its fine structure or its branch points, and the corrected beam puts many times the
+# uncorrected power in the bucket (the bottom titles).
+fig, axes = plt.subplots(3, 4, figsize=(13, 9), constrained_layout=True)
 for i, rytov in enumerate((0.3, 0.4, 0.5, 0.6)):
     seed = 90_000 + i
     s = chain.sample(seed, rytov)
@@ -48,7 +52,8 @@ for i, rytov in enumerate((0.3, 0.4, 0.5, 0.6)):
         npib_none = float(pib.npib_phase(torch.zeros_like(phi), scr))
     rec = s.received[c0:c0 + a, c0:c0 + a]
     mask = pib.ap.numpy().astype(bool)
-    axes[0, i].imshow(x[0, 0].numpy(), cmap="magma")
+    ch1 = x[0, 0].numpy()
+    axes[0, i].imshow(ch1 / ch1.max(), cmap="magma", vmin=0, vmax=1)
     axes[0, i].set_title(f"Rytov {rytov}: channel 1 (5 % noise)", fontsize=9)
     axes[1, i].imshow(np.where(mask, np.angle(rec), np.nan), cmap="twilight", vmin=-np.pi, vmax=np.pi)
     axes[1, i].set_title("received phase (wrapped)", fontsize=9)
@@ -57,3 +62,5 @@ for i, rytov in enumerate((0.3, 0.4, 0.5, 0.6)):
     axes[2, i].set_title(f"U-Net estimate: NPiB {npib_unet:.2f} (none {npib_none:.2f})", fontsize=9)
     for ax in axes[:, i]:
         ax.axis("off")
+fig.colorbar(axes[0, 3].images[0], ax=axes[0, :], label="intensity / the channel's peak", shrink=0.9)
+fig.colorbar(axes[1, 3].images[0], ax=axes[1:, :], label="phase (rad, wrapped)", shrink=0.9)
