@@ -36,6 +36,9 @@ split = "all"
     assert rc == (0 if rep["passed"] else 1)  # a failed check is a failed run (as the demo)
     pv = rep["provenance"]  # the report is a record: what made it
     assert pv["recipe"]["sha256"] and pv["model"]["path"].endswith("model.safetensors") and pv["elapsed_seconds"] > 0
+    # stage 6 ran on the dataset made from the run's own layout: named by its sha256, in the run folder
+    assert pv["stage6_layout"]["path"] == "design/layout.oas" and pv["stage6_layout"]["relative_to"] == "run"
+    assert pv["stage6_layout"]["sha256"] and pv["dataset_seed"] == 0 and "beacon_seed" not in pv
     assert set(rep["stages"]) == {"library", "design", "layout", "sensing", "turbulence", "dataset", "train", "evaluate"}
     assert not any(v["skipped"] for v in rep["stages"].values())
     html = (tmp_path / "out" / "report.html").read_text()
