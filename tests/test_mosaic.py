@@ -6,13 +6,22 @@ frames, the raw 12-bit reader, and the recipes' bad values (one line, exit 2).""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
 from test_baselines import _smooth_field, synthetic_device
 
-from metadesign.sensing.mosaic import (IMX250MZR_PATTERN, MosaicCamera, demosaic, interleave, pixel_crosstalk,
-                                       polariser_intensity, stokes, unmix)
+from metadesign.sensing.mosaic import (
+    IMX250MZR_PATTERN,
+    MosaicCamera,
+    demosaic,
+    interleave,
+    pixel_crosstalk,
+    polariser_intensity,
+    stokes,
+    unmix,
+)
 
 
 def _jones(theta_deg, T, er):
@@ -147,7 +156,7 @@ def test_mosaic_camera_composes_with_the_detector_and_keeps_power():
     from metadesign.validation import ValidationError
 
     e = _smooth_field((24, 24), np.random.default_rng(2), 2).astype(np.complex64)
-    dev, cp, sensor = _device(extinction_ratio=30.0, crosstalk=0.02, pixel_pitch=sensor_pitch(), use_diagonal=True)
+    dev, _, sensor = _device(extinction_ratio=30.0, crosstalk=0.02, pixel_pitch=sensor_pitch(), use_diagonal=True)
     shot = dev.render(e, Detector.gaussian(5.0, seed=3))
     assert shot.raw.shape == (sensor.height_px, sensor.width_px) and shot.frames.shape == (2, 32, 32)
     assert shot.psfs.shape == (8, sensor.tensor_size, sensor.tensor_size)
@@ -169,8 +178,14 @@ def test_raw_12bit_round_trip(tmp_path):
     to the same counts; a count above 12 bits, a wrong size and stray low bits are one line each."""
     from PIL import Image
 
-    from metadesign.reconstruction.mosaic_frames import (MosaicLayout, demosaic_counts, pack_mono12p, read_raw,
-                                                         unpack_mono12p, write_raw)
+    from metadesign.reconstruction.mosaic_frames import (
+        MosaicLayout,
+        demosaic_counts,
+        pack_mono12p,
+        read_raw,
+        unpack_mono12p,
+        write_raw,
+    )
     from metadesign.validation import ValidationError
 
     rng = np.random.default_rng(4)
@@ -236,3 +251,113 @@ def test_bad_camera_section_of_a_sensing_recipe(text, field):
 
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         sensing_from_dict(tomllib.loads(text))
+
+
+def test_a_dataset_built_through_a_mosaic_camera(tiny_dataset, demo_products, tmp_path):
+    """A sensing recipe with a [camera] section makes every sample one raw mosaic capture, demosaicked: the same
+    beacons (seeds) as the ideal camera's dataset, other tensors (ER 10 leaks each polarisation into the other),
+    another recipe hash, the camera in the provenance."""
+    from conftest import REPO
+
+    from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe
+    from metadesign.reconstruction.dataset_store import open_dataset, open_store
+
+    sensor = tmp_path / "sensor.toml"
+    sensor.write_text((REPO / "sensing" / "demo.toml").read_text()
+                      + '\n[camera]\nkind = "mosaic"\nextinction_ratio = 10.0\npixel_pitch_um = 15.0\n')
+    rec = tmp_path / "cam.toml"
+    rec.write_text(f"""[dataset]
+layout = "{demo_products['layout']}"
+sensor = "{sensor}"
+turbulence = "{REPO / 'sensing' / 'turbulence.toml'}"
+samples = 4
+tensor_size = 16
+shard_size = 4
+seed = 5
+""")
+    build_dataset(load_dataset_recipe(rec), tmp_path / "ds", workers=1)
+    cam, ideal = open_dataset(tmp_path / "ds"), open_dataset(tiny_dataset)
+    assert cam.attrs["provenance"]["camera"]["extinction_ratio"] == 10.0
+    assert "camera" not in ideal.attrs["provenance"] and cam.attrs["recipe_hash"] != ideal.attrs["recipe_hash"]
+    np.testing.assert_array_equal(cam.seed[:4], ideal.seed[:4])
+    a, b = open_store(tmp_path / "ds")["psf"][:4], open_store(tiny_dataset)["psf"][:4]
+    assert np.all(np.isfinite(a)) and np.allclose(a.sum(axis=(1, 2, 3)), 8, rtol=1e-4)
+    assert np.abs(a - b).max() > 0.01 * b.max()
+
+
+_POLCAM = """[study]
+dataset = "{ds}"
+model = "{model}"
+split = "train"
+limit = 2
+extinction_ratios = [0.0, 30.0]
+pixel_pitch_um = [7.5]
+"""
+_END = "pixel_pitch_um = [7.5]\n"
+
+
+@pytest.mark.parametrize("change,match", [
+    (("extinction_ratios = [0.0, 30.0]", "extinction_ratios = [0.5]"), "study.extinction_ratios"),
+    (("extinction_ratios = [0.0, 30.0]", "extinction_ratios = [nan]"), "study.extinction_ratios"),
+    (("pixel_pitch_um = [7.5]", "pixel_pitch_um = [7.0]"), "camera.pixel_pitch_um"),
+    (("limit = 2", "limit = 0"), "study.limit"),
+    (("limit = 2", "limit = 2\ncolour = 1"), "study.colour"),
+    ((_END, _END + '[[variant]]\nextinction_ratio = 30.0\n'), r"variant\[0\]\.label"),
+    ((_END, _END + '[[variant]]\nlabel = "x"\nunmix = 3\n'), "camera.unmix"),
+    ((_END, _END + '[camera]\ncrosstalk_percent = 50.0\n'), "camera.crosstalk_percent"),
+    (('model = "', 'model = "missing-'), "missing-"),
+])
+def test_bad_polcam_recipe_is_one_line_and_writes_nothing(change, match, tiny_dataset, tmp_path, capsys):
+    """`metadesign polcam`: a bad recipe value, a camera whose mosaic does not tile the sensor, a missing model:
+    one line naming it, exit 2, no output folder."""
+    from conftest import run_main, tiny_model
+
+    model = tiny_model(tmp_path)
+    rec = tmp_path / "p.toml"
+    rec.write_text(_POLCAM.format(ds=tiny_dataset, model=model).replace(*change))
+    code, _, err = run_main(["polcam", rec, "-o", tmp_path / "out"], capsys)
+    assert code == 2 and len(err) == 1, err
+    assert re.search(match, err[0]), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_polcam_runs_on_a_tiny_dataset(tiny_dataset, tmp_path, capsys):
+    """The study end to end on two samples: the ideal camera's row is the dataset's own tensors, the ideal mosaic
+    without offsets (today's frames) scores exactly as it does, the report and figure are written."""
+    import json
+
+    from conftest import run_main, tiny_model
+
+    model = tiny_model(tmp_path)
+    rec = tmp_path / "p.toml"
+    rec.write_text(_POLCAM.format(ds=tiny_dataset, model=model)
+                   + '[[variant]]\nlabel = "today"\nextinction_ratio = 0.0\npixel_pitch_um = 7.5\noffsets = false\n')
+    code, out, err = run_main(["polcam", rec, "-o", tmp_path / "out", "--json"], capsys)
+    assert code == 0, err
+    rep = json.loads(out)
+    cams = rep["cameras"]
+    assert set(cams) == {"ideal", "ER inf, 7.5 um", "ER 30, 7.5 um", "today"}
+    assert cams["today"]["unet"]["captured_fraction"] == cams["ideal"]["unet"]["captured_fraction"]
+    assert rep["ideal_render_check"] < 1e-5 and rep["retraining"]["run"] is False
+    assert (tmp_path / "out" / "polcam.json").is_file() and (tmp_path / "out" / "polcam.png").is_file()
+
+
+def test_the_committed_polcam_study_matches_its_recipe_and_model():
+    """sensing/polcam-demo/polcam.json was made with the recipe and the refiner committed beside it (re-run
+    `metadesign polcam sensing/polcam-demo.toml -o sensing/polcam-demo` when either changes), and its verdict is
+    the one its own numbers give."""
+    import json
+
+    from conftest import REPO
+
+    from metadesign.config import load_toml
+    from metadesign.studies.polcam import verdict
+    from metadesign.tasks import content_key, file_key
+
+    doc = json.loads((REPO / "sensing" / "polcam-demo" / "polcam.json").read_text())
+    mw = doc["made_with"]
+    raw = load_toml(REPO / "sensing" / "polcam-demo.toml")
+    assert mw["model"]["weights_sha256"] == file_key(REPO / "sensing" / raw["study"]["model"])
+    assert mw["recipe"]["key"] == content_key(raw)
+    assert doc["verdict"] == json.loads(json.dumps(verdict(doc["cameras"], doc["networks"], doc["tolerance"])))
+    assert doc["retraining"]["run"] is False and doc["n"] == raw["study"]["limit"]

@@ -268,7 +268,7 @@ class MosaicCamera:
         return {"kind": "mosaic", "pattern": [list(r) for r in self.pattern],
                 "extinction_ratio": None if math.isinf(self.extinction_ratio) else self.extinction_ratio,
                 "transmission": self.transmission, "crosstalk_percent": self.crosstalk * 100,
-                "pixel_pitch_um": None if self.pixel_pitch is None else self.pixel_pitch * 1e6,
+                "pixel_pitch_um": None if self.pixel_pitch is None else round(self.pixel_pitch * 1e6, 6),
                 "use_diagonal": self.use_diagonal, "unmix": self.unmix, "offsets": self.offsets,
                 "incident": self.incident}
 
