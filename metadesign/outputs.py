@@ -98,6 +98,7 @@ KINDS: dict[str, tuple[str, bool]] = {
     "demo": ("demo folder", True),
     "pipeline": ("pipeline run folder", True),
     "loop": ("loop study folder", True),
+    "loop-map": ("loop map folder", True),
     "polcam": ("polarisation-camera study folder", True),
     "captures": ("capture folder", True),
     "crosscheck": ("cross-check report folder", True),

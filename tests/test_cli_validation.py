@@ -100,6 +100,7 @@ def _base(cmd: tuple, prod: dict, out: Path, ds: Path | None = None) -> list[str
         ("compare",): ["NONE", str(ds), "-o", str(out / "cmp")],
         ("retrieve",): ["NONE", str(ds), "-o", str(out / "ret")],
         ("loop",): [str(out / "no-loop.toml"), "-o", str(out / "loop")],
+        ("loop-map",): [str(out / "no-map.toml"), "-o", str(out / "map")],
         ("polcam",): [str(out / "no-polcam.toml"), "-o", str(out / "polcam")],
         ("codesign",): [str(out / "no-run"), "--dataset", str(ds), "--base", str(REPO / "layouts" / "demo.toml"),
                         "-o", str(out / "cd")],

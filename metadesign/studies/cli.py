@@ -7,20 +7,23 @@
 * :mod:`.cli_supercells`: ``library supercells|coupling|peds|ladder|patches|active``;
 * :mod:`.cli_coupling_check`: ``library coupling-check|coupling-sweep``;
 * :mod:`.cli_loop`: ``loop`` (the closed loop in time);
+* :mod:`.cli_loop_map`: ``loop-map`` (the loop over rate or latency x f_G x Rytov);
 * :mod:`.cli_polcam`: ``polcam`` (which polarisation camera to buy).
 
 :mod:`metadesign.cli` assembles them (:data:`STUDY_MODULES`, in the order of the help)."""
 
 from __future__ import annotations
 
-from . import cli_compare, cli_coupling_check, cli_loop, cli_lpa, cli_main, cli_polcam, cli_stage6, cli_supercells
+from . import (cli_compare, cli_coupling_check, cli_loop, cli_loop_map, cli_lpa, cli_main, cli_polcam, cli_stage6,
+               cli_supercells)
 from .cli_compare import BUILTIN_ESTIMATORS
 
 __all__ = ["register", "register_main", "STUDY_MODULES", "BUILTIN_ESTIMATORS"]
 
 #: the study CLIs after the stage CLIs, in the order of the help (each adds its commands: top-level ones, and
 #: actions to the stage groups it is given)
-STUDY_MODULES = (cli_compare, cli_stage6, cli_lpa, cli_supercells, cli_coupling_check, cli_loop, cli_polcam)
+STUDY_MODULES = (cli_compare, cli_stage6, cli_lpa, cli_supercells, cli_coupling_check, cli_loop, cli_loop_map,
+                 cli_polcam)
 
 
 def register_main(sub) -> None:

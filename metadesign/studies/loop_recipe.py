@@ -46,7 +46,7 @@ from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
 
 __all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "OPTIMISE", "load_loop_recipe",
-           "SECTIONS"]
+           "loop_recipe_of", "SECTIONS"]
 
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
@@ -162,8 +162,15 @@ def _gain(raw):
 
 def load_loop_recipe(path: str | Path) -> LoopRecipe:
     """The loop recipe at ``path``, validated (one line naming the field on the first problem)."""
+    return loop_recipe_of(load_toml(path), path)
+
+
+def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
+    """The loop recipe of a parsed TOML document ``raw`` read from ``path`` (its paths relative to it),
+    validated as :func:`load_loop_recipe` does (a recipe that extends this one, e.g. the loop map's, passes
+    what remains once it has taken its own sections)."""
     path = Path(path)
-    raw = load_toml(path)
+    raw = {k: dict(v) if isinstance(v, dict) else v for k, v in raw.items()}
     loop = raw.get("loop") if isinstance(raw.get("loop"), dict) else {}
     latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(DEFAULT_METHODS))
     gain = loop.pop("gain", None)
