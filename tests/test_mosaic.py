@@ -361,3 +361,66 @@ def test_the_committed_polcam_study_matches_its_recipe_and_model():
     assert mw["recipe"]["key"] == content_key(raw)
     assert doc["verdict"] == json.loads(json.dumps(verdict(doc["cameras"], doc["networks"], doc["tolerance"])))
     assert doc["retraining"]["run"] is False and doc["n"] == raw["study"]["limit"]
+
+
+def test_raw_mosaic_captures_import_as_their_two_frames(tiny_dataset, tmp_path):
+    """12-bit synthetic captures (flats, darks with hot pixels, samples) packed into raw Mono12p mosaics (x behind
+    the 0 degree pixels, y behind the 90, their mean behind the diagonals) import through `--mosaic` to exactly the
+    tensors, calibration and flags of the two-frame import (hot pixels repaired from pixels behind the same
+    micro-polariser)."""
+    import csv
+
+    from metadesign.reconstruction.captures import (
+        ImportOptions,
+        import_captures,
+        read_frame,
+    )
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.mosaic_frames import load_mosaic_layout, write_raw
+    from metadesign.sensing.camera import Alignment, CameraSpec
+    from metadesign.studies.captures import CaptureSession, synth_captures
+
+    cam = CameraSpec(peak_counts=3500, photons_at_peak=1e6, read_noise_e=2.0, dark_counts=100, hot_pixels=15,
+                     hot_counts=600, bit_depth=12)
+    cap = tmp_path / "cap"
+    synth_captures(tiny_dataset, tiny_dataset, cap, Alignment(shift_x_px=2.0, rotation_deg=0.2), cam,
+                   CaptureSession(samples=3, flats=2, darks=2, seed=2))
+    rec = tmp_path / "cam.toml"
+    rec.write_text('[raw]\nwidth_px = 1280\nheight_px = 1024\nbit_depth = 12\npacking = "mono12p"\n'
+                   '[camera]\nkind = "mosaic"\npattern = [[90, 45], [135, 0]]\n')
+    layout = load_mosaic_layout(rec)
+
+    def raw_of(x, y, out):
+        d = ((x.astype(np.int64) + y) // 2).astype(np.uint16)
+        write_raw(out, interleave({0: x, 90: y, 45: d, 135: d}, IMX250MZR_PATTERN), layout)
+        return out
+
+    def frame(p):
+        return read_frame(p)[0].astype(np.uint16)
+
+    mos = tmp_path / "mos"
+    (mos / "dark").mkdir(parents=True)
+    for name in ("manifest.csv", "flat.csv"):
+        with open(cap / name, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        out = []
+        for j, r in enumerate(rows):
+            raw = raw_of(frame(cap / r["frame_x"]), frame(cap / r["frame_y"]), mos / f"{name[:4]}{j}.raw")
+            keep = {k: v for k, v in r.items() if k not in ("frame_x", "frame_y")}
+            if "slm_phase" in keep:
+                keep["slm_phase"] = str(cap / keep["slm_phase"])
+            out.append({**keep, "frame_raw": raw.name})
+        with open(mos / name, "w", newline="") as fh:
+            w = csv.DictWriter(fh, list(out[0]))
+            w.writeheader()
+            w.writerows(out)
+    darks = sorted((cap / "dark").glob("*"))
+    raw_darks = [raw_of(frame(d), frame(d), mos / "dark" / f"{d.stem}.raw") for d in darks]
+    two = import_captures(cap, tmp_path / "two", cap / "flat.csv", tiny_dataset, darks, ImportOptions(saturation=4095))
+    one = import_captures(mos, tmp_path / "one", mos / "flat.csv", tiny_dataset, raw_darks, mosaic=rec)
+    assert one["calibration"]["alignment"] == two["calibration"]["alignment"]
+    assert one["calibration"]["hot_pixels"] == 4 * two["calibration"]["hot_pixels"] > 0
+    assert one["saturated"] == two["saturated"]
+    a, b = PSFDataset(tmp_path / "one", "all"), PSFDataset(tmp_path / "two", "all")
+    np.testing.assert_array_equal(np.stack([a.get(j)["psf"] for j in range(len(a))]),
+                                  np.stack([b.get(j)["psf"] for j in range(len(b))]))

@@ -69,7 +69,7 @@ from .camera_frames import (aligned_tensor,
 from .dataset_build import normalise_psf
 from .dataset_recipe import split_labels
 from .dataset_store import DATASET_FORMAT, consolidate, create_store, load_device, open_dataset, open_store
-from .mosaic_frames import demosaic_counts, load_mosaic_layout, read_raw
+from .mosaic_frames import demosaic_counts, fix_hot_mosaic, load_mosaic_layout, read_raw
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
            "fix_hot_pixels", "import_captures", "ImportOptions", "calibrate"]
@@ -147,6 +147,11 @@ def _read_counts(path, what, neg: dict | None, mosaic=None):
     return f, full
 
 
+def _fix_hot(frame, hot, mosaic=None):
+    """Hot pixels replaced from their neighbours (a raw mosaic's: from those behind the same micro-polariser)."""
+    return fix_hot_mosaic(frame, hot) if mosaic is not None else fix_hot_pixels(frame, hot)
+
+
 def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None, mosaic=None):
     acc = np.zeros(shape)
     for p in paths:
@@ -159,7 +164,7 @@ def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None, mosaic=None)
     if dark is not None:
         acc = acc - dark
     if hot is not None:
-        acc = fix_hot_pixels(acc, hot)
+        acc = _fix_hot(acc, hot, mosaic)
     return acc
 
 
@@ -239,7 +244,7 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
         if dark is not None:
             f = f - dark
         if hot is not None:
-            f = fix_hot_pixels(f, hot)
+            f = _fix_hot(f, hot, mosaic)
         fr.append(f)
     if mosaic is not None:
         fr = list(demosaic_counts(fr[0], mosaic))

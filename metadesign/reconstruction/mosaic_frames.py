@@ -36,7 +36,7 @@ from ..io import atomic_path
 from ..sensing.model import CAMERA_SECTION, camera_from_values
 from ..sensing.mosaic import MosaicCamera, demosaic, unmix
 from ..validation import ConfigError, ValidationError
-from .camera_frames import read_frame
+from .camera_frames import fix_hot_pixels, read_frame
 
 __all__ = [
     "RAW_SECTION",
@@ -185,6 +185,19 @@ def _msb(a: np.ndarray, layout: MosaicLayout, path: Path, what: str) -> np.ndarr
         raise ValidationError(f"{path}: {what}: raw.msb_aligned, but counts have their low {16 - layout.bit_depth} "
                               "bits set")
     return a // step
+
+
+def fix_hot_mosaic(raw: np.ndarray, hot: np.ndarray) -> np.ndarray:
+    """Hot pixels of a raw mosaic replaced by the median of their non-hot neighbours *behind the same
+    micro-polariser* (the 3 x 3 neighbours of each 2 x 2 site's sub-image: a pixel's direct neighbours see other
+    polarisations)."""
+    if not hot.any():
+        return raw
+    out = np.array(raw, dtype=np.float64, copy=True)
+    for r in range(2):
+        for c in range(2):
+            out[r::2, c::2] = fix_hot_pixels(out[r::2, c::2], hot[r::2, c::2])
+    return out
 
 
 def demosaic_counts(raw: np.ndarray, layout: MosaicLayout) -> np.ndarray:
