@@ -23,6 +23,16 @@ Inputs (paths in the CSVs are relative to the CSV):
 * ``--reference DATASET``: the synthetic dataset of the design the model was trained on: its sensor, tensor
   size, turbulence path and receiver crop are the import's, and its device renders the reference flat
   frames whose spot centroids the calibration is fitted against.
+* ``--orientation NAME``: how the camera's frames are turned against the contract's (``flip-ud``, ``rot180``,
+  ``swap-pol``, ...: :data:`metadesign.sensing.orientation.ORIENTATIONS`); every frame is put back before
+  use.  Default ``identity``.
+
+Orientation (issue #52): the mean flat capture's calibration signature (each spot's ensquared energies: the
+defocus ladder) is compared with the reference device's in every orientation
+(:func:`metadesign.sensing.orientation.diagnose`); a flat that matches another orientation than the
+declared one (a flipped, rotated or mirrored frame, swapped polarisation frames), or none, is refused in
+one line naming what is wrong.  The verdict is kept in the store's provenance (``orientation``), and
+``evaluate`` refuses captures imported without it.
 
 Calibration: the thresholded centre of gravity of each of the 8 spots (per polarisation frame, per
 quadrant window) in the mean flat capture and in the reference render; the relay misalignment is the
@@ -69,6 +79,7 @@ from .camera_frames import (aligned_tensor,
 from .dataset_build import normalise_psf
 from .dataset_recipe import split_labels
 from .dataset_store import DATASET_FORMAT, consolidate, create_store, load_device, open_dataset, open_store
+from .frame_orientation import captured_shape, check_flat, put_back, turned_hint
 from .mosaic_frames import demosaic_counts, fix_hot_mosaic, load_mosaic_layout, read_raw
 
 __all__ = ["read_frame", "read_manifest", "spot_centroids", "fit_alignment", "aligned_tensor", "hot_pixel_map",
@@ -89,10 +100,14 @@ class ImportOptions:
     threshold: float = 0.1
     shard_size: int = 64
     overwrite: bool = False  # replace an existing output (how the import runs: not in the recipe hash)
+    orientation: str = "identity"  # how the camera's frames are turned (metadesign.sensing.orientation)
 
     def hashed(self) -> dict:
-        """The options that shape the store's bytes (its recipe hash): all but ``overwrite``."""
-        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "overwrite"}
+        """The options that shape the store's bytes (its recipe hash): all but ``overwrite`` (and the
+        orientation when it is the contract's: the hashes of imports made before it existed hold)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__
+                if k != "overwrite" and not (k == "orientation" and self.orientation == "identity")}
+
 
 
 def _phase(path: Path, crop, per_count: float, extent_m: float | None = None) -> np.ndarray:
@@ -158,7 +173,7 @@ def _mean_frames(paths, shape, what, dark=None, hot=None, neg=None, mosaic=None)
         f, _ = _read_counts(p, what, neg, mosaic)
         if f.shape != shape:
             raise ValidationError(f"{p}: {what}: {f.shape[1]} x {f.shape[0]} pixels, the sensor has "
-                                  f"{shape[1]} x {shape[0]}")
+                                  f"{shape[1]} x {shape[0]}{turned_hint(f.shape, shape)}")
         acc += f
     acc /= len(paths)
     if dark is not None:
@@ -234,7 +249,8 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
         f, full = _read_counts(r[f"frame_{p}"], f"frame_{p} of sample {r['sample']}", neg, mosaic)
         if f.shape != shape:
             raise ValidationError(f"{r[f'frame_{p}']}: frame_{p} of sample {r['sample']}: {f.shape[1]} x "
-                                  f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}")
+                                  f"{f.shape[0]} pixels, the sensor has {shape[1]} x {shape[0]}"
+                                  f"{turned_hint(f.shape, shape)}")
         level = options.saturation if options.saturation is not None else full
         if level is not None:
             s = f >= level
@@ -248,7 +264,7 @@ def _sample_frames(r: dict, shape, options: "ImportOptions", dark, hot, neg=None
         fr.append(f)
     if mosaic is not None:
         fr = list(demosaic_counts(fr[0], mosaic))
-    return fr, sat
+    return put_back(fr, options.orientation), sat
 
 
 @dataclass
@@ -376,7 +392,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     ref_info = open_dataset(reference)
     sensor = ref.sensor
     shape = (sensor.height_px, sensor.width_px)
-    raw_shape = shape if mosaic is None else (2 * shape[0], 2 * shape[1])  # the x and y frames: half its sides
+    raw_shape = captured_shape(shape, options.orientation) if mosaic is None else (2 * shape[0], 2 * shape[1])
     if mosaic is not None and mosaic.width_px and (mosaic.height_px, mosaic.width_px) != raw_shape:
         raise ValidationError(f"--mosaic: a {mosaic.width_px} x {mosaic.height_px} raw mosaic gives "
                               f"{mosaic.width_px // 2} x {mosaic.height_px // 2} frames, the reference's sensor has "
@@ -394,13 +410,17 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         flat = demosaic_counts(_mean_frames([r["frame_raw"] for r in flats], raw_shape, "flat capture", dark, hot,
                                             neg, mosaic), mosaic)
     else:
-        flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], shape, "flat capture", dark, hot, neg)
+        flat = np.stack([_mean_frames([r[f"frame_{p}"] for r in flats], raw_shape, "flat capture", dark, hot, neg)
                          for p in "xy"])
     ref_frames = Device(ref.pupil, sensor).frames()
+    flat, verdict = check_flat(flat, ref_frames, options.orientation, calibration)  # issue #52: its orientation
     c_ref = spot_centroids(ref_frames, sensor, options.threshold)
     al, res, c_meas = calibrate(flat, ref_frames, sensor, options.fit, options.threshold)
-    notes = [f"calibration: shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation {al.rotation_deg:+.3f} deg, "
-        f"magnification x{al.scale:.4f}; spot residuals max {res.max():.2f} px"]
+    notes = [(f"calibration: orientation {verdict.best} (chi2 {verdict.chi2:.2g}, next {verdict.runner_up} "
+              f"{verdict.runner_up_chi2:.2g}); shift ({al.shift_x_px:+.2f}, {al.shift_y_px:+.2f}) px, rotation "
+              f"{al.rotation_deg:+.3f} deg, magnification x{al.scale:.4f}; spot residuals max {res.max():.2f} px")]
+    if verdict.note():
+        notes.append(f"warning: {verdict.note()}")
     if res.max() > 2.0:
         notes.append(f"warning: a spot is {res.max():.1f} px from the fitted transform (per-polarisation misalignment? "
             "a wrong reference?)")
@@ -426,7 +446,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     if mosaic is not None:  # absent for two frames per sample: those imports keep their hash
         parts["mosaic"] = mosaic.to_dict()
     attrs = _store_attrs(out.name, parts, conv, split, ref_info, options,
-                         {"captures": str(folder), "reference": str(reference)})
+                         {"captures": str(folder), "reference": str(reference), "orientation": verdict.to_dict()})
     tmp = fresh_scratch(out, "store")  # OUT.partial/store: zarr empties its own folder, so the marker stays outside
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -434,7 +454,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
         _fill_store(tmp, conv, rows)
         consolidate(tmp)  # before the calibration files beside the arrays (zarr would warn of them)
 
-        atomic_write_text(tmp / "calibration.json", json.dumps(calib, indent=1))
+        atomic_write_text(tmp / "calibration.json", json.dumps({**calib, "orientation": verdict.to_dict()}, indent=1))
         _plot_calibration(tmp / "calibration.png", flat, c_ref, c_meas, al, res)
         if out.exists():
             shutil.rmtree(out)
@@ -446,7 +466,7 @@ def _import(folder: Path, out: Path, calibration, reference, darks, options: Imp
     return {"output": str(out), "samples": n, "listed": len(rows), "saturated": len(conv.flagged),
             "negative_counts_clipped": neg.get("pixels", 0), "negative_count_frames": len(neg.get("frames", [])),
             "saturated_samples": conv.flagged[:20], "saturated_policy": options.saturated, "calibration": calib,
-            "seconds": time.perf_counter() - t0, **info.summary()}
+            "orientation": verdict.to_dict(), "seconds": time.perf_counter() - t0, **info.summary()}
 
 
 def _plot_calibration(path: Path, flat, c_ref, c_meas, al, res) -> None:

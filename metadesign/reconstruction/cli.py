@@ -5,12 +5,12 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from ..execution import Execution
 from ..cliutil import emit, integer, limit_arg, log_to, num, out_dir, out_file, progress_bar, workers_arg
 from ..outputs import product, zarr_input
+from ..sensing.orientation import ORIENTATIONS
 
 __all__ = ["register"]
 
@@ -202,12 +202,10 @@ def _cmd_export(a: argparse.Namespace) -> int:
 
     out = out_file(a.onnx, "-o/--output", suffixes=(".onnx",))
     with product(out, "onnx", {"model": a.model, "--dataset": zarr_input(a.dataset) if a.dataset else None}):
-        rep = export_onnx(a.model, out, a.opset, a.dataset)
-    if not rep["camera"]:
-        print("metadesign: warning: no --dataset: the contract lacks the camera geometry, orientation and device "
-              "(give the dataset the model was trained on)", file=sys.stderr)
+        rep = export_onnx(a.model, out, a.opset, a.dataset, log=log_to(a.json))
     emit(rep, a.json, f"wrote {out} ({rep['bytes'] / 1e6:.1f} MB, opset {rep['opset']}, dynamic batch): onnxruntime "
-         f"matches torch within {rep['max_abs_diff']:.1e} rad on random inputs")
+         f"matches torch within {rep['max_abs_diff']:.1e} rad on random inputs; contract of {rep['device']['design']} "
+         f"from {rep['device_source']}")
     return 0
 
 
@@ -221,12 +219,13 @@ def _cmd_import(a: argparse.Namespace) -> int:
         raise ValidationError(f"--split: expected three fractions [train val test] summing to 1, got {a.split}")
     opt = ImportOptions(fit=a.fit, hot_sigma=a.hot_sigma, saturation=a.saturation, saturated=a.saturated,
                         phase_per_count=a.phase_per_count, split=tuple(a.split or (0.9, 0.05, 0.05)), seed=a.seed,
-                        overwrite=a.overwrite)
+                        overwrite=a.overwrite, orientation=a.orientation)
     rep = import_captures(a.folder, out, a.calibration, a.reference, a.dark, opt,
                           Execution(progress=progress_bar("import", unit="sample"), log=log_to(a.json)), a.mosaic)
     al = rep["calibration"]["alignment"]
     text = (f"wrote {out}: {rep['samples']} of {rep['listed']} samples (8 x {rep['tensor'][1]}^2), split "
             + "/".join(str(v) for v in rep["split_counts"].values())
+            + f"; orientation {rep['orientation']['best']} (chi2 {rep['orientation']['chi2']:.2g})"
             + f"; relay shift ({al['shift_x_px']:+.2f}, {al['shift_y_px']:+.2f}) px, rotation "
             f"{al['rotation_deg']:+.3f} deg, x{al['scale']:.4f} (spot residual max "
             f"{max(rep['calibration']['residuals_px']):.2f} px); hot pixels {rep['calibration']['hot_pixels']}; "
@@ -253,13 +252,17 @@ def register(sub) -> dict:
 def _register_export(sub) -> None:
     """``export``: a model as ONNX."""
     ex = sub.add_parser("export", help="stage 6: export a model for deployment (ONNX, dynamic batch)",
-                        description="Export the U-Net as ONNX with a dynamic batch axis and check it against "
-                        "torch in onnxruntime.")
+                        description="Export the U-Net (or refiner) as ONNX with a dynamic batch axis, checked "
+                        "against torch in onnxruntime, with the complete deployment contract as its metadata: camera "
+                        "geometry, relay, orientation, per-channel polarisation and focal length, wavelength, device "
+                        "identity and the flat-frame calibration signature (examples/deploy_onnx.py checks frames "
+                        "against it).")
     ex.add_argument("model", help="model weights (.safetensors with its .json card)")
     ex.add_argument("-o", "--output", "--onnx", dest="onnx", required=True, help="output .onnx file")
     ex.add_argument("--opset", type=integer(13, 23), default=17, help="ONNX opset (default 17)")
-    ex.add_argument("--dataset", help="the dataset the model was trained on: its camera geometry, quadrant windows, "
-                    "orientation, flat-spot centroids, wavelength and device go into the contract")
+    ex.add_argument("--dataset", help="the dataset the model was trained on (optional: by default the device is "
+                    "rebuilt from the committed dataset recipe the model card names, checked against its recipe "
+                    "hash); its recipe and layout must be the card's")
     ex.add_argument("--json", action="store_true", help="print the report as JSON")
     ex.set_defaults(func=_cmd_export)
 
@@ -389,6 +392,10 @@ def _register_import(dsub) -> None:
                     help="raw captures of a polarisation (mosaic) camera: one frame_raw per sample (manifest and "
                          "calibration list), its vendor layout in this recipe ([raw] width_px, height_px, bit_depth, "
                          "packing, msb_aligned; [camera] pattern, extinction_ratio, unmix, ...)")
+    im.add_argument("--orientation", choices=ORIENTATIONS, default="identity",
+                    help="how the camera's frames are turned against the reference's (relay inversion: rot180; "
+                         "flip-ud, flip-lr, swap-pol, ...): the flat captures are checked against the reference "
+                         "device's calibration signature in every orientation, and a mismatch is refused")
     im.add_argument("--fit", choices=("similarity", "shift"), default="similarity",
                     help="relay model fitted to the spot centres (default similarity: shift, rotation, scale)")
     im.add_argument("--hot-sigma", type=num(1, 1000), default=8.0, help="hot pixel threshold, robust sigmas (8)")

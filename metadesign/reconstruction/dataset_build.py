@@ -38,7 +38,7 @@ from .dataset_store import (DATASET_FORMAT, consolidate, create_store, mark_comp
                             read_attrs, read_store_pupil, write_store_pupil)
 
 __all__ = ["build_dataset", "ShardContext", "make_sample", "measured_rytov", "normalise_psf", "make_shard",
-           "shard_folder", "shard_name", "run_shards", "ensure_layout", "execution_of"]
+           "shard_folder", "shard_name", "run_shards", "ensure_layout", "execution_of", "recipe_parts"]
 
 #: the execution keywords long jobs took before :class:`~metadesign.execution.Execution` (still accepted)
 LEGACY_EXECUTION = ("workers", "scheduler", "client", "progress", "log")
@@ -231,6 +231,24 @@ def build_dataset(recipe: DatasetRecipe, out: Path | None = None, overwrite: boo
                 own.close()
 
 
+def recipe_parts(recipe: DatasetRecipe, system, layout_sha: str) -> dict:
+    """What a dataset's recipe hash covers (``content_key`` of it): the recipe, the sensor, the pupil grid, the
+    scenario, the layout's and library's sha256, the perturbation (and the fab library, coupling model and
+    polarisation camera when there are): the dataset build's, and the export's check that a committed
+    recipe is the one a model card names."""
+    fab, sensing, pert = system.device, system.sensing, system.perturbation
+    parts = {"format": DATASET_FORMAT, "recipe": recipe.raw, "sensor": sensing.sensor.to_dict(),
+             "pupil_grid": sensing.pupil_grid, "scenario": system.scenario.to_dict(), "layout_sha256": layout_sha,
+             "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}
+    if fab.fab_lib is not None:
+        parts["fab_library_sha256"] = fab.fab_lib.identity
+    if fab.coupling_card is not None:  # absent for the LPA: those datasets keep their hash
+        parts["coupling_model_sha256"] = fab.coupling_card["weights_sha256"]
+    if sensing.camera is not None:  # a polarisation camera's frames (absent for the ideal camera: same hash)
+        parts["camera"] = sensing.camera.to_dict()
+    return parts
+
+
 def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execution) -> dict:
     log = run.log
     existing = read_attrs(out) if (out / "zarr.json").exists() else None  # (a foreign folder: refused already)
@@ -245,15 +263,7 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
     system = build_system(layout, recipe.sensor, scenario, recipe.fabrication,
                           recipe.source.parent if recipe.source else Path.cwd(), recipe.tensor_size)
     fab, sensing, pert = system.device, system.sensing, system.perturbation
-    parts = {"format": DATASET_FORMAT, "recipe": recipe.raw, "sensor": sensing.sensor.to_dict(),
-             "pupil_grid": sensing.pupil_grid, "scenario": scenario.to_dict(), "layout_sha256": layout_sha,
-             "library_sha256": fab.lib.identity, "perturbation": pert.to_dict()}
-    if fab.fab_lib is not None:
-        parts["fab_library_sha256"] = fab.fab_lib.identity
-    if fab.coupling_card is not None:  # absent for the LPA: those datasets keep their hash
-        parts["coupling_model_sha256"] = fab.coupling_card["weights_sha256"]
-    if sensing.camera is not None:  # a polarisation camera's frames (absent for the ideal camera: same hash)
-        parts["camera"] = sensing.camera.to_dict()
+    parts = recipe_parts(recipe, system, layout_sha)
     rhash = content_key(parts)  # what shapes the dataset's bytes (sha256 of json.dumps(parts, sort_keys=True))
     if existing is not None and existing.get("recipe_hash") != rhash:
         if not overwrite:

@@ -17,6 +17,7 @@ from ..plotting import pyplot, save_figure
 from ..validation import ValidationError
 from .codesign import codesign_for_evaluation
 from .data import PSFDataset
+from .frame_orientation import check_orientation_record
 from .losses import PiB
 from .metrics import EVAL_NOISE_SEED, captured_fraction, gain, npib_rows
 from .model import check_fits
@@ -100,6 +101,7 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     base = PSFDataset(dataset, split, limit=limit, screens=True)
     if len(base) == 0:
         raise ValidationError(f"{dataset}: the {split} split is empty")
+    check_orientation_record(base.info.attrs, dataset)  # captures: their flat's orientation checked at import
     check_fits(model, base.info, str(model_path))
     c0, a = base.crop()
     pib = PiB(base.scenario(), c0, a, dev)
