@@ -136,3 +136,21 @@ def test_distill_loss_is_zero_on_the_teacher_and_the_mse_of_a_known_offset():
     m = ap.numpy() > 0
     en = e.numpy()[m] - e.numpy()[m].mean()
     assert float(loss(Ctx, target + e, b, None)[0]) == pytest.approx(float(np.mean(en ** 2)), rel=1e-5)
+
+
+@pytest.mark.parametrize("tensor", [64, 48])
+def test_frame_tensor_equals_psf_tensor(tensor):
+    """The real-time camera stage (block sums where the windows are whole multiples of S, float32 overlap
+    matrices otherwise) equals the reference area resampling (float64) to float32 rounding."""
+    from metadesign.sensing.sensor import FrameTensor, SensorSpec, psf_tensor
+
+    sen = SensorSpec(width_px=640, height_px=512, pixel_pitch=15e-6, magnification=10.0, distance=0.05,
+                     tensor_size=tensor)
+    frames = np.random.default_rng(2).random((2, 512, 640)) ** 6
+    ref = psf_tensor(frames, sen)
+    got = FrameTensor(sen)(frames)
+    assert got.dtype == np.float32 and got.shape == ref.shape
+    np.testing.assert_allclose(got, ref, rtol=2e-5, atol=1e-6 * ref.max())
+    n = FrameTensor(sen)(frames, normalised=True)
+    assert abs(float(n.sum(dtype=np.float64)) - 8.0) < 1e-4
+    np.testing.assert_allclose(n, ref * (8 / ref.sum()), rtol=2e-5, atol=1e-6 * n.max())
