@@ -154,3 +154,14 @@ def test_frame_tensor_equals_psf_tensor(tensor):
     n = FrameTensor(sen)(frames, normalised=True)
     assert abs(float(n.sum(dtype=np.float64)) - 8.0) < 1e-4
     np.testing.assert_allclose(n, ref * (8 / ref.sum()), rtol=2e-5, atol=1e-6 * n.max())
+
+
+def test_the_estimator_pickles_without_its_session(net):
+    """A loop sends its sensors to worker processes: the estimator pickles (the session is remade there)."""
+    import pickle
+
+    est = RealtimeEstimator(net)
+    x = _psf(2, seed=4)
+    a = est.estimate({"psf": x})
+    back = pickle.loads(pickle.dumps(est))
+    np.testing.assert_allclose(back.estimate({"psf": x}), a, atol=1e-6)

@@ -95,6 +95,7 @@ PATCHES = "library/paper-5mm-patches.json"
 COMPARE = "sensing/compare-demo/compare.json"
 TOL = "sensing/tolerance-demo-out/tolerance.json"
 TRANSFER = "sensing/transfer-demo-out/transfer.json"
+RT = "sensing/realtime-bench/results.json"
 
 
 def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}", scale: float = 1.0) -> Q:
@@ -263,6 +264,24 @@ MEASURED: dict[str, Q | D] = {
     **{f"tr_{k}": Q(TRANSFER, f"rows/{k}/npib_unet") for k in ("unadapted", "finetuned", "scratch")},
     **{f"tr_{k}_cf": Q(TRANSFER, f"rows/{k}/captured_fraction", "{:.2f}") for k in ("unadapted", "finetuned", "scratch")},
     "tr_none": Q(TRANSFER, "rows/unadapted/npib_none"),
+    # real time (sensing/realtime-bench/, benchmarks/bench_realtime.py: one core, batch 1, 320 test samples, 5 %)
+    **{f"rt_{k}_cf": Q(RT, f"estimators/{k}/captured_fraction") for k in (
+        "unet", "refine", "refine_k1", "shack_hartmann", "linear", "realtime_ort", "realtime_ort_int8",
+        "realtime_commands")},
+    **{f"rt_{k}_us": Q(RT, f"estimators/{k}/latency/median_us", "{:,.0f}") for k in (
+        "unet", "unet_ort", "refine", "refine_k1", "shack_hartmann", "linear", "realtime_torch", "realtime_compile",
+        "realtime_ort", "realtime_ort_int8", "realtime_commands")},
+    **{f"rt_{k}_e2e": Q(RT, f"estimators/{k}/end_to_end_median_us", "{:,.0f}") for k in (
+        "unet", "refine", "shack_hartmann", "realtime_commands")},
+    "rt_cf_lo": Q(RT, "estimators/realtime_commands/cf_ci95[0]"),
+    "rt_cf_hi": Q(RT, "estimators/realtime_commands/cf_ci95[1]"),
+    "rt_speedup": Q(RT, "verdict/speedup_vs_unet", "{:.0f}"),
+    "rt_cam_us": Q(RT, "camera_to_tensor/median_us", "{:,.0f}"),
+    "rt_cam_ref_us": Q(RT, "camera_to_tensor_reference/median_us", "{:,.0f}"),
+    "rt_fit_us": Q(RT, "dm_fit/median_us", "{:,.0f}"),
+    "rt_compile_s": Q(RT, "estimators/realtime_compile/compile_s", "{:.0f}"),
+    **{f"rt_jit_{w}_{k}": Q(RT, f"jitter/{w}/{k}_us", "{:,.0f}") for w in ("idle", "busy_neighbours")
+       for k in ("median", "p99", "max")},
 }
 
 

@@ -80,20 +80,35 @@ def ort_session(model, output: str = "phase", quantize: str | None = None, threa
 
 class RealtimeEstimator:
     """A network's phase estimate through an ONNX Runtime session on one thread (what a real-time loop would
-    run); torch when onnxruntime is absent.  ``estimate({"psf": (B, 8, S, S)}) -> (B, A, A)`` rad."""
+    run); torch when onnxruntime is absent.  ``estimate({"psf": (B, 8, S, S)}) -> (B, A, A)`` rad.  The
+    session is made on first use and never pickled (a worker process makes its own)."""
 
     name = "realtime"
 
     def __init__(self, model, quantize: str | None = None, threads: int = 1):
-        self.model = model
-        try:
-            self.session = ort_session(model, "phase", quantize, threads)
-        except ImportError:
-            self.session = None
+        if quantize not in QUANTIZE:
+            raise ValidationError(f"quantize: expected none or int8, got {quantize!r}")
+        self.model, self.quantize, self.threads = model, quantize, int(threads)
+        self._session = None
+
+    def __getstate__(self) -> dict:
+        return {"model": self.model, "quantize": self.quantize, "threads": self.threads}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _session=None)
+
+    @property
+    def session(self):
+        if self._session is None:
+            try:
+                self._session = ort_session(self.model, "phase", self.quantize, self.threads)
+            except ImportError:
+                self._session = False
+        return self._session
 
     def estimate(self, batch: dict) -> np.ndarray:
         x = np.ascontiguousarray(batch["psf"], np.float32)
-        if self.session is not None:
+        if self.session:
             return self.session.run(None, {"psf": x})[0]
         import torch
 
