@@ -96,6 +96,7 @@ COMPARE = "sensing/compare-demo/compare.json"
 TOL = "sensing/tolerance-demo-out/tolerance.json"
 TRANSFER = "sensing/transfer-demo-out/transfer.json"
 RT = "sensing/realtime-bench/results.json"
+LOOP = "sensing/loop-demo-out/loop.json"
 
 
 def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}", scale: float = 1.0) -> Q:
@@ -282,6 +283,15 @@ MEASURED: dict[str, Q | D] = {
     "rt_compile_s": Q(RT, "estimators/realtime_compile/compile_s", "{:.0f}"),
     **{f"rt_jit_{w}_{k}": Q(RT, f"jitter/{w}/{k}_us", "{:,.0f}") for w in ("idle", "busy_neighbours")
        for k in ("median", "p99", "max")},
+    # the demo loop with every estimator at its measured latency (sensing/loop-demo-out/, metadesign loop loop-demo)
+    **{f"loop_{m}_npib": Q(LOOP, f"methods/{m}/npib_mean") for m in (
+        "unet", "refine", "realtime", "shack_hartmann", "ideal", "fitted", "conjugate", "open")},
+    **{f"loop_{m}_delay": Q(LOOP, f"methods/{m}/delay_frames", "{:.1f}") for m in (
+        "unet", "refine", "realtime", "shack_hartmann")},
+    **{f"loop_{m}_ms": Q(LOOP, f"methods/{m}/latency_ms", "{:.2f}") for m in (
+        "unet", "refine", "realtime", "shack_hartmann")},
+    "loop_fg": Q(LOOP, "turbulence/greenwood_hz", "{:.0f}"),
+    "loop_rt_vs_ideal": Q(LOOP, "verdict/vs_ideal", "{:.2f}"),
 }
 
 
