@@ -97,6 +97,9 @@ TOL = "sensing/tolerance-demo-out/tolerance.json"
 TRANSFER = "sensing/transfer-demo-out/transfer.json"
 RT = "sensing/realtime-bench/results.json"
 LOOP = "sensing/loop-demo-out/loop.json"
+MAP = "sensing/loop-map-out/map.json"
+PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
+_PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
 
 
 def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}", scale: float = 1.0) -> Q:
@@ -292,6 +295,20 @@ MEASURED: dict[str, Q | D] = {
         "unet", "refine", "realtime", "shack_hartmann")},
     "loop_fg": Q(LOOP, "turbulence/greenwood_hz", "{:.0f}"),
     "loop_rt_vs_ideal": Q(LOOP, "verdict/vs_ideal", "{:.2f}"),
+    # the map over rate x f_G x Rytov (sensing/loop-map-out/, metadesign loop-map loop-map)
+    "map_rt_npib": Q(MAP, "verdict/npib_mean"),
+    "map_ideal_npib": Q(MAP, "verdict/ideal_npib_mean"),
+    "map_sh_npib": Q(MAP, "verdict/shack_hartmann_npib_mean"),
+    "map_vs_ideal": Q(MAP, "verdict/vs_ideal", "{:.2f}"),
+    "map_vs_sh": Q(MAP, "verdict/vs_shack_hartmann", "{:.0f}"),
+    "map_delay": Q(MAP, "verdict/delay_frames", "{:.2f}"),
+    **{f"map_scan_{i}": Q(MAP, f"verdict/latency_scan/npib_mean[{i}]") for i in range(5)},
+    "map_min": Q(MAP, "seconds", "{:.0f}", 1 / 60),
+    # the polarisation camera with and without retraining (sensing/polcam-demo/, sensing/polcam-retrained/)
+    **{f"pc_unet_{k}": Q(PC, f"cameras/{c}/unet/captured_fraction") for k, c in _PC_CAMS.items()},
+    **{f"pc_rt_{k}": Q(PC_RT, f"cameras/{c}/unet/captured_fraction") for k, c in _PC_CAMS.items()},
+    "pc_rt_loss_ideal": D(lambda get: get(PC, "cameras/ideal/unet/captured_fraction")
+                          - get(PC_RT, "cameras/ideal/unet/captured_fraction")),
 }
 
 
