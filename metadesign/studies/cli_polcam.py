@@ -15,8 +15,10 @@ __all__ = ["register"]
 def _lines(summ: dict, out: Path, files) -> list[str]:
     nets = summ["networks"]
     names = {"unet": "U-Net", "refine": "refined"}
+    retrained = (f"the model trained on {Path(summ['retraining']['trained_on']).name}" if summ["retraining"]["run"]
+                 else "no retraining")
     lines = [(f"polcam {summ['name']}: {summ['n']} {summ['split']} samples, {summ['noise_percent']:g} % noise, "
-             f"no retraining ({summ['seconds']:.0f} s) -> {out}"),
+              f"{retrained} ({summ['seconds']:.0f} s) -> {out}"),
              f"  {'camera':<44} {'frames':>8} " + " ".join(f"{names.get(k, k) + ' CF':>11} {'delta':>7}" for k in nets)]
     for c in summ["cameras"].values():
         lines.append(f"  {c['label'][:44]:<44} {c['frame_pitch_um']:6.3g}um " + " ".join(
@@ -24,7 +26,8 @@ def _lines(summ: dict, out: Path, files) -> list[str]:
     lines.append(f"  the ideal camera's row is the dataset's tensors; the beacons re-rendered match them to "
                  f"{summ['ideal_render_check']:.1e} of the peak")
     lines.append(f"  buy: {summ['verdict']['text']}")
-    lines.append("  retraining on the camera's frames: not run (" + summ["retraining"]["why"] + ")")
+    if not summ["retraining"]["run"]:
+        lines.append("  retraining on the camera's frames: " + summ["retraining"]["why"])
     lines.append(f"  files: {', '.join(Path(f).name for f in files)}")
     return lines
 

@@ -318,10 +318,18 @@ def summarise(res: dict, n_boot: int = 2000) -> dict:
             "cameras": cams, "ideal_render_check": res["ideal_render_check"],
             "verdict": verdict(cams, nets, rec.tolerance), "seconds": res["seconds"],
             "made_with": made_with(rec.model, rec.dataset, recipe=rec.source),
-            "retraining": {"run": False, "why": "a fine-tune needs the demo's 6400 beacons rendered through the camera "
-                           "(0.3-0.6 s a sample on one core: ~15-30 min on 2 cores), their bucket operators and a few "
-                           "epochs of training (~1.5 min each on 2 cores): past the study's ~10 min budget",
-                           "commands": list(RETRAIN_COMMANDS)}}
+            "retraining": _retraining(res["card"], rec)}
+
+
+def _retraining(card: dict, rec) -> dict:
+    """Whether the model was trained on another dataset's frames than the study's (a camera's: retrained)."""
+    trained = ((card.get("unet") or {}).get("dataset") if "refine" in card else None) or card.get("dataset") or {}
+    on = trained.get("path")
+    if on and Path(on).name != Path(rec.dataset).name:
+        return {"run": True, "trained_on": on, "model": str(rec.model),
+                "why": f"the model was trained on {Path(on).name}'s frames, not on the study's dataset's"}
+    return {"run": False, "why": "this model was trained on the study's dataset's ideal frames; the retrained "
+            "model's rows: sensing/polcam-retrained (the commands)", "commands": list(RETRAIN_COMMANDS)}
 
 
 def verdict(cams: dict, nets: list, tol: float) -> dict:
@@ -401,7 +409,9 @@ def plot_polcam(summ: dict, path: Path) -> Path:
         ax.set(xlabel="extinction ratio of the micro-polarisers", ylabel="captured fraction",
                title=f"{names.get(k, k)}: {summ['n']} {summ['split']} samples, {summ['noise_percent']:g} % noise")
         ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle("Polarisation camera (2 x 2 micro-polariser mosaic) instead of two ideal frames, no retraining",
+    rt = summ.get("retraining") or {}
+    fig.suptitle("Polarisation camera (2 x 2 micro-polariser mosaic) instead of two ideal frames, " +
+                 (f"the model retrained on {Path(rt['trained_on']).name}" if rt.get("run") else "no retraining"),
                  fontsize=10)
     return save_figure(fig, path)
 
