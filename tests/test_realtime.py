@@ -73,7 +73,7 @@ def test_modal_network_trains_evaluates_and_exports(tiny_dataset, tmp_path):
     assert card["architecture"]["kind"] == "modal" and card["init"]["linear_init"]["commands"] == 12
     r = run_cli("evaluate", str(model), str(tiny_dataset), "--split", "all", "-o", str(tmp_path / "ev"), "--json")
     assert r.returncode == 0, r.stderr
-    r = run_cli("export", str(model), "-o", str(tmp_path / "m.onnx"), "--json")
+    r = run_cli("export", str(model), "-o", str(tmp_path / "m.onnx"), "--dataset", str(tiny_dataset), "--json")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["max_abs_diff"] < 1e-4
 
