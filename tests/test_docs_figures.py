@@ -86,6 +86,11 @@ def test_every_relative_link_leads_to_a_file(page):
         if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
             continue  # a URL (not fetched: no network in the tests) or an anchor of the page itself
         path = target.split("#", 1)[0]
+        full = (page.parent / path).resolve()
+        if full.is_relative_to(REPO / "docs" / "gallery"):
+            # sphinx-gallery writes docs/gallery/ from docs/examples/ when the pages are built (not committed)
+            assert (REPO / "docs" / "examples" / "README.txt").exists(), f"{target}: no docs/examples to build it"
+            continue
         assert (page.parent / path).exists(), f"{page.relative_to(REPO)}: link to {target}: no such file"
 
 
