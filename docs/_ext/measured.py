@@ -97,6 +97,7 @@ TOL = "sensing/tolerance-demo-out/tolerance.json"
 TRANSFER = "sensing/transfer-demo-out/transfer.json"
 RT = "sensing/realtime-bench/results.json"
 LOOP = "sensing/loop-demo-out/loop.json"
+LOOP_G = "sensing/loop-demo-gain-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
@@ -295,6 +296,10 @@ MEASURED: dict[str, Q | D] = {
         "unet", "refine", "realtime", "shack_hartmann")},
     "loop_fg": Q(LOOP, "turbulence/greenwood_hz", "{:.0f}"),
     "loop_rt_vs_ideal": Q(LOOP, "verdict/vs_ideal", "{:.2f}"),
+    **{f"loopg_{m}_npib": Q(LOOP_G, f"methods/{m}/npib_mean") for m in ("realtime", "ideal", "open")},
+    **{f"loopg_{m}_gain": Q(LOOP_G, f"methods/{m}/gain") for m in ("realtime", "ideal")},
+    "loopg_rt_fade": Q(LOOP_G, "methods/realtime/fades/probability"),
+    "loopg_rt_vs_ideal": Q(LOOP_G, "verdict/vs_ideal", "{:.2f}"),
     # the map over rate x f_G x Rytov (sensing/loop-map-out/, metadesign loop-map loop-map)
     "map_rt_npib": Q(MAP, "verdict/npib_mean"),
     "map_ideal_npib": Q(MAP, "verdict/ideal_npib_mean"),
