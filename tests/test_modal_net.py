@@ -11,7 +11,7 @@ from test_baselines import GEOM, synthetic_device
 from metadesign.config import ConfigError
 from metadesign.reconstruction.dataset import normalise_psf
 from metadesign.reconstruction.linear import LinearReconstructor
-from metadesign.reconstruction.modal_net import ModalNet, ModalNetConfig, disc_mask, modal_basis
+from metadesign.reconstruction.modal_net import ModalNet, ModalNetConfig, aperture_mask, modal_basis
 from metadesign.reconstruction.model import load_model, save_model
 from metadesign.reconstruction.train_recipe import train_recipe_from_dict
 from metadesign.validation import ValidationError
@@ -42,7 +42,7 @@ def _render(dev, phase):
 
 def test_basis_is_orthonormal_on_the_disc():
     for cfg in (ModalNetConfig(aperture_size=41, modes=60), ModalNetConfig(aperture_size=21, modes=20)):
-        B, m = modal_basis(cfg), disc_mask(cfg.aperture_size)
+        B, m = modal_basis(cfg), aperture_mask(cfg.aperture_size)
         G = B[:, m].astype(np.float64) @ B[:, m].T.astype(np.float64) / m.sum()
         assert np.abs(G - np.eye(len(B))).max() < 1e-4
         assert np.all(B[:, ~m] == 0)

@@ -21,7 +21,7 @@ The basis (``basis``): ``"zernike"``, Noll modes 2..``modes`` + 1 (the modal cor
 :class:`~metadesign.optics.dm.ModalDM`, no piston) made orthonormal on the sampled disc (unit RMS each), or ``"dm"``, the Gaussian influence functions
 of a zonal mirror with ``actuators`` across the disc and ``coupling`` at the neighbour
 (:class:`~metadesign.optics.dm.DeformableMirror`).  The disc is the crop's inscribed aperture
-(diameter ``A - 1`` pixels, the U-Net's :func:`~.model.aperture_mask`)."""
+(diameter ``A - 1`` pixels, :func:`aperture_mask`, the U-Net's too)."""
 
 from __future__ import annotations
 
@@ -35,11 +35,12 @@ import torch.nn.functional as F
 from ..optics.dm import DeformableMirror, ModalDM
 from ..validation import ValidationError, check_int, check_number
 
-__all__ = ["ModalNetConfig", "ModalNet", "modal_basis", "disc_mask", "commands_record"]
+__all__ = ["ModalNetConfig", "ModalNet", "modal_basis", "aperture_mask", "commands_record"]
 
 
-def disc_mask(a: int) -> np.ndarray:
-    """The receiver aperture on the A x A crop: the inscribed disc of diameter A - 1 pixels."""
+def aperture_mask(a: int) -> np.ndarray:
+    """The receiver aperture on the A x A crop: the inscribed disc (A = 2 floor(R/dx) + 1), every network's
+    output mask (:mod:`.model` re-exports it)."""
     r = np.arange(a) - (a - 1) / 2
     return (r[None, :] ** 2 + r[:, None] ** 2) <= ((a - 1) / 2) ** 2 + 1e-9
 
@@ -89,7 +90,7 @@ def modal_basis(cfg: ModalNetConfig) -> np.ndarray:
     """The basis (N, A, A) float32 of ``cfg`` on the crop (zero outside the disc), rad per unit command."""
     a = cfg.aperture_size
     x = np.arange(a) - (a - 1) / 2
-    m = disc_mask(a)
+    m = aperture_mask(a)
     if cfg.basis == "dm":
         B = DeformableMirror(x, a - 1 + 1e-9, n_act=cfg.actuators, coupling=cfg.coupling).influence
         return (np.asarray(B, np.float32) * m).astype(np.float32)
@@ -126,7 +127,7 @@ class ModalNet(nn.Module):
             nn.init.zeros_(self.linear.weight)
             nn.init.zeros_(self.linear.bias)
         self.register_buffer("basis", B.reshape(n, -1))
-        self.register_buffer("mask", torch.tensor(disc_mask(cfg.aperture_size), dtype=torch.float32))
+        self.register_buffer("mask", torch.tensor(aperture_mask(cfg.aperture_size), dtype=torch.float32))
 
     def commands(self, x):
         """The N commands (rad RMS per Zernike mode, or rad per actuator) of a PSF tensor batch (its 8

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from ..cards import load_into, load_weights, read_card, save_card_model
 from ..validation import ValidationError, check_int
-from .modal_net import ModalNet, ModalNetConfig
+from .modal_net import ModalNet, ModalNetConfig, aperture_mask
 
 __all__ = ["UNetConfig", "UNet", "build_unet", "save_model", "load_model", "MODEL_FORMAT", "aperture_mask", "check_fits",
            "check_sizes", "widen_unet", "field_phase", "build_network", "network_config"]
@@ -51,12 +51,6 @@ class UNetConfig:
         if self.input_size % 2 ** (self.depth - 1):
             raise ValidationError(f"model.input_size: {self.input_size} must be divisible by 2^(depth-1) = "
                                   f"{2 ** (self.depth - 1)}")
-
-
-def aperture_mask(a: int) -> np.ndarray:
-    """The receiver aperture on the A x A crop: the inscribed disc (A = 2 floor(R/dx) + 1)."""
-    r = np.arange(a) - (a - 1) / 2
-    return (r[None, :] ** 2 + r[:, None] ** 2) <= ((a - 1) / 2) ** 2 + 1e-9
 
 
 def _norm(cfg: "UNetConfig", c: int) -> list:
