@@ -9,7 +9,13 @@ from ..cliutil import emit, log_to, out_dir, progress_bar, workers_arg
 from ..execution import Execution, scratch_path
 from ..outputs import product
 
-__all__ = ["register"]
+__all__ = ["register", "loop_inputs"]
+
+
+def loop_inputs(path: Path, rec) -> dict:
+    """The files a loop study (or a map of them) reads: the product layer's declared inputs."""
+    return {"recipe": path, "design": rec.design, "sensor": rec.sensor, "turbulence": rec.turbulence,
+            "model": rec.model, "realtime": rec.realtime}
 
 
 def _cmd_loop(a: argparse.Namespace) -> int:
@@ -20,8 +26,7 @@ def _cmd_loop(a: argparse.Namespace) -> int:
     path = recipe_path(a.recipe, "sensing")  # a path, or a packaged recipe's name: `loop loop-demo`
     rec = load_loop_recipe(path)
     out = out_dir(a.output or Path.cwd() / f"{path.stem}-out")
-    inputs = {"recipe": path, "design": rec.design, "sensor": rec.sensor, "turbulence": rec.turbulence,
-              "model": rec.model, "realtime": rec.realtime}
+    inputs = loop_inputs(path, rec)
     run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
                     progress=None if a.json else progress_bar("loop", unit="step"))
     with product(out, "loop", inputs, scratch=(scratch_path(out),)):

@@ -9,6 +9,7 @@ from pathlib import Path
 from ..cliutil import emit, log_to, out_dir, progress_bar, workers_arg
 from ..execution import Execution, scratch_path
 from ..outputs import product
+from .cli_loop import loop_inputs
 
 __all__ = ["register"]
 
@@ -58,8 +59,7 @@ def _cmd_loop_map(a: argparse.Namespace) -> int:
     mrec = load_map_recipe(path)
     rec = mrec.loop
     out = out_dir(a.output or Path.cwd() / f"{path.stem}-out")
-    inputs = {"recipe": path, "design": rec.design, "sensor": rec.sensor, "turbulence": rec.turbulence,
-              "model": rec.model, "realtime": rec.realtime}
+    inputs = loop_inputs(path, rec)
     run = Execution(workers=a.workers, scheduler=a.scheduler, log=log_to(a.json),
                     progress=None if a.json else progress_bar("loop map", unit="step"))
     with product(out, "loop-map", inputs, scratch=(scratch_path(out),)):
