@@ -28,9 +28,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..validation import ConfigError, check_int, check_number
+from .propagation import cexp
 from .zernike import zernike
 
-__all__ = ["DeformableMirror", "LinearCorrector", "ModalDM", "TipTiltMirror", "gaussian_influence"]
+__all__ = ["DeformableMirror", "LinearCorrector", "ModalDM", "TipTiltMirror", "gaussian_influence", "phase_of",
+           "fitted_oracle", "ORACLE_ITERATIONS"]
 
 
 def _crop_geometry(crop):
@@ -218,3 +220,27 @@ class TipTiltMirror(ModalDM):
 
     def __init__(self, coords: np.ndarray, aperture: float, stroke: float = np.inf, regularisation: float = 1e-9):
         super().__init__(coords, aperture, modes=(2, 3), stroke=stroke, regularisation=regularisation)
+
+
+def phase_of(field: np.ndarray) -> np.ndarray:
+    """The phase of ``field`` (zero outside the aperture) referenced to its piston: ``angle(u conj(sum u))``.
+    The absolute phase drifts by radians (the outer scale, the wind); wrapped as it is, a 2 pi cut across the
+    aperture is a fixed point of a mirror's fit and the loop stalls.  Referenced to the field's mean it wraps
+    only where the field itself has a cut (branch points), not because of its piston."""
+    u = np.asarray(field)
+    return np.angle(u * np.conj(u.sum())).astype(np.float64)
+
+
+#: fixed-point iterations of the mirror-fitted oracle
+ORACLE_ITERATIONS = 8
+
+
+def fitted_oracle(dm, field: np.ndarray, mask: np.ndarray, iterations: int = ORACLE_ITERATIONS) -> np.ndarray:
+    """The mirror's best phase for ``field`` with no delay: the fit of a perfect sensor's measurement, iterated
+    on the residual (a wrapped phase's 2 pi jumps shrink as the residual does: the loop of an ideal sensor with
+    zero delay, gain 1, run to its fixed point)."""
+    u = field * mask
+    c = dm.fit(phase_of(u), mask)
+    for _ in range(iterations - 1):
+        c = c + dm.fit(phase_of(u * cexp(-dm.surface(c))), mask)
+    return dm.surface(c)

@@ -29,6 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..optics.control import pseudo_open_loop as _pol
+from ..optics.dm import ORACLE_ITERATIONS, fitted_oracle, phase_of  # noqa: F401  (the loop's names, kept here)
 from ..optics.propagation import cexp
 from ..reconstruction.dataset import normalise_psf
 
@@ -164,15 +165,6 @@ class IdealPhaseSensor:
         return self.reconstruct(self.expose(crops, k))
 
 
-def phase_of(field: np.ndarray) -> np.ndarray:
-    """The phase of ``field`` (zero outside the aperture) referenced to its piston: ``angle(u conj(sum u))``.
-    The absolute phase drifts by radians (the outer scale, the wind); wrapped as it is, a 2 pi cut across the
-    aperture is a fixed point of a mirror's fit and the loop stalls.  Referenced to the field's mean it wraps
-    only where the field itself has a cut (branch points), not because of its piston."""
-    u = np.asarray(field)
-    return np.angle(u * np.conj(u.sum())).astype(np.float64)
-
-
 def branch_points(field: np.ndarray, mask: np.ndarray) -> int:
     """Phase singularities of ``field`` inside ``mask``: plaquettes (2 x 2 samples, all inside) around which
     the wrapped phase differences sum to a non-zero multiple of 2 pi."""
@@ -185,21 +177,6 @@ def branch_points(field: np.ndarray, mask: np.ndarray) -> int:
     circ = wrap(b - a) + wrap(c - b) + wrap(d - c) + wrap(a - d)
     inside = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, 1:] & mask[1:, :-1]
     return int((np.abs(circ[inside]) > np.pi).sum())
-
-
-#: fixed-point iterations of the mirror-fitted oracle
-ORACLE_ITERATIONS = 8
-
-
-def fitted_oracle(dm, field: np.ndarray, mask: np.ndarray, iterations: int = ORACLE_ITERATIONS) -> np.ndarray:
-    """The mirror's best phase for ``field`` with no delay: the fit of a perfect sensor's measurement, iterated
-    on the residual (a wrapped phase's 2 pi jumps shrink as the residual does: the loop of an ideal sensor with
-    zero delay, gain 1, run to its fixed point)."""
-    u = field * mask
-    c = dm.fit(phase_of(u), mask)
-    for _ in range(iterations - 1):
-        c = c + dm.fit(phase_of(u * cexp(-dm.surface(c))), mask)
-    return dm.surface(c)
 
 
 def _rms(phi: np.ndarray, mask: np.ndarray) -> float:
