@@ -85,7 +85,7 @@ class NoiseRange:
 
 class PSFDataset:
     """Samples of one split: ``{"psf": (8,S,S) float32, "received": (A,A) complex64, "rytov", "rytov_measured",
-    "seed", "index"}`` as torch tensors, plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
+    "seed", "index", "loop_gain"}`` as torch tensors (``loop_gain``: 0 unless a ``[closed_loop]`` residual), plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
     operator) when asked.  Works with ``DataLoader(num_workers > 0)``: nothing but small
     metadata is read in the constructor; each worker opens the store on first use.  Noise levels are
     numbers or ``(lo, hi)`` ranges (:class:`NoiseRange`): ``noise`` holds its keywords
@@ -162,6 +162,8 @@ class PSFDataset:
         if self._g is None:
             g = open_store(self.path)
             self._g = {k: g[k] for k in ("psf", "received", *(("pib_operator",) if "pib_operator" in g else ()))}
+            # a [closed_loop] dataset: each sample's loop gain (0: an open-loop beacon), read once
+            self._g["loop_gain"] = np.asarray(g["loop_gain"][:], np.float32) if "loop_gain" in g else None
         return self._g
 
     def __getstate__(self):  # DataLoader workers re-open the store themselves
@@ -186,7 +188,8 @@ class PSFDataset:
             rng = np.random.default_rng(np.random.SeedSequence(self.noise_seed, spawn_key=(self.epoch, i)))
             psf = self.noise.apply(psf, rng)
         out = {"psf": psf, "received": received, "rytov": float(self.info.rytov[i]),
-               "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i}
+               "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i,
+               "loop_gain": 0.0 if g["loop_gain"] is None else float(g["loop_gain"][i])}
         if self.screens:
             out["screens"] = self.screens_of(i)
         if self.operators:
@@ -207,5 +210,6 @@ class PSFDataset:
                 "rytov": torch.tensor(s["rytov"], dtype=torch.float32),
                 "rytov_measured": torch.tensor(s["rytov_measured"], dtype=torch.float32),
                 "seed": torch.tensor(s["seed"], dtype=torch.int64), "index": torch.tensor(s["index"]),
+                "loop_gain": torch.tensor(s["loop_gain"], dtype=torch.float32),
                 **({"screens": torch.from_numpy(s["screens"])} if "screens" in s else {}),
                 **({"A": torch.from_numpy(s["A"])} if "A" in s else {})}

@@ -28,12 +28,16 @@ from ..layouts.make import make_layout
 from ..tasks import TaskFolder, content_key, file_key, run_resumable
 from ..parallel import dask_client
 from ..paths import resolve_against
+from ..optics.dm import DeformableMirror, fitted_oracle
+from ..optics.propagation import cexp
+from ..sensing.device import Device, ReceiverCrop
 from ..turbulence.system import build_system
 from ..turbulence.chain import BeaconChain
 from ..turbulence.path import check_sampling, solve_path
 from ..turbulence.scenario import load_scenario
 from ..validation import ValidationError
-from .dataset_recipe import DatasetRecipe, expected_sizes, received_crop, sample_rytov, sample_seed, split_labels
+from .dataset_recipe import (DatasetRecipe, expected_sizes, received_crop, sample_loop_gain, sample_rytov,
+                             sample_seed, split_labels)
 from .dataset_store import (DATASET_FORMAT, consolidate, create_store, mark_complete, open_dataset, open_store,
                             read_attrs, read_store_pupil, write_store_pupil)
 
@@ -67,7 +71,10 @@ class ShardContext:
     shard_size: int
     rytov_range: tuple
     rytov_values: tuple | None
+    closed_loop: dict | None = None  # the recipe's [closed_loop] (None or {}: every beacon open loop)
+    split: np.ndarray | None = None  # (n,) the split labels ([closed_loop] draws training samples only)
     _chain: object = None
+    _loop: tuple | None = None
     kind = "shard"
 
     def make(self, shard: int) -> dict:
@@ -77,6 +84,24 @@ class ShardContext:
         if self._chain is None:
             self._chain = BeaconChain(self.pupil, self.sensing, self.scenario, self.aperture)
         return self._chain
+
+    def loop_parts(self) -> tuple:
+        """(device fed from the received crop, the [closed_loop] mirror, the aperture on the crop): the closed
+        loop's path (:mod:`metadesign.studies.loop` renders its frames the same way)."""
+        if self._loop is None:
+            tb = self.chain().turbulence
+            c0, a = received_crop(tb.sc)
+            crop = ReceiverCrop.of_scenario(tb.sc, c0, a)
+            cl = self.closed_loop
+            dm = DeformableMirror.for_crop(crop, n_act=cl["actuators"], coupling=cl["coupling"],
+                                           regularisation=cl["regularisation"])
+            self._loop = (Device(self.pupil, self.sensing.sensor, crop, camera=self.sensing.camera), dm,
+                          tb.aperture[c0:c0 + a, c0:c0 + a])
+        return self._loop
+
+    def loop_gain(self, i: int) -> float:
+        label = int(self.split[i]) if self.split is not None else 2
+        return sample_loop_gain(self.root_seed, i, label, self.closed_loop)
 
 
 def make_sample(ctx: ShardContext, i: int) -> dict:
@@ -89,9 +114,14 @@ def make_sample(ctx: ShardContext, i: int) -> dict:
     t1 = time.perf_counter()
     c0, a = received_crop(chain.turbulence.sc)
     rec = s.received[c0:c0 + a, c0:c0 + a]
-    psf, power = normalise_psf(s.tensor)
+    tensor, gain = s.tensor, ctx.loop_gain(i)
+    if gain > 0:  # a closed loop's residual: the mirror holds gain x its best fit of this beacon
+        device, dm, mask = ctx.loop_parts()
+        rec = rec * cexp(-gain * fitted_oracle(dm, rec, mask))
+        tensor = device.render(device.pupil_field(rec)).psfs
+    psf, power = normalise_psf(tensor)
     t2 = time.perf_counter()
-    return {"psf": psf, "psf_power": power, "received": rec.astype(np.complex64), "rytov": rytov,
+    return {"psf": psf, "psf_power": power, "received": rec.astype(np.complex64), "rytov": rytov, "loop_gain": gain,
             "rytov_measured": measured_rytov(rec, chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]), "seed": seed,
             "timings": {**s.timings, "other": (t2 - t1) + (t1 - t0) - sum(s.timings.values())}}
 
@@ -135,8 +165,9 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
     g["psf"][i0:i1] = np.stack([r["psf"] for r in rows])
     g["received"][i0:i1] = np.stack([r["received"] for r in rows])
     for k, dt in (("psf_power", np.float32), ("rytov", np.float32), ("rytov_measured", np.float32),
-                  ("seed", np.int64)):
-        g[k][i0:i1] = np.array([r[k] for r in rows], dt)
+                  ("seed", np.int64), ("loop_gain", np.float32)):
+        if k in g:  # loop_gain: a store with [closed_loop] samples only
+            g[k][i0:i1] = np.array([r[k] for r in rows], dt)
     t_store = time.perf_counter() - t0
     tim = {k: float(sum(r["timings"][k] for r in rows)) for k in rows[0]["timings"]}
     tim["storage"] = t_store
@@ -292,6 +323,11 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
                      "spawn_key=(0, i)) & (2^63-1); Rytov from SeedSequence(root, spawn_key=(1, i))",
             "split_labels": {"0": "train", "1": "val", "2": "test"},
         }
+        if recipe.closed_loop:
+            attrs["closed_loop"] = {**recipe.closed_loop, "gain": list(recipe.closed_loop["gain"]),
+                                    "what": "loop_gain > 0: the received field times cexp(-loop_gain x "
+                                            "fitted_oracle(mirror, field)), rendered from the crop; training "
+                                            "split only; draws SeedSequence(root, spawn_key=(3, i))"}
         create_store(out, attrs, split_labels(recipe.seed, n, recipe.split))
     cp = _device_pupil(fab, sensing, pert, out, layout_sha)  # after the store (mode "w")
     folder = shard_folder(out)
@@ -299,7 +335,8 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
     size = {shard_name(i): min(n, (i + 1) * shard) - i * shard for i in range(n_shards)}
     done = {nm for nm in shards if folder.marked(nm) is not None}
     ctx = ShardContext(cp, sensing, scenario, fab.n_cells * fab.period, str(out), recipe.seed, n, shard,
-                       recipe.rytov_range, recipe.rytov_values)
+                       recipe.rytov_range, recipe.rytov_values, recipe.closed_loop,
+                       split_labels(recipe.seed, n, recipe.split) if recipe.closed_loop else None)
     log(f"dataset {recipe.name}: {n} samples in {n_shards} shards ({len(done)} done), "
         f"tensor 8x{recipe.tensor_size}^2 -> {out}")
     timings: dict = {}

@@ -23,7 +23,7 @@ from ..tasks import content_key, file_key
 from ..turbulence.scenario import load_scenario
 
 __all__ = ["DatasetRecipe", "load_dataset_recipe", "dataset_recipe_from_dict", "TENSOR_SIZE", "SECTIONS",
-           "sample_seed", "sample_rytov", "split_labels", "received_crop", "expected_sizes"]
+           "sample_seed", "sample_rytov", "sample_loop_gain", "split_labels", "received_crop", "expected_sizes"]
 
 _MAX_SEED = 2**63 - 1
 
@@ -61,6 +61,16 @@ SECTIONS = (
         Param("coupling_model", str, None, help="the coupling model (relative to the recipe; default: the one "
                                                 "fitted against the layout's library)"),
     ), optional=True),
+    Section("closed_loop", (
+        Param("fraction", float, 0.0, lo=0, hi=1, help="of the training split's beacons"),
+        Param("gain", float, [0.0, 1.0], lo=0, hi=1, span=True),
+        Param("actuators", int, 12, lo=2, hi=128),
+        Param("coupling", float, 0.15, lo=0, hi=1, open_lo=True, open_hi=True),
+        Param("regularisation", float, 1e-3, lo=0, hi=1),
+    ), optional=True, help="training beacons as a closed loop's sensor sees them: a fraction of the training "
+                           "split's received fields times the conjugate of gain x the mirror's fitted phase "
+                           "(optics.dm.fitted_oracle; gain drawn per sample from [lo, hi]), rendered through "
+                           "the loop's path (Device.pupil_field); validation and test stay open loop"),
 )
 
 
@@ -81,6 +91,7 @@ class DatasetRecipe:
     shard_size: int
     fabrication: dict
     raw: dict = field(repr=False, default_factory=dict)
+    closed_loop: dict = field(default_factory=dict)  # [closed_loop] ({} or fraction 0: every beacon open loop)
 
     def default_output(self) -> Path:
         return (self.source.parent if self.source else Path.cwd()) / self.name
@@ -117,6 +128,9 @@ class DatasetRecipe:
 def dataset_recipe_from_dict(data: dict, name: str = "dataset", source: Path | None = None) -> DatasetRecipe:
     v = parse(data, SECTIONS, str(source) if source else "recipe")
     d, fab = v["dataset"], v["fabrication"]
+    cl = dict(v["closed_loop"]) if "closed_loop" in data else {}
+    if cl and cl["fraction"] > 0 and d["split"][0] <= 0:
+        raise ConfigError("closed_loop.fraction", "draws training beacons; dataset.split has no training split")
     base = source.parent if source else Path.cwd()
 
     def rel(p):
@@ -139,7 +153,8 @@ def dataset_recipe_from_dict(data: dict, name: str = "dataset", source: Path | N
         name=name, source=source, layout=rel(d["layout"]), design=rel(d["design"]), sensor=rel(d["sensor"]),
         turbulence=rel(d["turbulence"]), samples=d["samples"], rytov_range=(d["rytov_min"], d["rytov_max"]),
         rytov_values=tuple(vals) if vals is not None else None, split=tuple(split), seed=d["seed"],
-        tensor_size=d["tensor_size"], shard_size=d["shard_size"], fabrication=fab, raw=data)
+        tensor_size=d["tensor_size"], shard_size=d["shard_size"], fabrication=fab, raw=data,
+        closed_loop=cl if cl.get("fraction", 0) > 0 else {})
 
 
 def load_dataset_recipe(path: str | Path) -> DatasetRecipe:
@@ -160,6 +175,18 @@ def sample_rytov(root: int, i: int, rytov_range, rytov_values) -> float:
     if rytov_values:
         return float(rytov_values[int(rng.integers(len(rytov_values)))])
     return float(rng.uniform(*rytov_range))
+
+
+def sample_loop_gain(root: int, i: int, split_label: int, closed_loop: dict) -> float:
+    """The closed-loop gain of sample ``i`` (0: an open-loop beacon): a training sample (``split_label`` 0)
+    is a residual with probability ``closed_loop["fraction"]``, its gain uniform in ``closed_loop["gain"]``
+    (its own stream, spawn key (3, i): the screens, Rytov numbers and split are the same as without it)."""
+    if not closed_loop or closed_loop.get("fraction", 0) <= 0 or split_label != 0:
+        return 0.0
+    rng = np.random.default_rng(np.random.SeedSequence(root, spawn_key=(3, i)))
+    u, g = rng.random(2)
+    lo, hi = closed_loop["gain"]
+    return float(lo + (hi - lo) * g) if u < closed_loop["fraction"] else 0.0
 
 
 def split_labels(root: int, n: int, fractions) -> np.ndarray:

@@ -272,6 +272,9 @@ def create_store(out: Path, attrs: dict, split: np.ndarray, rytov_fill: float = 
     for k, dt, fv in (("psf_power", "float32", float("nan")), ("rytov", "float32", rytov_fill),
                       ("rytov_measured", "float32", rytov_fill), ("seed", "int64", -1)):
         g.create_array(k, shape=(n,), chunks=(shard,), dtype=dt, fill_value=fv, dimension_names=("sample",))
+    if attrs.get("closed_loop"):  # each training sample's closed-loop gain (0: an open-loop beacon)
+        g.create_array("loop_gain", shape=(n,), chunks=(shard,), dtype="float32", fill_value=float("nan"),
+                       dimension_names=("sample",))
     sp = g.create_array("split", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=255,
                         dimension_names=("sample",))
     sp[:] = split

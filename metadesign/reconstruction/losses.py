@@ -233,16 +233,26 @@ def _mse(ctx, phi, b, rec):
                           "a student of the U-Net or the learned refinement")
 def _distill(ctx, phi, b, rec):
     """The teacher's estimate is computed the first time a sample is drawn and kept (per sample index: a later
-    epoch's noise draw meets the same target); both are continuous phases, so the MSE is well posed."""
+    epoch's noise draw meets the same target); both are continuous phases, so the MSE is well posed.  A
+    closed-loop residual beacon (``loop_gain`` > 0, a ``[closed_loop]`` dataset) lies outside what the teacher
+    was trained on: its target is its own least-squares unwrapped received phase (``mse``'s)."""
     import torch
 
     idx = [int(i) for i in b["index"]]
-    miss = [k for k, i in enumerate(idx) if i not in ctx.targets]
+    lg = b.get("loop_gain")
+    own = {k for k in range(len(idx)) if lg is not None and float(lg[k]) > 0}
+    miss = [k for k, i in enumerate(idx) if i not in ctx.targets and k not in own]
     if miss:
         with torch.no_grad():
             t = ctx.teacher(b["psf"][miss].to(ctx.device)).float()
         for k, v in zip(miss, t):
             ctx.targets[idx[k]] = v.cpu()
+    mine = [k for k in sorted(own) if idx[k] not in ctx.targets]
+    if mine:
+        mask = ctx.pib.ap.detach().cpu().numpy() > 0.5
+        t = unwrap_ls(torch.angle(rec[mine]).detach().cpu().numpy(), mask).astype(np.float32)
+        for k, v in zip(mine, t):
+            ctx.targets[idx[k]] = torch.from_numpy(v)
     target = torch.stack([ctx.targets[i] for i in idx]).to(phi.device)
     ap = ctx.pib.ap
     d = (phi - target) * ap

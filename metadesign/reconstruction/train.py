@@ -230,6 +230,10 @@ def _splits(recipe: TrainRecipe, dataset: Path):
                     limit=recipe.train_limit or None)
     any_pib = any(LOSSES[recipe.loss_at(e)].end_to_end for e in range(recipe.epochs))
     mode = _pib_mode(recipe, tr)
+    if any_pib and tr.info.attrs.get("closed_loop"):
+        raise ConfigError("train.loss", f"{dataset} holds closed-loop residual beacons ([closed_loop]): their "
+                                        "power in bucket needs the mirror's phase, which the end-to-end loss "
+                                        "does not know; train it with phase, mse or distill")
     if mode == "stored" and any_pib:
         tr.require_operators("train")
     va = PSFDataset(dataset, "val", **noise, noise_seed=recipe.seed + 1,

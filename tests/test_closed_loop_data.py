@@ -1,0 +1,112 @@
+"""Training beacons as a closed loop's sensor sees them (``[closed_loop]`` of a dataset recipe, #50): the open-loop
+samples are the plain dataset's bit for bit, a residual is the same beacon with a phase-only correction that
+lowers its phase error, rendered through the loop's path, and the losses that cannot use one refuse it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_cli, tiny_dataset_recipe
+
+from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe
+
+LOOP = "[closed_loop]\nfraction = 0.6\ngain = [0.6, 1.0]\nactuators = 6\n"
+
+
+@pytest.fixture(scope="module")
+def loop_dataset(tmp_path_factory, demo_products):
+    base = tmp_path_factory.mktemp("loop-ds")
+    rec = load_dataset_recipe(tiny_dataset_recipe(base, demo_products["layout"], extra=LOOP))
+    build_dataset(rec, base / "ds", workers=1)
+    return base / "ds"
+
+
+def _group(path):
+    import zarr
+
+    return zarr.open_group(str(path), mode="r")
+
+
+def _piston_free_rms(u, mask):
+    ph = np.angle(u * np.conj(u[mask].sum()))[mask]
+    return float(np.sqrt(np.mean((ph - ph.mean()) ** 2)))
+
+
+def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_dataset, demo_products):
+    from metadesign.reconstruction.dataset import open_dataset
+    from metadesign.sensing.device import Device, ReceiverCrop
+    from metadesign.turbulence.chain import BeaconChain
+
+    g, o = _group(loop_dataset), _group(tiny_dataset)
+    gain, split = np.asarray(g["loop_gain"][:]), np.asarray(g["split"][:])
+    assert np.all(gain[split != 0] == 0)  # validation and test stay open loop
+    res = np.flatnonzero(gain > 0)
+    assert len(res) >= 3 and np.all((gain[res] >= 0.6) & (gain[res] <= 1.0))
+    same = np.flatnonzero(gain == 0)
+    for k in ("psf", "received", "seed", "rytov"):  # the open-loop samples: the plain dataset's, bit for bit
+        np.testing.assert_array_equal(np.asarray(g[k][:])[same], np.asarray(o[k][:])[same], err_msg=k)
+    info = open_dataset(loop_dataset)
+    a = info.attrs["received_crop"]
+    rec_o, rec_c = np.asarray(o["received"][:])[res], np.asarray(g["received"][:])[res]
+    mask = np.abs(rec_o[0]) > 0
+    for u0, u1 in zip(rec_o, rec_c):
+        np.testing.assert_allclose(np.abs(u1), np.abs(u0), rtol=1e-5, atol=1e-6)  # a phase-only mirror
+        assert _piston_free_rms(u1, mask) < 0.8 * _piston_free_rms(u0, mask)  # gain >= 0.6 of a good fit
+    # the residual's PSFs are the loop's render of the stored field (Device fed from the crop)
+    from metadesign.turbulence.scenario import load_scenario
+    from metadesign.turbulence.system import build_system
+
+    rec = load_dataset_recipe(loop_dataset.parent / "tiny.toml")
+    sc = load_scenario(rec.turbulence)
+    system = build_system(rec.layout, rec.sensor, sc, rec.fabrication, rec.source.parent, rec.tensor_size)
+    chain = BeaconChain.for_device(system.device, system.sensing, sc, system.perturbation)
+    dev = Device(chain.pupil, chain.sensing.sensor, ReceiverCrop.of_scenario(sc, a["start"], a["size"]))
+    t = dev.render(dev.pupil_field(rec_c[0])).psfs
+    np.testing.assert_allclose(np.asarray(g["psf"][int(res[0])]), t * (8.0 / t.sum()), rtol=1e-4, atol=1e-6)
+
+
+def test_end_to_end_loss_refuses_a_closed_loop_dataset(loop_dataset, tmp_path):
+    recipe = tmp_path / "t.toml"
+    recipe.write_text('[model]\nbase = 4\ndepth = 3\n[train]\nepochs = 1\nbatch = 4\nloss = "pib"\n')
+    r = run_cli("train", str(recipe), "--dataset", str(loop_dataset), "-o", str(tmp_path / "run"))
+    assert r.returncode == 2 and "train.loss" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("bad, match", [("fraction = 1.5", "closed_loop.fraction"),
+                                        ("fraction = nan", "closed_loop.fraction"),
+                                        ("fraction = 0.5\ngain = [0.9, 0.2]", "closed_loop.gain"),
+                                        ("fraction = 0.5\nactuators = 1", "closed_loop.actuators"),
+                                        ("fraction = 0.5\ncoupling = 1.0", "closed_loop.coupling")])
+def test_bad_closed_loop_sections_exit_2_with_one_line(bad, match, demo_products, tmp_path):
+    p = tiny_dataset_recipe(tmp_path, demo_products["layout"], extra=f"[closed_loop]\n{bad}\n")
+    r = run_cli("dataset", "build", str(p), "-o", str(tmp_path / "ds"))
+    assert r.returncode == 2 and match in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "ds").exists()
+
+
+def test_distill_targets_a_residual_beacon_at_its_own_unwrapped_phase():
+    """A closed-loop sample's target is its received phase (a smooth phase: unwrapping returns it), an open-loop
+    sample's the teacher's: the loss is 0 for an estimate equal to each (up to piston)."""
+    from metadesign.reconstruction.losses import LOSSES
+    from metadesign.reconstruction.model import aperture_mask
+
+    n = 9
+    ap = torch.tensor(aperture_mask(n), dtype=torch.float32)
+    y, x = np.mgrid[:n, :n] / n
+    smooth = torch.tensor(2.5 * x + 1.5 * y ** 2, dtype=torch.float32)  # > pi across: wraps
+    teacher_out = torch.randn(1, n, n)
+
+    class Ctx:
+        device = "cpu"
+        targets: dict = {}
+        teacher = staticmethod(lambda p: teacher_out[: len(p)])
+        pib = type("P", (), {"ap": ap})()
+
+    rec = torch.stack([torch.ones(n, n, dtype=torch.complex64), torch.polar(torch.ones(n, n), smooth)])
+    b = {"index": torch.tensor([3, 4]), "psf": torch.zeros(2, 8, 4, 4), "loop_gain": torch.tensor([0.0, 0.7])}
+    phi = torch.stack([teacher_out[0] + 0.3, smooth - 1.0])
+    assert float(LOSSES["distill"].fn(Ctx, phi, b, rec)[0]) < 1e-8
+    phi_bad = torch.stack([teacher_out[0], torch.zeros(n, n)])  # the residual left uncorrected: a positive loss
+    assert float(LOSSES["distill"].fn(Ctx, phi_bad, b, rec)[0]) > 0.05
