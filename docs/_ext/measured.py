@@ -107,6 +107,25 @@ def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}",
     return Q(CC.format(run), f"cases/{case}/{stat}/{what}", fmt, scale)
 
 
+def _loop_band(m: str, modes: str, f_max: float | None = 50.0) -> D:
+    """The demo loop's (searched gains) modal PSD power of method ``m`` in ``(0, f_max]`` Hz over the open
+    loop's, ``modes`` "tt" (Noll 2, 3) or "ho" (Noll 4 on); ``f_max`` None: the variance itself (rad^2, every
+    bin, all the record's modes)."""
+    def power(rec, name, sel, top):
+        p = rec["methods"][name]["modal_psd"]
+        df = p["f_hz"][1] - p["f_hz"][0]
+        return df * sum(v for j, row in zip(p["noll"], p["psd_rad2_hz"]) if sel(j)
+                        for f, v in zip(p["f_hz"], row) if top is None or 0 < f <= top)
+
+    def fn(get):
+        rec = get(LOOP_G)
+        if f_max is None:
+            return power(rec, m, lambda j: True, None)
+        sel = (lambda j: j <= 3) if modes == "tt" else (lambda j: j >= 4)
+        return power(rec, m, sel, f_max) / power(rec, "open", sel, f_max)
+    return D(fn, "{:.2f}" if f_max is not None else "{:.3f}")
+
+
 def _tol_range(end: Callable, when: str) -> D:
     """The lowest or highest U-Net NPiB over the tolerance study's cases, before or after fine-tuning."""
     def fn(get):
@@ -300,6 +319,9 @@ MEASURED: dict[str, Q | D] = {
     **{f"loopg_{m}_gain": Q(LOOP_G, f"methods/{m}/gain") for m in ("realtime", "ideal")},
     "loopg_rt_fade": Q(LOOP_G, "methods/realtime/fades/probability"),
     "loopg_rt_vs_ideal": Q(LOOP_G, "verdict/vs_ideal", "{:.2f}"),
+    # its modal temporal spectra (docs/figures/loop_psd.py): power below 50 Hz over the open loop's; variances
+    **{f"loopg_psd_{m}_{b}": _loop_band(m, b) for m in ("realtime", "ideal") for b in ("tt", "ho")},
+    **{f"loopg_psd_{m}_var": _loop_band(m, "", None) for m in ("realtime", "ideal", "open")},
     # the map over rate x f_G x Rytov (sensing/loop-map-out/, metadesign loop-map loop-map)
     "map_rt_npib": Q(MAP, "verdict/npib_mean"),
     "map_ideal_npib": Q(MAP, "verdict/ideal_npib_mean"),
