@@ -1,6 +1,6 @@
 """Training beacons as a closed loop's sensor sees them (``[closed_loop]`` of a dataset recipe, #50): the open-loop
 samples are the plain dataset's bit for bit, a residual is the same beacon with a phase-only correction that
-lowers its phase error, rendered through the loop's path, and the losses that cannot use one refuse it."""
+lowers its phase error, rendered through the loop's path, and its NPiB counts the mirror it was seen through."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_da
 
     g, o = _group(loop_dataset), _group(tiny_dataset)
     gain, split = np.asarray(g["loop_gain"][:]), np.asarray(g["split"][:])
-    assert np.all(gain[split != 0] == 0)  # validation and test stay open loop
+    assert np.all(gain[split == 2] == 0)  # the test split stays open loop
     res = np.flatnonzero(gain > 0)
     assert len(res) >= 3 and np.all((gain[res] >= 0.6) & (gain[res] <= 1.0))
     same = np.flatnonzero(gain == 0)
@@ -53,6 +53,10 @@ def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_da
     for u0, u1 in zip(rec_o, rec_c):
         np.testing.assert_allclose(np.abs(u1), np.abs(u0), rtol=1e-5, atol=1e-6)  # a phase-only mirror
         assert _piston_free_rms(u1, mask) < 0.8 * _piston_free_rms(u0, mask)  # gain >= 0.6 of a good fit
+    m = np.asarray(g["mirror_phase"][:])
+    assert np.all(m[same] == 0)
+    for u0, u1, mk in zip(rec_o, rec_c, m[res]):  # the stored mirror phase is what was taken off
+        np.testing.assert_allclose(u1 * np.exp(1j * mk), u0, atol=2e-5)
     # the residual's PSFs are the loop's render of the stored field (Device fed from the crop)
     from metadesign.turbulence.scenario import load_scenario
     from metadesign.turbulence.system import build_system
@@ -66,12 +70,35 @@ def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_da
     np.testing.assert_allclose(np.asarray(g["psf"][int(res[0])]), t * (8.0 / t.sum()), rtol=1e-4, atol=1e-6)
 
 
-def test_end_to_end_loss_refuses_a_closed_loop_dataset(loop_dataset, tmp_path):
-    recipe = tmp_path / "t.toml"
-    recipe.write_text('[model]\nbase = 4\ndepth = 3\n[train]\nepochs = 1\nbatch = 4\nloss = "pib"\n')
-    r = run_cli("train", str(recipe), "--dataset", str(loop_dataset), "-o", str(tmp_path / "run"))
-    assert r.returncode == 2 and "train.loss" in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    assert not (tmp_path / "run").exists()
+def test_npib_of_a_residual_counts_its_mirror(loop_dataset, tiny_dataset):
+    """Through the dataset's screens, a residual corrected by its own unwrapped-free phase conjugate reaches
+    the open-loop beacon's phase-conjugate NPiB (the same total correction), and with no estimate it scores
+    the mirror alone, which beats the open beacon's flat NPiB (the mirror corrects at gain >= 0.6)."""
+    from metadesign.reconstruction.data import PSFDataset
+    from metadesign.reconstruction.losses import PiB
+    from metadesign.reconstruction.metrics import npib_rows
+
+    dl, do = PSFDataset(loop_dataset, "train", screens=True), PSFDataset(tiny_dataset, "train", screens=True)
+    assert dl.loop_residuals >= 3 and do.loop_residuals == 0
+    k = next(j for j in range(len(dl)) if dl.get(j)["loop_gain"] > 0)
+    sl, so = dl[k], do[k]
+    c0, a = dl.crop()
+    pib = PiB(dl.scenario(), c0, a)
+    scr, zero = sl["screens"][None], torch.zeros(1, a, a)
+    rl = npib_rows(pib, torch.angle(sl["received"])[None] * pib.ap, scr, sl["received"][None], mirror=sl["mirror"][None])
+    ro = npib_rows(pib, zero, so["screens"][None], so["received"][None])
+    assert float(rl["phase_conjugate"][0]) == pytest.approx(float(ro["phase_conjugate"][0]), rel=1e-4)
+    assert float(rl["estimate"][0]) == pytest.approx(float(ro["phase_conjugate"][0]), rel=0.02)
+    assert float(rl["none"][0]) > float(ro["none"][0])
+
+
+def test_evaluate_refuses_a_split_of_residuals(loop_dataset, tmp_path):
+    from conftest import tiny_model
+
+    m = tiny_model(tmp_path)
+    r = run_cli("evaluate", str(m), str(loop_dataset), "--split", "train", "-o", str(tmp_path / "ev"))
+    assert r.returncode == 2 and "closed-loop" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "ev").exists()
 
 
 @pytest.mark.parametrize("bad, match", [("fraction = 1.5", "closed_loop.fraction"),

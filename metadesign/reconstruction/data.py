@@ -85,7 +85,8 @@ class NoiseRange:
 
 class PSFDataset:
     """Samples of one split: ``{"psf": (8,S,S) float32, "received": (A,A) complex64, "rytov", "rytov_measured",
-    "seed", "index", "loop_gain"}`` as torch tensors (``loop_gain``: 0 unless a ``[closed_loop]`` residual), plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
+    "seed", "index", "loop_gain"}`` as torch tensors (``loop_gain``: 0 unless a ``[closed_loop]`` residual,
+    then ``"mirror"`` (A,A) is the mirror's phase it was seen through: a correction's NPiB adds it), plus ``"screens"`` (regenerated) and ``"A"`` (the stored bucket
     operator) when asked.  Works with ``DataLoader(num_workers > 0)``: nothing but small
     metadata is read in the constructor; each worker opens the store on first use.  Noise levels are
     numbers or ``(lo, hi)`` ranges (:class:`NoiseRange`): ``noise`` holds its keywords
@@ -156,6 +157,12 @@ class PSFDataset:
     def __len__(self) -> int:
         return len(self.idx)
 
+    @property
+    def loop_residuals(self) -> int:
+        """How many of this split's samples are closed-loop residuals (``[closed_loop]``; 0 for most stores)."""
+        lg = self._arrays()["loop_gain"]
+        return 0 if lg is None else int((lg[np.asarray(self.idx)] > 0).sum())
+
     def _arrays(self) -> dict:
         """The store's arrays by name, opened once per process (a group look-up costs ~0.5 ms: a tenth
         of a sample's load)."""
@@ -164,6 +171,8 @@ class PSFDataset:
             self._g = {k: g[k] for k in ("psf", "received", *(("pib_operator",) if "pib_operator" in g else ()))}
             # a [closed_loop] dataset: each sample's loop gain (0: an open-loop beacon), read once
             self._g["loop_gain"] = np.asarray(g["loop_gain"][:], np.float32) if "loop_gain" in g else None
+            if "mirror_phase" in g:
+                self._g["mirror_phase"] = g["mirror_phase"]
         return self._g
 
     def __getstate__(self):  # DataLoader workers re-open the store themselves
@@ -190,6 +199,8 @@ class PSFDataset:
         out = {"psf": psf, "received": received, "rytov": float(self.info.rytov[i]),
                "rytov_measured": float(self.info.rytov_measured[i]), "seed": int(self.info.seed[i]), "index": i,
                "loop_gain": 0.0 if g["loop_gain"] is None else float(g["loop_gain"][i])}
+        if "mirror_phase" in g:  # the mirror a closed-loop residual was seen through (zeros: open loop)
+            out["mirror"] = np.asarray(g["mirror_phase"][i], np.float32)
         if self.screens:
             out["screens"] = self.screens_of(i)
         if self.operators:
@@ -212,4 +223,5 @@ class PSFDataset:
                 "seed": torch.tensor(s["seed"], dtype=torch.int64), "index": torch.tensor(s["index"]),
                 "loop_gain": torch.tensor(s["loop_gain"], dtype=torch.float32),
                 **({"screens": torch.from_numpy(s["screens"])} if "screens" in s else {}),
+                **({"mirror": torch.from_numpy(s["mirror"])} if "mirror" in s else {}),
                 **({"A": torch.from_numpy(s["A"])} if "A" in s else {})}

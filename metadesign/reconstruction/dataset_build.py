@@ -114,14 +114,16 @@ def make_sample(ctx: ShardContext, i: int) -> dict:
     t1 = time.perf_counter()
     c0, a = received_crop(chain.turbulence.sc)
     rec = s.received[c0:c0 + a, c0:c0 + a]
-    tensor, gain = s.tensor, ctx.loop_gain(i)
+    tensor, gain, mirror = s.tensor, ctx.loop_gain(i), np.zeros(rec.shape, np.float32)
     if gain > 0:  # a closed loop's residual: the mirror holds gain x its best fit of this beacon
         device, dm, mask = ctx.loop_parts()
-        rec = rec * cexp(-gain * fitted_oracle(dm, rec, mask))
+        mirror = (gain * fitted_oracle(dm, rec, mask) * mask).astype(np.float32)
+        rec = rec * cexp(-mirror)
         tensor = device.render(device.pupil_field(rec)).psfs
     psf, power = normalise_psf(tensor)
     t2 = time.perf_counter()
     return {"psf": psf, "psf_power": power, "received": rec.astype(np.complex64), "rytov": rytov, "loop_gain": gain,
+            "mirror_phase": mirror,
             "rytov_measured": measured_rytov(rec, chain.turbulence.aperture[c0:c0 + a, c0:c0 + a]), "seed": seed,
             "timings": {**s.timings, "other": (t2 - t1) + (t1 - t0) - sum(s.timings.values())}}
 
@@ -164,6 +166,8 @@ def make_shard(ctx: ShardContext, shard: int) -> dict:
     g = open_store(ctx.out, "r+")
     g["psf"][i0:i1] = np.stack([r["psf"] for r in rows])
     g["received"][i0:i1] = np.stack([r["received"] for r in rows])
+    if "mirror_phase" in g:  # a store with [closed_loop] samples
+        g["mirror_phase"][i0:i1] = np.stack([r["mirror_phase"] for r in rows])
     for k, dt in (("psf_power", np.float32), ("rytov", np.float32), ("rytov_measured", np.float32),
                   ("seed", np.int64), ("loop_gain", np.float32)):
         if k in g:  # loop_gain: a store with [closed_loop] samples only
@@ -325,9 +329,10 @@ def _build_dataset(recipe: DatasetRecipe, out: Path, overwrite: bool, run: Execu
         }
         if recipe.closed_loop:
             attrs["closed_loop"] = {**recipe.closed_loop, "gain": list(recipe.closed_loop["gain"]),
-                                    "what": "loop_gain > 0: the received field times cexp(-loop_gain x "
-                                            "fitted_oracle(mirror, field)), rendered from the crop; training "
-                                            "split only; draws SeedSequence(root, spawn_key=(3, i))"}
+                                    "what": "loop_gain > 0: the received field times cexp(-mirror_phase), "
+                                            "mirror_phase = loop_gain x fitted_oracle(mirror, field) on the "
+                                            "aperture (rad), rendered from the crop; training and validation "
+                                            "splits only; draws SeedSequence(root, spawn_key=(3, i))"}
         create_store(out, attrs, split_labels(recipe.seed, n, recipe.split))
     cp = _device_pupil(fab, sensing, pert, out, layout_sha)  # after the store (mode "w")
     folder = shard_folder(out)

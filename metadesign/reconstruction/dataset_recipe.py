@@ -62,15 +62,16 @@ SECTIONS = (
                                                 "fitted against the layout's library)"),
     ), optional=True),
     Section("closed_loop", (
-        Param("fraction", float, 0.0, lo=0, hi=1, help="of the training split's beacons"),
+        Param("fraction", float, 0.0, lo=0, hi=1, help="of the training and validation splits' beacons"),
         Param("gain", float, [0.0, 1.0], lo=0, hi=1, span=True),
         Param("actuators", int, 12, lo=2, hi=128),
         Param("coupling", float, 0.15, lo=0, hi=1, open_lo=True, open_hi=True),
         Param("regularisation", float, 1e-3, lo=0, hi=1),
-    ), optional=True, help="training beacons as a closed loop's sensor sees them: a fraction of the training "
-                           "split's received fields times the conjugate of gain x the mirror's fitted phase "
-                           "(optics.dm.fitted_oracle; gain drawn per sample from [lo, hi]), rendered through "
-                           "the loop's path (Device.pupil_field); validation and test stay open loop"),
+    ), optional=True, help="beacons as a closed loop's sensor sees them: a fraction of the training and "
+                           "validation splits' received fields times the conjugate of the mirror's phase, gain "
+                           "x its fit of the beacon (optics.dm.fitted_oracle; gain drawn per sample from [lo, "
+                           "hi]), rendered through the loop's path (Device.pupil_field); the mirror's phase is "
+                           "stored (mirror_phase), so NPiB counts it; the test split stays open loop"),
 )
 
 
@@ -131,6 +132,8 @@ def dataset_recipe_from_dict(data: dict, name: str = "dataset", source: Path | N
     cl = dict(v["closed_loop"]) if "closed_loop" in data else {}
     if cl and cl["fraction"] > 0 and d["split"][0] <= 0:
         raise ConfigError("closed_loop.fraction", "draws training beacons; dataset.split has no training split")
+    if cl and cl["gain"][1] <= 0 and cl["fraction"] > 0:
+        raise ConfigError("closed_loop.gain", "must reach above 0 (a gain of 0 is an open-loop beacon)")
     base = source.parent if source else Path.cwd()
 
     def rel(p):
@@ -178,10 +181,11 @@ def sample_rytov(root: int, i: int, rytov_range, rytov_values) -> float:
 
 
 def sample_loop_gain(root: int, i: int, split_label: int, closed_loop: dict) -> float:
-    """The closed-loop gain of sample ``i`` (0: an open-loop beacon): a training sample (``split_label`` 0)
-    is a residual with probability ``closed_loop["fraction"]``, its gain uniform in ``closed_loop["gain"]``
-    (its own stream, spawn key (3, i): the screens, Rytov numbers and split are the same as without it)."""
-    if not closed_loop or closed_loop.get("fraction", 0) <= 0 or split_label != 0:
+    """The closed-loop gain of sample ``i`` (0: an open-loop beacon): a training or validation sample
+    (``split_label`` 0 or 1) is a residual with probability ``closed_loop["fraction"]``, its gain uniform in
+    ``closed_loop["gain"]`` (its own stream, spawn key (3, i): the screens, Rytov numbers and split are the
+    same as without it); a test sample never is."""
+    if not closed_loop or closed_loop.get("fraction", 0) <= 0 or split_label not in (0, 1):
         return 0.0
     rng = np.random.default_rng(np.random.SeedSequence(root, spawn_key=(3, i)))
     u, g = rng.random(2)

@@ -275,6 +275,8 @@ def create_store(out: Path, attrs: dict, split: np.ndarray, rytov_fill: float = 
     if attrs.get("closed_loop"):  # each training sample's closed-loop gain (0: an open-loop beacon)
         g.create_array("loop_gain", shape=(n,), chunks=(shard,), dtype="float32", fill_value=float("nan"),
                        dimension_names=("sample",))
+        g.create_array("mirror_phase", shape=(n, a, a), chunks=(1, a, a), shards=(shard, a, a), dtype="float32",
+                       fill_value=float("nan"), dimension_names=("sample", "y", "x"), compressors=checked)
     sp = g.create_array("split", shape=(n,), chunks=(max(n, 1),), dtype="uint8", fill_value=255,
                         dimension_names=("sample",))
     sp[:] = split

@@ -101,6 +101,9 @@ def evaluate_model(model_path, dataset, split: str = "test", noise_levels=(0.0,)
     base = PSFDataset(dataset, split, limit=limit, screens=True)
     if len(base) == 0:
         raise ValidationError(f"{dataset}: the {split} split is empty")
+    if base.loop_residuals:
+        raise ValidationError(f"{dataset}: the {split} split holds {base.loop_residuals} closed-loop residual "
+                              "beacons ([closed_loop]); evaluate on the test split (open loop)")
     check_orientation_record(base.info.attrs, dataset)  # captures: their flat's orientation checked at import
     check_fits(model, base.info, str(model_path))
     c0, a = base.crop()

@@ -206,6 +206,8 @@ def _pib(ctx, phi, b, rec):
     import torch
 
     pib, device = ctx.pib, ctx.device
+    if "mirror" in b:  # a closed-loop residual's correction: the mirror's phase plus the estimate
+        phi = phi + b["mirror"].to(phi.device)
     if ctx.stored:
         return pib.loss(phi, A=b["A"].to(device))
     if ctx.quadratic:

@@ -42,11 +42,20 @@ def gain(none, est) -> np.ndarray:
     return np.asarray(est) / np.maximum(np.asarray(none), _EPS)
 
 
-def npib_rows(pib, phi, screens, received, complex_conjugate: bool = False) -> dict:
+def npib_rows(pib, phi, screens, received, complex_conjugate: bool = False, mirror=None) -> dict:
     """Per-sample NPiB (torch tensors on the PiB's device) of an estimate ``phi``, of no correction and of
-    the phase (and optionally the complex) conjugate of the true received field, through ``screens``."""
+    the phase (and optionally the complex) conjugate of the true received field, through ``screens``.
+    ``mirror`` (B, A, A): a closed-loop residual's mirror phase (``received`` is the field seen through it):
+    every correction is the mirror's plus its own, "none" is the mirror alone."""
     import torch
 
+    if mirror is not None:
+        mirror = mirror.to(phi.device)
+        received = received * torch.polar(torch.ones_like(mirror), mirror)  # the beacon before the mirror
+        out = npib_rows(pib, phi + mirror, screens, received, complex_conjugate)
+        with torch.no_grad():
+            out["none"] = pib.npib_phase(mirror * pib.ap, screens)
+        return out
     with torch.no_grad():
         out = {"estimate": pib.npib_phase(phi, screens), "none": pib.npib_phase(torch.zeros_like(phi), screens),
                "phase_conjugate": pib.npib_phase(torch.angle(received) * pib.ap, screens)}

@@ -96,7 +96,7 @@ def evaluate_split(model, ds, pib, device, batch: int = 16, progress=None) -> di
         for b in loader:
             scr = b["screens"].to(device)
             x = b[getattr(model, "input_key", "psf")].to(device)  # a co-design model renders its own PSFs
-            r = npib_rows(pib, model(x), scr, b["received"].to(device))
+            r = npib_rows(pib, model(x), scr, b["received"].to(device), mirror=b.get("mirror"))
             out["unet"].append(r["estimate"].cpu())
             out["none"].append(r["none"].cpu())
             out["phase_conjugate"].append(r["phase_conjugate"].cpu())
@@ -230,10 +230,6 @@ def _splits(recipe: TrainRecipe, dataset: Path):
                     limit=recipe.train_limit or None)
     any_pib = any(LOSSES[recipe.loss_at(e)].end_to_end for e in range(recipe.epochs))
     mode = _pib_mode(recipe, tr)
-    if any_pib and tr.info.attrs.get("closed_loop"):
-        raise ConfigError("train.loss", f"{dataset} holds closed-loop residual beacons ([closed_loop]): their "
-                                        "power in bucket needs the mirror's phase, which the end-to-end loss "
-                                        "does not know; train it with phase, mse or distill")
     if mode == "stored" and any_pib:
         tr.require_operators("train")
     va = PSFDataset(dataset, "val", **noise, noise_seed=recipe.seed + 1,
