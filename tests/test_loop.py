@@ -139,12 +139,12 @@ def test_bad_loop_options_are_refused(tmp_path, capsys):
 
 
 def _numbers(out: Path) -> str:
-    """loop.json without its timings and paths (what must not depend on the worker count)."""
+    """loop.json without its timings, paths and provenance (what must not depend on the worker count)."""
     import json
 
     def strip(d):
         if isinstance(d, dict):
-            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe")}
+            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe", "provenance")}
         if isinstance(d, list):
             return [strip(v) for v in d]
         return d

@@ -3,24 +3,35 @@ computes, put into words and figures.
 
 From the tasks' series (each method's runs on each turbulence realisation, in a fixed order) it computes per
 method the pooled NPiB statistics, the fades (:func:`pooled_fades`), the modal temporal spectra and the
-measured rejection against theory (:func:`method_report`), the headline (:func:`loop_verdict`), and draws
-``loop.png`` (:func:`plot_loop`).  Pure functions of the numbers: the loop's physics lives in
-:mod:`~metadesign.studies.loop`, its orchestration in :mod:`~metadesign.studies.loop_study`."""
+measured rejection against theory (:func:`method_report`), the headline (:func:`loop_verdict`), what made
+the report (:func:`loop_provenance`), and draws ``loop.png`` (:func:`plot_loop`).  ``loop.json`` opens with
+the verdict, then the provenance, then the numbers.  Functions of the numbers and of the recipe's files: the
+loop's physics lives in :mod:`~metadesign.studies.loop`, its orchestration in
+:mod:`~metadesign.studies.loop_study`."""
 
 from __future__ import annotations
 
+import os
+import platform
 import time
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
+from ..cards import find_card
+from ..config import load_toml
 from ..optics.control import rejection_tf
 from ..plotting import pyplot, save_figure
-from .loop import ORACLES, LoopTiming, pol_rejection_tf
+from ..tasks import content_key, file_key
+from .loop import ORACLES, REALISATION_TAG, LoopTiming, pol_rejection_tf
 from .loop_recipe import LoopRecipe
 from .loop_stats import cdf_points, fade_statistics, welch_psd
+from .pipeline_report import _git_commit
 
-__all__ = ["LABELS", "method_report", "pooled_fades", "mean_psd", "loop_verdict", "loop_report", "plot_loop"]
+__all__ = ["LABELS", "method_report", "pooled_fades", "mean_psd", "loop_verdict", "loop_report", "loop_provenance",
+           "plot_loop", "VERSIONS"]
 
 LABELS = {"unet": "metasurface + U-Net", "refine": "metasurface + learned refinement",
           "shack_hartmann": "Shack-Hartmann", "ideal": "ideal phase sensor", "fitted": "DM-fitted oracle (no delay)",
@@ -28,13 +39,19 @@ LABELS = {"unet": "metasurface + U-Net", "refine": "metasurface + learned refine
           "realtime": "metasurface + real-time modal net"}
 
 
+#: the packages whose versions the provenance records (None: not installed)
+VERSIONS = ("numpy", "scipy", "torch", "onnxruntime", "matplotlib", "dask", "distributed")
+
+
 def loop_report(rec: LoopRecipe, runs: dict, timings: dict, latency: dict, gains: dict, search: dict,
-                temporal: dict, t_start: float, grid: tuple = (), refine: tuple = (), log=lambda s: None) -> tuple:
+                temporal: dict, t_start: float, grid: tuple = (), refine: tuple = (), log=lambda s: None,
+                provenance: dict | None = None) -> tuple:
     """The report of a loop study: ``runs`` ``{method: [series of each realisation]}`` (``"open"`` among
     them), ``timings`` ``{method: LoopTiming}``, ``latency`` ``{method: s}``, ``gains`` ``{closed loop: gain}``,
     ``search`` the gain search's trials (``{}``: none; ``grid`` and ``refine`` its gains), ``temporal`` the
-    turbulence's temporal summary, ``t_start`` the study's start (``time.perf_counter``).  Returns the report
-    (no figures yet), the first realisation's series and the pooled NPiB of each method."""
+    turbulence's temporal summary, ``t_start`` the study's start (``time.perf_counter``), ``provenance``
+    :func:`loop_provenance`'s block.  Returns the report (the verdict its first key, the provenance its second;
+    no figures yet), the first realisation's series and the pooled NPiB of each method."""
     lp = rec.loop
     order = list(runs)
     reports, firsts, pooled = {}, {}, {}
@@ -55,31 +72,103 @@ def loop_report(rec: LoopRecipe, runs: dict, timings: dict, latency: dict, gains
         rep["gain_search"] = {"objective": f"mean NPiB over the first {lp.gain_steps} steps of the first seed",
                               "grid": list(grid), "refine": list(refine),
                               "chosen": {m: v["gain"] for m, v in search.items()}}
-    rep["verdict"] = loop_verdict(rep)
+    rep = {"verdict": loop_verdict(rep), "provenance": provenance, **rep}
     return rep, {m: firsts[m] for m in rep["methods"]}, {m: pooled[m] for m in rep["methods"]}
 
 
+def _version(package: str) -> str | None:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def loop_provenance(rec: LoopRecipe, out: Path, latency_measured: list, workers: int = 1,
+                    scheduler: str | None = None) -> dict:
+    """What made a loop report: the recipe (its path relative to the report's folder ``out``, its bytes'
+    sha256 and its parsed content's key, :func:`metadesign.tasks.content_key`, which a comment edit keeps),
+    the files it names (paths relative to the recipe's folder, as the recipe writes them, and sha256s; a
+    model with its card's sha256), the seeds (the turbulence realisations' and the detector noise's streams),
+    which latencies were measured on this machine (``latency_measured``; the others declared), how it ran
+    (``workers`` local processes or a Dask ``scheduler``: the numbers do not depend on it), the code
+    (version, commit, the packages of :data:`VERSIONS`), the machine and the date."""
+    src = Path(rec.source).resolve()
+    base = src.parent
+
+    def named(p):
+        p = Path(p).resolve()
+        return {"path": os.path.relpath(p, base), "sha256": file_key(p) if p.is_file() else None}
+
+    def model(p):
+        if p is None:
+            return None
+        card = find_card(p)
+        return {**named(p), "card": named(card) if card.is_file() else None}
+
+    lp = rec.loop
+    return {"recipe": {"path": os.path.relpath(src, Path(out).resolve()), "relative_to": "report",
+                       "sha256": file_key(src), "key": content_key(load_toml(src))},
+            "design": named(rec.design), "sensor": named(rec.sensor), "turbulence": named(rec.turbulence),
+            "model": model(rec.model), "realtime": model(rec.realtime),
+            "seeds": {"seed": lp.seed, "realisations": lp.seeds,
+                      "turbulence": f"realisation 0: the seed; r >= 1: SeedSequence(seed, spawn_key=({REALISATION_TAG}, "
+                                    "r, 0))",
+                      "noise": f"realisation 0: SeedSequence(seed, spawn_key=(11 or 12, frame)); r >= 1: "
+                               f"SeedSequence(seed, spawn_key=({REALISATION_TAG}, r, 1, 11 or 12, frame))"},
+            "latency_measured": sorted(latency_measured),
+            "execution": {"scheduler": scheduler} if scheduler is not None else {"workers": int(workers)},
+            "metadesign": __version__, "commit": _git_commit(),
+            "versions": {"python": platform.python_version(), **{k: _version(k) for k in VERSIONS}},
+            "machine": f"{platform.node()} ({platform.system()} {platform.machine()}, {os.cpu_count()} cores)",
+            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+
+
 def plot_loop(rep: dict, series: dict, pooled: dict, out: Path) -> list[Path]:
-    """The first realisation's NPiB in time, the pooled CDF, the measured and theoretical rejection."""
+    """``loop.png``: the first realisation's NPiB in time, the pooled CDF, the measured and theoretical
+    rejection; below them (a loop of >= 64 steps: the report has its spectra) the modal temporal PSDs of the
+    open loop and each closed loop, log-log, for tip (Noll 2) and the highest mode measured, and each mode's
+    variance (the PSD integrated over frequency).  One colour per method in every panel."""
     plt = pyplot()
-    lp = rep["loop"]
-    fig, axs = plt.subplots(1, 3, figsize=(16, 4.2), constrained_layout=True)
+    lp, ms = rep["loop"], rep["methods"]
+    colour = {m: f"C{i % 10}" for i, m in enumerate(ms)}
+    spectra = [m for m, r in ms.items() if "modal_psd" in r and (m == "open" or m not in ORACLES)]
+    rows = 2 if "open" in spectra else 1
+    fig, axs = plt.subplots(rows, 3, figsize=(16, 4.2 * rows), constrained_layout=True, squeeze=False)
+    top = axs[0]
     t = np.arange(lp["steps"]) / lp["rate_hz"] * 1e3
     for m, s in series.items():
-        axs[0].plot(t, s["npib"], lw=0.8, label=LABELS[m])
+        top[0].plot(t, s["npib"], lw=0.8, color=colour[m], label=LABELS[m])
         v, p = cdf_points(pooled[m])
-        axs[1].semilogy(v, p, lw=1, label=LABELS[m])
+        top[1].semilogy(v, p, lw=1, color=colour[m], label=LABELS[m])
     seeds = f" (first of {lp['seeds']} seeds)" if lp["seeds"] > 1 else ""
-    axs[0].set(xlabel="time (ms)", ylabel="NPiB",
+    top[0].set(xlabel="time (ms)", ylabel="NPiB",
                title=f"{lp['rate_hz']:g} Hz loop, f_G {rep['turbulence']['greenwood_hz']:.0f} Hz{seeds}")
-    axs[1].set(xlabel="NPiB", ylabel="P(NPiB <= x)", title="CDF of the power in the bucket")
-    for m, r in rep["methods"].items():
+    top[1].set(xlabel="NPiB", ylabel="P(NPiB <= x)", title="CDF of the power in the bucket")
+    for m, r in ms.items():
         if "rejection" in r:
             f, db = np.array(r["rejection"]["f_hz"]), np.array(r["rejection"]["measured_db"])
-            line, = axs[2].semilogx(f[1:], db[1:], lw=1, label=f"{LABELS[m]} (measured)")
-            axs[2].semilogx(f[1:], np.array(r["rejection"]["theory_db"])[1:], "--", lw=0.8, color=line.get_color())
-    axs[2].set(xlabel="f (Hz)", ylabel="|RTF|^2 (dB)", title="rejection: measured (solid), theory (dashed)")
-    for a in axs:
+            top[2].semilogx(f[1:], db[1:], lw=1, color=colour[m], label=f"{LABELS[m]} (measured)")
+            top[2].semilogx(f[1:], np.array(r["rejection"]["theory_db"])[1:], "--", lw=0.8, color=colour[m])
+    top[2].set(xlabel="f (Hz)", ylabel="|RTF|^2 (dB)", title="rejection: measured (solid), theory (dashed)")
+    if rows == 2:
+        noll = ms["open"]["modal_psd"]["noll"]
+        for ax, k in zip(axs[1][:2], (0, len(noll) - 1)):
+            for m in spectra:
+                psd = ms[m]["modal_psd"]
+                f, P = np.array(psd["f_hz"]), np.array(psd["psd_rad2_hz"][k])
+                ax.loglog(f[1:], P[1:], lw=1.6 if m == "open" else 0.9, color=colour[m], label=LABELS[m])
+            ax.set(xlabel="f (Hz)", ylabel="PSD (rad^2/Hz)",
+                   title=f"temporal PSD of Zernike Noll {noll[k]}{' (tip)' if noll[k] == 2 else ''}: "
+                         "open vs closed loops")
+        ax = axs[1][2]
+        for m in spectra:
+            psd = ms[m]["modal_psd"]
+            f, P = np.array(psd["f_hz"]), np.array(psd["psd_rad2_hz"])
+            ax.semilogy(psd["noll"], P.sum(axis=1) * (f[1] - f[0]), "o-", ms=3, lw=1.6 if m == "open" else 0.9,
+                        color=colour[m], label=LABELS[m])
+        ax.set(xlabel="Zernike mode (Noll)", ylabel="variance (rad^2, mean removed)",
+               title="each mode's variance (its PSD integrated over f)")
+    for a in axs.flat:
         if a.get_legend_handles_labels()[0]:
             a.legend(fontsize=7)
     return [save_figure(fig, out / "loop.png")]

@@ -55,7 +55,7 @@ from ..validation import ConfigError
 from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, flow_seed, noise_stream,
                    run_loop)
 from .loop_recipe import LoopRecipe
-from .loop_report import LABELS, loop_report, plot_loop
+from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
 __all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE"]
@@ -327,8 +327,11 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
              for r in range(lp.seeds) for m in order}
     res, _ = run.run(_task, tasks, folder, shared=ctx, weight=lambda n: lp.steps, unit="step")
     runs = {m: [res[names[m, r]] for r in range(lp.seeds)] for m in order}
+    measured = [m for m in ctx.sensors if m not in lp.latency_ms and m != "ideal"]
+    prov = loop_provenance(rec, out, measured, run.workers,
+                           run.scheduler or ("an open Dask client" if run.client is not None else None))
     rep, firsts, pooled = loop_report(rec, runs, {m: ctx.timing(m) for m in order}, ctx.latency, gains, search,
-                                      temporal, t_start, GAIN_GRID, GAIN_REFINE, run.log)
+                                      temporal, t_start, GAIN_GRID, GAIN_REFINE, run.log, prov)
     rep["figures"] = [str(p) for p in plot_loop(rep, firsts, pooled, out)]
     atomic_write_text(out / "loop.json", json.dumps(rep, indent=1, default=float))
     folder.remove()
