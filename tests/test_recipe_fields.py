@@ -1,5 +1,5 @@
 """Every numeric field of every stage-6 recipe (dataset, training, tolerance, transfer, Table S2,
-pipeline) against bad values: NaN, infinities and values outside its range are one ConfigError naming
+pipeline) and of the loop and loop-map recipes against bad values: NaN, infinities and values outside its range are one ConfigError naming
 the field and what is allowed (the CLI prints it as one line and exits 2), and an in-range value passes."""
 
 from __future__ import annotations
@@ -16,11 +16,14 @@ def _schemas():
     import importlib
 
     from metadesign.reconstruction import dataset
-    from metadesign.studies import pipeline, table_s2, tolerance, transfer
+    from metadesign.studies import loop_map, loop_recipe, pipeline, table_s2, tolerance, transfer
+    from metadesign.turbulence import scenario
 
     train = importlib.import_module("metadesign.reconstruction.train")  # the package exports train(), the function
+    wind = tuple(s for s in scenario.SECTIONS if s.name == "wind")  # the loop recipe's [wind]
     return {"dataset": dataset.SECTIONS, "train": train.SECTIONS, "tolerance": tolerance.TOLERANCE_SECTIONS,
-            "transfer": transfer.SECTIONS, "table-s2": table_s2.SECTIONS, "pipeline": pipeline.SECTIONS}
+            "transfer": transfer.SECTIONS, "table-s2": table_s2.SECTIONS, "pipeline": pipeline.SECTIONS,
+            "loop": (*loop_recipe.SECTIONS, *wind), "loop-map": (loop_map.MAP_SECTION,)}
 
 
 def _good(p: Param):

@@ -1,5 +1,5 @@
-"""Wavefront correctors for a closed loop: a zonal deformable mirror, a tip-tilt mirror and a modal corrector
-(pure numpy, SI units).
+"""Wavefront correctors for a closed loop: a zonal deformable mirror, a tip-tilt mirror and a modal corrector,
+and a separate tip-tilt mirror ahead of either (:class:`TipTiltSplit`) (pure numpy, SI units).
 
 Everything is in **phase radians** at the sensing wavelength: a command vector ``c`` (one entry per actuator or
 mode) makes the correction phase ``surface(c) = sum_i c_i B_i`` on the received-field crop, ``B_i`` the i-th
@@ -31,8 +31,8 @@ from ..validation import ConfigError, check_int, check_number
 from .propagation import cexp
 from .zernike import zernike
 
-__all__ = ["DeformableMirror", "LinearCorrector", "ModalDM", "TipTiltMirror", "gaussian_influence", "phase_of",
-           "fitted_oracle", "ORACLE_ITERATIONS"]
+__all__ = ["DeformableMirror", "LinearCorrector", "ModalDM", "TipTiltMirror", "TipTiltSplit", "gaussian_influence",
+           "phase_of", "fitted_oracle", "ORACLE_ITERATIONS"]
 
 
 def _crop_geometry(crop):
@@ -220,6 +220,44 @@ class TipTiltMirror(ModalDM):
 
     def __init__(self, coords: np.ndarray, aperture: float, stroke: float = np.inf, regularisation: float = 1e-9):
         super().__init__(coords, aperture, modes=(2, 3), stroke=stroke, regularisation=regularisation)
+
+
+class TipTiltSplit(LinearCorrector):
+    """A separate tip/tilt mirror ahead of the mirror ``dm`` (a :class:`DeformableMirror` or :class:`ModalDM`,
+    anything with ``coords`` and ``aperture``): commands ``[tip, tilt, *dm's]``, the tip/tilt mirror's two
+    (:class:`TipTiltMirror`: rad RMS over the pupil, its own ``stroke``, default unlimited) then the mirror's,
+    each clipped to its own stroke; the surface is their sum.  :meth:`fit` splits a phase as a woofer-tweeter
+    loop does: the tip/tilt mirror takes its least-squares tilt on the mask, the mirror its fit of the phase
+    with that tilt removed (so the mirror's stroke goes to the higher orders):
+    ``R = [R_tt; R_dm (I - T^T R_tt)]`` (``T`` the tilts on the mask), one matrix-vector product per call."""
+
+    def __init__(self, dm: LinearCorrector, stroke: float = np.inf, regularisation: float = 1e-9):
+        tt = TipTiltMirror(dm.coords, dm.aperture, stroke=stroke, regularisation=regularisation)
+        super().__init__(np.concatenate([tt.influence, dm.influence]), dm.mask, np.inf, dm.regularisation)
+        self.tip_tilt, self.mirror = tt, dm
+        self.coords, self.aperture = dm.coords, dm.aperture
+        self.limits = np.concatenate([np.full(tt.n, tt.stroke), np.full(dm.n, dm.stroke)]).astype(np.float32)
+
+    def clip(self, commands: np.ndarray) -> np.ndarray:
+        """Each mirror's commands limited to its own stroke (rad)."""
+        c = np.asarray(commands)
+        return np.clip(c, -self.limits, self.limits) if np.isfinite(self.limits).any() else c
+
+    def reconstructor(self, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        m = self.mask if mask is None else np.asarray(mask, bool)
+        if m.shape != self.shape:
+            raise ConfigError("dm.mask", f"expected shape {self.shape}, got {m.shape}")
+        key = np.packbits(m).tobytes()
+        if key not in self._rec:
+            r_tt, idx = self.tip_tilt.reconstructor(m)
+            r_dm, _ = self.mirror.reconstructor(m)
+            r_tt, r_dm = r_tt.astype(np.float64), r_dm.astype(np.float64)
+            T = self.tip_tilt.influence.reshape(self.tip_tilt.n, -1)[:, idx].astype(np.float64)  # (2, n_mask)
+            R = np.concatenate([r_tt, r_dm - (r_dm @ T.T) @ r_tt])
+            if len(self._rec) >= 8:
+                self._rec.pop(next(iter(self._rec)))
+            self._rec[key] = (np.ascontiguousarray(R, np.float32), idx)
+        return self._rec[key]
 
 
 def phase_of(field: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ __all__ = ["register", "loop_inputs"]
 def loop_inputs(path: Path, rec) -> dict:
     """The files a loop study (or a map of them) reads: the product layer's declared inputs."""
     return {"recipe": path, "design": rec.design, "sensor": rec.sensor, "turbulence": rec.turbulence,
-            "model": rec.model, "realtime": rec.realtime}
+            "model": rec.model, "realtime": rec.realtime, "influence": rec.influence}
 
 
 def _cmd_loop(a: argparse.Namespace) -> int:

@@ -19,7 +19,10 @@ to the recipe):
     pseudo_open_loop = false      # the controller integrates the residual's fit plus the mirror's commands
     seeds = 1                     # independent turbulence realisations (each method runs on every one)
     leak = 0.99
-    noise_percent = 5.0
+    noise_percent = 5.0           # additive Gaussian noise, % of each frame's peak
+    photons_per_frame = 0.0       # shot noise: photo-electrons at each camera frame's peak (0: none)
+    read_noise_e = 0.0            # read noise (electrons rms per pixel; with photons_per_frame)
+    sh_lenslets = 8               # the Shack-Hartmann's lenslets across, or "auto" (d <= r0)
     readout_frames = 0.0
     dm_frames = 0.0
     latency_ms = {}               # per method; a method not named: measured on this machine
@@ -31,9 +34,49 @@ to the recipe):
     actuators = 12                # across the receiver aperture
     coupling = 0.15
     regularisation = 1e-3
+    # stroke_um = 2.0             # surface stroke +- per command (default: none)
+    # influence = "dm.npy"        # measured influence functions (default: the Gaussians)
+    tip_tilt = false              # true: a separate tip/tilt mirror takes the tilt
 
     [wind]                        # the turbulence's motion (metadesign.turbulence.frozen)
     speed_m_s = 5.0
+
+The detector (``[loop]``).  Each loop frame is one exposure (its sub-steps' noise-free frames averaged) read
+once by the sensing stage's detector (:class:`~metadesign.sensing.detector.Detector`, the model the
+datasets and training draw with): ``photons_per_frame`` is its ``photons_at_peak``, the photo-electrons at
+the brightest pixel of each camera frame of one loop frame (the ideal camera's two frames, four of the
+eight channels each, or a mosaic camera's raw capture, each scaled so its peak holds that many: the
+exposure is set on the brightest spot, as in the datasets), Poisson shot noise plus ``read_noise_e``
+electrons rms of Gaussian read noise per pixel, then ``noise_percent`` % of the peak of additive Gaussian
+noise.  The Shack-Hartmann's detector frame (all its spots, one frame) is read by the same detector, its
+peak pixel holding ``photons_per_frame``; its centroid threshold assumes the background noise
+``hypot(noise_percent, 100 read_noise_e / photons_per_frame)`` % of the peak.  ``photons_per_frame = 0``
+(the default): no shot or read noise (``read_noise_e`` needs photons).
+
+The Shack-Hartmann (``[loop] sh_lenslets``): lenslets across the receiver aperture, an integer in [2, 64]
+(default 8, what the loop ran before the key existed), or ``"auto"``: the fewest lenslets whose
+sub-apertures are no larger than the path's Fried parameter, ``ceil(D / r0)`` (the spherical-wave r0 of
+the loop's path at its Rytov number and the beacon's wavelength), clipped to [2, floor(D / (4 dx))] (at
+least 4 received-field samples of pitch ``dx`` per lenslet: a lenslet's spot is the Fourier transform of
+its samples).  Why ``d <= r0``: a sub-aperture of ``d`` has a tilt-removed phase variance of
+``0.134 (d / r0)^(5/3)`` rad^2 (Noll 1976), at most 0.134 rad^2 here, so each spot is one
+diffraction-limited core whose centroid is the sub-aperture's mean gradient; larger sub-apertures break
+their spots into speckle and leave more of the phase between the lenslets, smaller ones divide the light
+and the pixels among more spots for little gain (Hardy's ``d ~ r0``).  The Rytov number sets r0 on this
+path (at Rytov 0.5 on the demo path, D / r0 = 4.9: 5 lenslets).  The report's ``shack_hartmann`` records the
+count, the rule and ``d / r0``.  (A loop map builds its sensors at its first Rytov number: ``"auto"``
+there is that number's count.)
+
+The mirror (``[dm]``).  ``stroke_um``: the mirror's surface stroke, each command clipped to
+``+- 4 pi stroke / lambda`` rad of phase at the beacon's wavelength (a reflective mirror; the zonal mirror's
+Gaussians peak at 1 rad per unit command, so this bounds each actuator's displacement; a modal corrector's
+each mode's rms coefficient); the integrator itself is not clipped (no anti-windup; its leak bounds it).
+``influence``: a ``.npy`` of measured influence functions, ``(n, A, A)`` rad of phase per unit command on the
+received crop (``A`` samples across, the crop of the turbulence grid holding the receiver aperture), read
+without unpickling; in place of the Gaussians (``kind = "zonal"`` only; ``actuators`` and ``coupling`` then
+unused).  ``tip_tilt = true``: a separate tip/tilt mirror (:class:`~metadesign.optics.dm.TipTiltSplit`)
+takes each estimate's least-squares tilt and the mirror the rest, the mirror's stroke spent on the higher
+orders (the tip/tilt mirror's stroke unlimited).
 """
 
 from __future__ import annotations
@@ -41,12 +84,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ..config import Param, Section, load_toml, parse
+from ..reconstruction.dataset import received_crop
+from ..tasks import file_key
 from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
 
 __all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "OPTIMISE", "load_loop_recipe",
-           "loop_recipe_of", "SECTIONS"]
+           "loop_recipe_of", "SECTIONS", "AUTO", "SH_LENSLETS", "load_influence"]
 
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
@@ -55,6 +102,11 @@ METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "
 #: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, and ``realtime``, the
 #: real-time modal network of ``[device] realtime`` (issue #51), on request)
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime"))
+#: the value of ``[loop] sh_lenslets`` that has the study choose the lenslet count from the path's r0
+AUTO = "auto"
+#: ``[loop] sh_lenslets``: the default, and the range of a given count
+SH_LENSLETS = 8
+SH_LENSLETS_RANGE = (2, 64)
 
 SECTIONS = (
     Section("device", (
@@ -71,6 +123,9 @@ SECTIONS = (
         Param("seeds", int, 1, lo=1, hi=100_000),
         Param("leak", float, 0.99, lo=0, hi=1),
         Param("noise_percent", float, 5.0, lo=0, hi=100),
+        Param("photons_per_frame", float, 0.0, lo=0, hi=1e15,
+              help="shot noise: photo-electrons at each camera frame's peak per loop frame (0: none)"),
+        Param("read_noise_e", float, 0.0, lo=0, hi=1e6, help="read noise, electrons rms (needs photons_per_frame)"),
         Param("readout_frames", float, 0.0, lo=0, hi=1000),
         Param("dm_frames", float, 0.0, lo=0, hi=1000),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
@@ -83,6 +138,10 @@ SECTIONS = (
         Param("actuators", int, 12, lo=2, hi=256),
         Param("coupling", float, 0.15, lo=0, open_lo=True, hi=0.9),
         Param("regularisation", float, 1e-3, lo=0, hi=1e6),
+        Param("stroke_um", float, None, lo=0, open_lo=True, hi=1000,
+              help="surface stroke +- per command (um; default: none)"),
+        Param("influence", str, None, help=".npy of measured influence functions (n, A, A), rad per command"),
+        Param("tip_tilt", bool, False, help="a separate tip/tilt mirror takes the tilt"),
     ), optional=True),
 )
 
@@ -105,6 +164,9 @@ class LoopSection:
     seeds: int = 1
     gain_steps: int = 100
     pseudo_open_loop: bool = False
+    photons_per_frame: float = 0.0  # the detector's photons_at_peak (0: no shot or read noise)
+    read_noise_e: float = 0.0
+    sh_lenslets: int | str = SH_LENSLETS  # or AUTO
 
     @property
     def optimise_gain(self) -> bool:
@@ -119,6 +181,9 @@ class DMSection:
     actuators: int
     coupling: float
     regularisation: float
+    stroke_m: float | None = None  # surface stroke (m), None: none
+    influence_sha256: str | None = None  # the measured influence file's content (the file: LoopRecipe.influence)
+    tip_tilt: bool = False
 
 
 @dataclass(frozen=True)
@@ -133,6 +198,11 @@ class LoopRecipe:
     dm: DMSection
     wind: dict
     realtime: Path | None = None  # the real-time modal network (method "realtime")
+    influence: Path | None = None  # [dm] influence: measured influence functions (.npy)
+
+
+#: the [loop] keys read outside the schema (not numbers alone)
+_OUTSIDE = ("gain", "methods", "latency_ms", "sh_lenslets")
 
 
 def _latencies(raw, methods, where: str) -> dict:
@@ -160,6 +230,39 @@ def _gain(raw):
     return float(raw)
 
 
+def _sh_lenslets(raw):
+    if raw is None:
+        return SH_LENSLETS
+    if raw == AUTO:
+        return AUTO
+    lo, hi = SH_LENSLETS_RANGE
+    if isinstance(raw, bool) or not isinstance(raw, int) or not lo <= raw <= hi:
+        raise ConfigError("loop.sh_lenslets", f'expected an integer in [{lo}, {hi}] or "{AUTO}", got {raw!r}')
+    return int(raw)
+
+
+def load_influence(path: Path, size: int) -> np.ndarray:
+    """The measured influence functions at ``path`` (a ``.npy``, never unpickled): ``(n, size, size)`` float32,
+    finite; else one ConfigError naming ``dm.influence``."""
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(6)
+        a = np.load(path, allow_pickle=False) if magic == b"\x93NUMPY" else None
+    except (OSError, ValueError, EOFError) as exc:
+        why = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise ConfigError("dm.influence", f"{path}: not a readable .npy array ({why})") from None
+    if a is None:
+        raise ConfigError("dm.influence", f"{path}: not a .npy file (np.save writes one)")
+    if (not isinstance(a, np.ndarray) or a.ndim != 3 or a.shape[0] < 1 or a.shape[1:] != (size, size)
+            or a.dtype.kind not in "fiu"):
+        got = f"shape {a.shape} {a.dtype}" if isinstance(a, np.ndarray) else type(a).__name__
+        raise ConfigError("dm.influence", f"{path}: expected an (n, {size}, {size}) real array (rad per unit "
+                          f"command on the received crop), got {got}")
+    if not np.all(np.isfinite(a)):
+        raise ConfigError("dm.influence", f"{path}: has NaN or infinite values")
+    return a.astype(np.float32)
+
+
 def load_loop_recipe(path: str | Path) -> LoopRecipe:
     """The loop recipe at ``path``, validated (one line naming the field on the first problem)."""
     return loop_recipe_of(load_toml(path), path)
@@ -171,13 +274,25 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     what remains once it has taken its own sections)."""
     path = Path(path)
     raw = {k: dict(v) if isinstance(v, dict) else v for k, v in raw.items()}
+    sections = [s.name for s in SECTIONS] + ["wind"]
+    for name in raw:
+        if name not in sections:
+            raise ConfigError(name, f"unknown section in {path}; allowed: {', '.join(f'[{x}]' for x in sections)}")
     loop = raw.get("loop") if isinstance(raw.get("loop"), dict) else {}
+    keys = [p.key for s in SECTIONS if s.name == "loop" for p in s.params] + list(_OUTSIDE)
+    for k in loop:
+        if k not in keys:
+            raise ConfigError(f"loop.{k}", f"unknown key; allowed: {', '.join(keys)}")
     latency, methods = loop.pop("latency_ms", None), loop.pop("methods", list(DEFAULT_METHODS))
     gain = loop.pop("gain", None)
+    lenslets = _sh_lenslets(loop.pop("sh_lenslets", None))
     wind = raw.pop("wind", None)
     v = parse(raw, SECTIONS, str(path))
     lp = v["loop"]
     gain = _gain(gain)
+    if lp["read_noise_e"] and not lp["photons_per_frame"]:
+        raise ConfigError("loop.read_noise_e", "needs loop.photons_per_frame > 0 (read noise is counted in "
+                                               f"photo-electrons), got {lp['read_noise_e']:g} with none")
     if gain == OPTIMISE and lp["gain_steps"] > lp["steps"]:
         raise ConfigError("loop.gain_steps", f"expected at most loop.steps ({lp['steps']}), got {lp['gain_steps']}")
     if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
@@ -208,10 +323,26 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     if wind is not None and not isinstance(wind, dict):
         raise ConfigError("wind", "expected a [wind] table")
     wind = dict(wind or {"speed_m_s": 0.0})  # no [wind]: the turbulence stands still
-    wind_from_dict({"wind": wind}, load_scenario(rel(d["turbulence"])), str(path))  # its values checked now
+    sc = load_scenario(rel(d["turbulence"]))
+    wind_from_dict({"wind": wind}, sc, str(path))  # its values checked now
+    dm = dict(v["dm"])
+    influence = dm.pop("influence")
+    influence = rel(influence) if influence else None
+    if influence is not None:
+        if dm["kind"] != "zonal":
+            raise ConfigError("dm.influence", f'measured influence functions are a zonal mirror\'s (dm.kind = '
+                              f'"zonal"), got dm.kind = "{dm["kind"]}"')
+        if not influence.is_file():
+            raise ConfigError("dm.influence", f"{influence}: no such file")
+        load_influence(influence, received_crop(sc)[1])  # its shape and values checked now
     section = LoopSection(**{k: lp[k] for k in ("rate_hz", "steps", "substeps", "rytov", "leak",
                                                 "noise_percent", "readout_frames", "dm_frames", "seed",
-                                                "threshold_db", "seeds", "gain_steps", "pseudo_open_loop")},
-                          gain=gain, methods=methods, latency_ms=_latencies(latency, methods, str(path)))
+                                                "threshold_db", "seeds", "gain_steps", "pseudo_open_loop",
+                                                "photons_per_frame", "read_noise_e")},
+                          gain=gain, methods=methods, latency_ms=_latencies(latency, methods, str(path)),
+                          sh_lenslets=lenslets)
+    dm_section = DMSection(**{k: dm[k] for k in ("kind", "modes", "actuators", "coupling", "regularisation",
+                                                 "tip_tilt")}, stroke_m=dm["stroke_um"],
+                           influence_sha256=file_key(influence) if influence is not None else None)
     return LoopRecipe(path.stem, path, rel(d["design"]), rel(d["sensor"]), rel(d["turbulence"]), model, section,
-                      DMSection(**v["dm"]), wind, realtime)
+                      dm_section, wind, realtime, influence)

@@ -35,18 +35,19 @@ from ..design.store import run_design
 from ..execution import SERIAL, Execution, scratch_path
 from ..io import atomic_write_text
 from ..optics.control import Controller
-from ..optics.dm import DeformableMirror, ModalDM
+from ..optics.dm import DeformableMirror, ModalDM, TipTiltSplit
 from ..reconstruction.dataset import received_crop
-from ..reconstruction.estimators import make_estimator
+from ..reconstruction.estimators import ShackHartmannEstimator, make_estimator
 from ..reconstruction.linear import LinearEstimator, LinearReconstructor
 from ..reconstruction.realtime import RealtimeEstimator
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
 from ..reconstruction.shack_hartmann import SHConfig
-from ..sensing.detector import Detector
+from ..sensing.detector import Detector, NoiseSpec
 from ..sensing.device import Device, ReceiverCrop
 from ..sensing.model import AsFabricated
 from ..turbulence.frozen import FrozenFlow
+from ..turbulence.path import solve_path
 from ..turbulence.system import build_system
 from ..turbulence.scenario import wind_from_dict
 from ..turbulence.temporal import temporal_summary
@@ -54,11 +55,12 @@ from ..tasks import TaskFolder, content_key, file_key
 from ..validation import ConfigError
 from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, flow_seed, noise_stream,
                    run_loop)
-from .loop_recipe import LoopRecipe
+from .loop_recipe import AUTO, SH_LENSLETS_RANGE, LoopRecipe, load_influence
 from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
-__all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE"]
+__all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE",
+           "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror"]
 
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
@@ -68,19 +70,24 @@ GAIN_REFINE = (-0.075, -0.05, -0.025, 0.025, 0.05, 0.075)
 
 
 class ShackHartmannLoopSensor:
-    """A Shack-Hartmann in the received plane in the loop: its spots integrated over the exposure, read by its
-    detector (Gaussian noise of the frame's peak, drawn from ``seed``, the ``stream`` and the frame),
-    reconstructed by its estimator."""
+    """A Shack-Hartmann in the received plane in the loop: its spots integrated over the exposure, read as one
+    frame (all the spots) by ``detector`` (a :class:`~metadesign.sensing.detector.Detector`, the metasurface
+    sensor's model: its noise in units of the frame's peak; None: noise-free), drawn from ``seed``, the
+    ``stream`` and the frame, reconstructed by its estimator."""
 
-    def __init__(self, estimator, noise_percent: float, seed: int, stream: tuple = ()):
-        self.est, self.noise, self.seed = estimator, float(noise_percent), int(seed)
+    def __init__(self, estimator, detector: Detector | None, seed: int, stream: tuple = ()):
+        self.est, self.detector, self.seed = estimator, detector, int(seed)
         self.stream = tuple(stream)
 
     def expose(self, crops: list, k: int) -> dict:
         sh = self.est.sh
-        spots = np.mean([sh.frames(np.asarray(c)[None]) for c in crops], axis=0)
+        spots = np.mean([sh.frames(np.asarray(c)[None]) for c in crops], axis=0)  # (1, L, L, K, K)
         rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(*self.stream, 12, int(k))))
-        return {"sh_spots": sh.add_noise(spots, self.noise, rng), "index": np.array([k])}
+        if self.detector is not None:
+            B, L, _, K, _ = spots.shape
+            frame = spots.transpose(0, 1, 3, 2, 4).reshape(B, L * K, L * K)  # the detector's frame
+            spots = self.detector.read(frame, rng).reshape(B, L, K, L, K).transpose(0, 1, 3, 2, 4)
+        return {"sh_spots": spots, "index": np.array([k])}
 
     def reconstruct(self, frame: dict) -> np.ndarray:
         return np.asarray(self.est.estimate(frame), np.float64)[0]
@@ -108,15 +115,74 @@ def _latency(sensor, world: LoopWorld, repeats: int = 15) -> float:
     return float(np.median(ts))
 
 
-def _sensors(rec: LoopRecipe, device: Device) -> dict:
-    """Each closed-loop method's sensor (its reconstruction included)."""
+def loop_detector(rec: LoopRecipe) -> Detector | None:
+    """The loop's detector (None: noise-free): ``noise_percent`` % of each frame's peak of additive Gaussian
+    noise, and with ``photons_per_frame`` > 0 shot noise with that many photo-electrons at each frame's peak
+    plus ``read_noise_e`` electrons rms of read noise (the sensing stage's detector, as the datasets draw it)."""
+    lp = rec.loop
+    spec = NoiseSpec(gaussian_sigma=lp.noise_percent / 100.0, photons_at_peak=lp.photons_per_frame or None,
+                     read_noise_e=lp.read_noise_e if lp.photons_per_frame else 0.0, seed=lp.seed)
+    return Detector(spec) if spec.active else None
+
+
+#: ``sh_lenslets = "auto"``: the fewest received-field samples across one lenslet
+SH_MIN_SAMPLES = 4
+
+
+def sh_lenslets_for(sc, requested="auto") -> dict:
+    """The loop's Shack-Hartmann lenslet count on the path ``sc`` (a :class:`~metadesign.turbulence.path.Scenario`
+    at the loop's Rytov number) and why: ``requested`` (an int, the recipe's) or ``"auto"``, the fewest lenslets
+    whose sub-apertures are no larger than the path's Fried parameter, ``ceil(D / r0)`` (the spherical-wave r0
+    of the path at its Rytov number and wavelength, :func:`~metadesign.turbulence.path.solve_path`), clipped
+    to [2, floor(D / (SH_MIN_SAMPLES dx))] (see :mod:`metadesign.studies.loop_recipe` for why).
+    ``{"lenslets", "rule", "r0_m", "d_over_r0", "max_lenslets", "why"}``."""
+    D, dx, r0 = float(sc.receiver_aperture), float(sc.dx), float(solve_path(sc).r0)
+    lo, hi = SH_LENSLETS_RANGE
+    top = int(max(lo, min(hi, np.floor(D / (SH_MIN_SAMPLES * dx) + 1e-9))))
+    if requested == AUTO:
+        want = int(np.ceil(D / r0 - 1e-9))
+        n = int(min(max(want, lo), top))
+        why = (f"ceil(D / r0) = ceil({D / r0:.2f}) = {want} lenslets across (sub-apertures no larger than the "
+               f"spherical-wave r0 = {r0 * 100:.2f} cm of the path at Rytov {sc.rytov:g}, "
+               f"{sc.wavelength * 1e9:g} nm)" + (f", clipped to [{lo}, {top}] ({SH_MIN_SAMPLES} received-field "
+                                                  f"samples of {dx * 1e3:g} mm per lenslet at least)"
+                                                  if n != want else ""))
+    else:
+        n = int(requested)
+        why = f"the recipe's sh_lenslets = {n}"
+    return {"lenslets": n, "rule": "auto" if requested == AUTO else "recipe", "r0_m": r0,
+            "d_over_r0": D / n / r0, "max_lenslets": top, "why": why}
+
+
+def loop_mirror(rec: LoopRecipe, crop: ReceiverCrop, wavelength: float):
+    """The recipe's mirror on the received crop: Gaussian (``actuators``, ``coupling``) or measured
+    (``influence``) zonal, or modal (``modes``); its commands clipped at ``+- 4 pi stroke / wavelength`` rad (a
+    reflective surface's stroke in phase at the beacon's ``wavelength``); a separate tip/tilt mirror ahead of
+    it with ``tip_tilt`` (:class:`~metadesign.optics.dm.TipTiltSplit`)."""
+    d = rec.dm
+    stroke = np.inf if d.stroke_m is None else 4 * np.pi * d.stroke_m / wavelength
+    if rec.influence is not None:
+        x, D = np.asarray(crop.coords(), float), float(crop.aperture)
+        dm = DeformableMirror.measured(x, D, load_influence(rec.influence, crop.size), stroke=stroke,
+                                       regularisation=d.regularisation)
+    elif d.kind == "modal":
+        dm = ModalDM.for_crop(crop, n_modes=d.modes, stroke=stroke, regularisation=d.regularisation)
+    else:
+        dm = DeformableMirror.for_crop(crop, n_act=d.actuators, coupling=d.coupling, stroke=stroke,
+                                       regularisation=d.regularisation)
+    return TipTiltSplit(dm) if d.tip_tilt else dm
+
+
+def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
+    """Each closed-loop method's sensor (its reconstruction included; the Shack-Hartmann's ``lenslets``
+    across)."""
     lp = rec.loop
     net = unet = refiner = None
     if rec.model is not None:
         net, _ = load_network(rec.model)
         refiner = net if hasattr(net, "trajectory") else None
         unet = refiner.unet if refiner is not None else net
-    det = Detector.gaussian(lp.noise_percent, lp.seed) if lp.noise_percent else None
+    det = loop_detector(rec)
     out = {}
     for m in lp.methods:
         if m in ORACLES:
@@ -124,10 +190,11 @@ def _sensors(rec: LoopRecipe, device: Device) -> dict:
         if m == "ideal":
             s = IdealPhaseSensor()
         elif m == "shack_hartmann":
-            est = make_estimator("shack_hartmann", device)
-            est = type(est)(device, SHConfig(lenslets=est.config.lenslets, threshold=0.3,
-                                             noise_percent=lp.noise_percent))
-            s = ShackHartmannLoopSensor(est, lp.noise_percent, lp.seed)
+            # the centroid threshold's background noise: the Gaussian part and the read noise (% of the peak)
+            bg = float(np.hypot(lp.noise_percent, 100 * lp.read_noise_e / lp.photons_per_frame)
+                       if lp.photons_per_frame else lp.noise_percent)
+            est = ShackHartmannEstimator(device, SHConfig(lenslets=lenslets, threshold=0.3, noise_percent=min(bg, 100)))
+            s = ShackHartmannLoopSensor(est, det, lp.seed)
         elif m == "linear":
             s = MetasurfaceSensor(device, _linear_estimator(rec, device), det, lp.seed)
         elif m == "realtime":
@@ -172,6 +239,7 @@ class LoopContext:
     modes: np.ndarray
     sensors: dict
     latency: dict = field(default_factory=dict)
+    sh: dict = field(default_factory=dict)  # the Shack-Hartmann's lenslet count and why (sh_lenslets_for)
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __getstate__(self):
@@ -239,12 +307,13 @@ def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
     temporal = temporal_summary(sc, wind)
     log(f"loop: {rec.name}: Rytov {lp.rytov:g}, f_G {temporal['greenwood_hz']:.0f} Hz, {lp.rate_hz:g} Hz, {lp.steps} steps "
         f"x {lp.substeps} sub-steps x {lp.seeds} seed{'s' if lp.seeds > 1 else ''}; methods {', '.join(lp.methods)}")
-    dm = (ModalDM.for_crop(device.crop, n_modes=rec.dm.modes, regularisation=rec.dm.regularisation)
-          if rec.dm.kind == "modal" else
-          DeformableMirror.for_crop(device.crop, n_act=rec.dm.actuators, coupling=rec.dm.coupling,
-                                    regularisation=rec.dm.regularisation))
+    dm = loop_mirror(rec, device.crop, sc.wavelength)
     modes = np.asarray(ModalDM.for_crop(device.crop, n_modes=MODES).influence, np.float64)  # unit-rms Zernikes
-    ctx = LoopContext(rec, tb, wind, c0, a, PiB(sc, c0, a), dm, modes, _sensors(rec, device))
+    sh = sh_lenslets_for(sc, lp.sh_lenslets) if "shack_hartmann" in lp.methods else {}
+    if sh:
+        log(f"  Shack-Hartmann: {sh['lenslets']} lenslets across, d/r0 {sh['d_over_r0']:.2f} ({sh['why']})")
+    ctx = LoopContext(rec, tb, wind, c0, a, PiB(sc, c0, a), dm, modes,
+                      _sensors(rec, device, sh.get("lenslets", 8)), sh=sh)
     return ctx, device, temporal
 
 
@@ -332,6 +401,8 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
                            run.scheduler or ("an open Dask client" if run.client is not None else None))
     rep, firsts, pooled = loop_report(rec, runs, {m: ctx.timing(m) for m in order}, ctx.latency, gains, search,
                                       temporal, t_start, GAIN_GRID, GAIN_REFINE, run.log, prov)
+    if ctx.sh:
+        rep["shack_hartmann"] = ctx.sh  # its lenslet count and why
     rep["figures"] = [str(p) for p in plot_loop(rep, firsts, pooled, out)]
     atomic_write_text(out / "loop.json", json.dumps(rep, indent=1, default=float))
     folder.remove()
