@@ -206,7 +206,8 @@ MAP_CASES = [
     ({(P, "rates_hz"): None, (P, "latency_ms"): "[0]", (P, "latency_methods"): '["open"]'}, "map.latency_methods"),
     ({(P, "colour"): "1"}, "map.colour"),
     ({(P, None): "3"}, "map"),
-    ({(L, "gain"): '"optimise"'}, "loop.gain"),
+    ({(L, "gain"): '"fast"'}, "loop.gain"),
+    ({(L, "gain"): '"optimise"', (L, "gain_steps"): "300", (P, "steps"): "200"}, "loop.gain_steps"),  # > the map's
     ({(L, "methods"): '["open"]'}, "loop.methods"),
     ({(L, "photons_per_frame"): "nan"}, "loop.photons_per_frame"),
     ({(L, "sh_lenslets"): "0"}, "loop.sh_lenslets"),

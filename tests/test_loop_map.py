@@ -219,7 +219,10 @@ def test_a_latency_axis_declares_the_metasurface_loops_latency(tmp_path, capsys)
     ("latency_ms = [0]\ngreenwood_hz = [100]\nrytov = [0.5]\nverdict_rate_hz = 1000.0\n", LOOP,
      "speed_m_s = 3.0\n", "map.verdict_rate_hz"),
     (MAP, LOOP, "speed_m_s = 0.0\n", "wind"),
-    (MAP, LOOP + 'gain = "optimise"\n', "speed_m_s = 3.0\n", "loop.gain"),
+    (MAP, LOOP + 'gain = "fast"\n', "speed_m_s = 3.0\n", "loop.gain"),
+    # "optimise" tries each gain on the first gain_steps frames of a run: no more than the map's steps
+    (MAP + "steps = 4\n", LOOP.replace("steps = 4", "steps = 10") + 'gain = "optimise"\ngain_steps = 8\n',
+     "speed_m_s = 3.0\n", "loop.gain_steps"),
     (MAP, LOOP.replace('"ideal", ', ""), "speed_m_s = 3.0\n", "loop.methods"),
     (MAP, LOOP + "rate_hz = nan\n", "speed_m_s = 3.0\n", "loop.rate_hz"),
 ])
@@ -261,3 +264,125 @@ def test_the_committed_map_recipe_loads_with_its_verdict_point_on_its_grid(tmp_p
     assert len(cells) == 18 and len(scan) == 5 and len(runs) == 18 * 4 + 5
     for (r, g), s in m.scenes.items():
         assert s["greenwood_hz"] == pytest.approx(g, rel=1e-9)
+
+
+#: an optimised map: 2 rates x 1 f_G x 1 Rytov, the ideal and Shack-Hartmann loops' gains chosen at each point
+#: (the Shack-Hartmann's latency declared: the numbers do not depend on this machine's timing), the verdict's
+#: point on the grid
+OPT_MAP = ("rates_hz = [1000, 4000]\ngreenwood_hz = [200]\nrytov = [0.5]\nverdict_greenwood_hz = 200.0\n"
+           "verdict_rate_hz = 1000.0\n")
+OPT_LOOP = ('methods = ["ideal", "shack_hartmann", "open"]\nsteps = 3\nsubsteps = 1\ngain = "optimise"\n'
+            'gain_steps = 3\nlatency_ms = {shack_hartmann = 0.1}\n')
+
+
+@pytest.fixture(scope="module")
+def optimised(tmp_path_factory):
+    """The optimised map on one worker (the reference of the next two tests)."""
+    base = tmp_path_factory.mktemp("loop-map-opt")
+    rec = _recipe(base, OPT_MAP, OPT_LOOP)
+    rc, err = _main(["loop-map", rec, "-o", base / "j1", "-j", "1", "--json"])
+    assert rc == 0, err
+    return rec, base / "j1"
+
+
+def _loop_at(folder: Path, rep: dict, rytov: float, greenwood: float, rate: float, loop: str) -> dict:
+    """``metadesign loop`` on the recipe of one map point (its rate, Rytov number and scaled wind): loop.json."""
+    scene = next(s for s in rep["greenwood"]["scenes"]
+                 if s["rytov"] == rytov and s["greenwood_hz"] == pytest.approx(greenwood, rel=1e-9))
+    folder.mkdir()
+    rec = _recipe(folder, None, loop + f"rate_hz = {rate!r}\nrytov = {rytov!r}\n",
+                  wind=f"speed_m_s = {scene['wind']['speed_m_s']!r}\n")
+    rc, err = _main(["loop", rec, "-o", folder / "out"])
+    assert rc == 0, err
+    return json.loads((folder / "out" / "loop.json").read_text())
+
+
+def test_optimise_chooses_each_points_gain_by_the_loop_studys_search(optimised, tmp_path):
+    """Each closed loop's gain at each point is the loop study's choice at that point: ``metadesign loop`` on
+    the 4 kHz point's recipe (its rate and scaled wind, gain = "optimise") tries the same gains with the same
+    mean NPiB and picks the same gain, and its runs at that gain are the map's; the 1 kHz point's search
+    differs (a search per point, not one gain everywhere); the oracles carry none; map.json records the rule."""
+    from metadesign.studies.loop_study import GAIN_GRID, GAIN_REFINE
+
+    _, j1 = optimised
+    rep = json.loads((j1 / "map.json").read_text())
+    g = rep["gain"]
+    assert (g["rule"], g["grid"], g["refine"], g["steps"]) == ("optimise", list(GAIN_GRID), list(GAIN_REFINE), 3)
+    search = {(s["rate_hz"], s["method"]): s for s in g["searches"]}
+    assert sorted(search) == [(1000.0, "ideal"), (1000.0, "shack_hartmann"), (4000.0, "ideal"),
+                              (4000.0, "shack_hartmann")]
+    for p in rep["points"]:
+        for m in ("ideal", "shack_hartmann"):
+            s = search[(p["rate_hz"], m)]
+            assert p["methods"][m]["gain"] == s["gain"] and s["gain"] in s["gains"]
+            assert set(GAIN_GRID) <= set(s["gains"]) and len(s["gains"]) > len(GAIN_GRID)  # grid, then refined
+        assert p["methods"]["open"]["gain"] is None
+    assert rep["verdict"]["methods"]["ideal"]["gain"] == search[(1000.0, "ideal")]["gain"]
+    study = _loop_at(tmp_path / "study", rep, 0.5, 200.0, 4000.0, OPT_LOOP)
+    point = rep["points"][1]
+    assert point["rate_hz"] == 4000.0
+    for m in ("ideal", "shack_hartmann"):
+        mine, theirs = search[(4000.0, m)], study["methods"][m]["gain_search"]
+        assert mine["gains"] == theirs["gains"] and mine["gain"] == theirs["gain"] == study["methods"][m]["gain"]
+        assert mine["npib_mean"] == pytest.approx(theirs["npib_mean"], rel=1e-12, abs=1e-12)
+        assert point["methods"][m]["npib_mean"] == pytest.approx(study["methods"][m]["npib_mean"], rel=1e-12)
+        other = search[(1000.0, m)]
+        assert other["npib_mean"][:len(GAIN_GRID)] != mine["npib_mean"][:len(GAIN_GRID)]
+
+
+def test_an_optimised_map_resumes_on_two_workers_to_the_same_bytes(optimised, tmp_path, capsys, monkeypatch):
+    """Killed in the middle of the gain search (20 of its 36 grid trials done, one worker), then resumed on
+    two workers: the same map.json numbers and map.png bytes as one worker from scratch."""
+    import functools
+
+    from metadesign.execution import Execution
+    from metadesign.studies import cli_loop_map
+
+    rec, j1 = optimised
+    monkeypatch.setattr(cli_loop_map, "Execution", functools.partial(Execution, stop_after=20), raising=False)
+    rc, _, err = run_main(["loop-map", rec, "-o", tmp_path / "k", "-j", "1", "--json"], capsys)
+    assert rc == 130 and "interrupted" in err[-1], err
+    assert len(list((tmp_path / "k.partial").glob("gain-*.npz"))) == 20
+    monkeypatch.setattr(cli_loop_map, "Execution", Execution, raising=False)
+    rc, out, err = run_main(["loop-map", rec, "-o", tmp_path / "k", "-j", "2"], capsys)
+    assert rc == 0, err
+    assert any("resuming: 20/36 tasks" in e for e in err), err
+    assert "gains (optimised per point" in out and "gain 0.4" not in out
+    assert _numbers(tmp_path / "k") == _numbers(j1)
+    assert (tmp_path / "k" / "map.png").read_bytes() == (j1 / "map.png").read_bytes()
+    assert not (tmp_path / "k.partial").exists()
+
+
+def test_auto_lenslets_follow_each_rytov_numbers_r0(tmp_path):
+    """``sh_lenslets = "auto"`` on a map over Rytov 0.3 and 0.5: each point's count is ``ceil(D / r0)`` with
+    r0 the closed-form spherical-wave Fried parameter of a uniform-Cn2 path at that Rytov number
+    (``sigma_chi^2 = 0.563 k^(7/6) Cn2 L^(11/6) B(11/6, 11/6)``, ``r0 = (0.423 k^2 Cn2 3 L / 8)^(-3/5)``):
+    4 and 5 lenslets; and the Rytov 0.5 point's Shack-Hartmann loop is the loop study's at that point with 5
+    lenslets given (not the first Rytov number's 4)."""
+    from scipy.special import beta
+
+    from metadesign.turbulence.scenario import load_scenario
+
+    loop = ('methods = ["ideal", "shack_hartmann", "open"]\nsteps = 3\nsubsteps = 1\nsh_lenslets = "auto"\n'
+            'latency_ms = {shack_hartmann = 0.1}\n')
+    rec = _recipe(tmp_path, "rates_hz = [1000]\ngreenwood_hz = [200]\nrytov = [0.3, 0.5]\nverdict_rytov = 0.3\n"
+                  "verdict_greenwood_hz = 200.0\nverdict_rate_hz = 1000.0\n", loop)
+    rc, err = _main(["loop-map", rec, "-o", tmp_path / "out", "--json"])
+    assert rc == 0, err
+    rep = json.loads((tmp_path / "out" / "map.json").read_text())
+    sc = load_scenario(REPO / "sensing" / "turbulence.toml")
+    D, L, k = sc.receiver_aperture, sc.length, 2 * np.pi / sc.wavelength
+    counts = {}
+    for p in rep["points"]:
+        cn2 = p["rytov"] / (0.563 * k ** (7 / 6) * L ** (11 / 6) * beta(11 / 6, 11 / 6))
+        r0 = (0.423 * k * k * cn2 * 3 * L / 8) ** (-3 / 5)
+        sh = p["shack_hartmann"]
+        assert sh["rule"] == "auto" and sh["lenslets"] == int(np.ceil(D / r0)) and sh["d_over_r0"] <= 1.0
+        assert sh["r0_m"] == pytest.approx(r0, rel=0.015)
+        counts[p["rytov"]] = sh["lenslets"]
+    assert counts == {0.3: 4, 0.5: 5}
+    assert [(s["rytov"], s["lenslets"]) for s in rep["shack_hartmann"]] == [(0.3, 4), (0.5, 5)]
+    study = _loop_at(tmp_path / "study", rep, 0.5, 200.0, 1000.0, loop.replace('"auto"', "5"))
+    assert study["shack_hartmann"]["lenslets"] == 5
+    point = next(p for p in rep["points"] if p["rytov"] == 0.5)["methods"]["shack_hartmann"]
+    assert point["npib_mean"] == pytest.approx(study["methods"]["shack_hartmann"]["npib_mean"], rel=1e-12)

@@ -13,12 +13,9 @@ from .cli_loop import loop_inputs
 
 __all__ = ["register"]
 
-#: one letter per method in the text summary's region tables
-LETTERS = {"ideal": "I", "shack_hartmann": "S", "realtime": "R", "linear": "L", "unet": "U", "refine": "F",
-           "fitted": "D", "conjugate": "C", "open": "O"}
-
 
 def _summary(rep: dict, out: Path, name: str) -> str:
+    from .loop_map import LETTERS  # one letter per method
     from .loop_study import LABELS
 
     mp, axis = rep["map"], rep["axis"]
@@ -46,6 +43,17 @@ def _summary(rep: dict, out: Path, name: str) -> str:
             lines.append(f"  {'':<11}{format(g, 'g'):>6} Hz" + "".join(row))
     if any(p.get("best_metasurface") for p in rep["points"]):
         lines.append("  (each cell: the methods in their region, then the best metasurface loop's NPiB / the ideal's)")
+    gain = rep.get("gain", {})
+    if gain.get("rule") == "optimise":
+        lines.append(f"  gains (optimised per point and closed loop: grid then refinement, {gain['steps']} steps of "
+                     "the first seed a trial):")
+        for p in rep["points"]:
+            where = f"Rytov {p['rytov']:g}, f_G {p['greenwood_hz']:g} Hz, {format(p[axis], 'g')} {unit}"
+            lines.append(f"    {where:<34}" + "  ".join(f"{LETTERS[m]} {p['methods'][m]['gain']:.3f}" for m in methods
+                                                   if p["methods"][m].get("gain") is not None))
+    if rep["loop"].get("sh_lenslets") == "auto" and rep.get("shack_hartmann"):
+        lines.append("  Shack-Hartmann lenslets (auto, ceil(D / r0) per Rytov number): " + ", ".join(
+            f"Rytov {s['rytov']:g}: {s['lenslets']} (d/r0 {s['d_over_r0']:.2f})" for s in rep["shack_hartmann"]))
     lines.append("  " + rep["verdict"]["statement"])
     lines.append(f"  figures: {', '.join(Path(p).name for p in rep['figures'])}")
     return "\n".join(lines)
@@ -78,8 +86,11 @@ def register(sub, groups: dict) -> None:
         "ideal-phase loop; each method's region (NPiB >= 0.8 x the ideal loop's, P(fade) <= 1e-2); and the "
         "verdict at Rytov 0.5, f_G 100 Hz, 2 kHz with the measured latencies (the best metasurface loop against "
         "the ideal-phase and Shack-Hartmann loops, and the largest latency that would meet each goal, from a "
-        "scan of declared latencies). Every run is one task of one set on -j local workers or a Dask --scheduler,"
-        " kept in OUT.partial as it finishes (a killed map resumes; the bytes do not depend on the worker "
+        "scan of declared latencies). [loop] gain = \"optimise\": each closed loop's gain chosen at each point by "
+        "the loop study's search (a grid, then a refinement, on the first gain_steps frames of the first seed), "
+        "recorded per point and written in the figure; sh_lenslets = \"auto\": the Shack-Hartmann's count "
+        "ceil(D / r0) at each Rytov number. Every run is one task of one set on -j local workers or a Dask "
+        "--scheduler, kept in OUT.partial as it finishes (a killed map resumes; the bytes do not depend on the worker "
         "count). Writes OUT/map.json and OUT/map.png.")
     p.add_argument("recipe", help="loop-map recipe (TOML), or a packaged one's name (loop-map)")
     p.add_argument("-o", "--output", help="output folder (default: RECIPE-out in the working directory)")

@@ -24,11 +24,26 @@ directions per screen, any of its forms) is multiplied by ``f_G / f_G(recipe's w
 number: the plane-wave f_G (:func:`metadesign.turbulence.temporal.greenwood_frequency`, ``w_i = 1``, the loop
 study's f_G) equals the target; the spherical-wave value is reported beside it.
 
-**The runs.**  Each grid point is a loop study (the same device, mirror, sensors, seeds and gain: a map
-refuses ``gain = "optimise"``) at that rate, wind and Rytov number; each run (point x method x seed) is one
-task of one task set (:meth:`metadesign.execution.Execution.run`, on ``-j`` local workers or a Dask
-scheduler), kept in ``OUT.partial`` as it finishes: a killed map resumes, and ``map.json``, computed from the
-tasks' series in a fixed order, has the same bytes on any worker count.  The latencies (declared in
+**The runs.**  Each grid point is a loop study (the same device, mirror, sensors and seeds) at that rate,
+wind and Rytov number; each run (point x method x seed) is one task of one task set
+(:meth:`metadesign.execution.Execution.run`, on ``-j`` local workers or a Dask scheduler), kept in
+``OUT.partial`` as it finishes: a killed map resumes, and ``map.json``, computed from the tasks' series in a
+fixed order, has the same bytes on any worker count.
+
+**The gain.**  ``[loop] gain`` a number: every closed loop at every point runs at it.  ``"optimise"``: each
+run of a closed loop (point x method, and each latency of a latency axis or of the verdict's scan) runs at
+its own gain, chosen by the loop study's search (:mod:`metadesign.studies.loop_study`) at that point: the
+mean NPiB of ``gain_steps`` frames of the first realisation at each gain of
+:data:`~metadesign.studies.loop_study.GAIN_GRID`, then at
+:data:`~metadesign.studies.loop_study.GAIN_REFINE` around the grid's best, the best of all the trials
+winning (the lowest gain on a tie).  The trials are tasks of the same folder (resumable, the same bytes on
+any worker count); ``map.json`` records each run's gain (``points[].methods[m].gain``) and every search
+(``gain.searches``), and the figure writes the chosen gains in each cell.
+
+**The Shack-Hartmann** (``[loop] sh_lenslets``): a count is the same at every point; ``"auto"`` is resolved
+at each Rytov number of the map (:func:`~metadesign.studies.loop_study.sh_lenslets_for`: ``ceil(D / r0)`` at
+that Rytov number's r0), a sensor built per count, its latency measured per count unless declared;
+each point records its count and why (``points[].shack_hartmann``).  The latencies (declared in
 ``[loop] latency_ms``, else measured once on this machine) are the loop study's; on a latency axis the
 ``latency_methods`` take the axis's value instead.  A run a point shares with another (the ideal loop of the
 verdict's scan) is computed once.
@@ -66,12 +81,13 @@ from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..turbulence.temporal import greenwood_frequency, temporal_summary
 from ..validation import ConfigError
 from .loop import ORACLES, LoopTiming
-from .loop_recipe import OPTIMISE, LoopRecipe, loop_recipe_of
-from .loop_study import LABELS, LoopContext, _build, _measure_latencies, _pooled_fades
+from .loop_recipe import AUTO, OPTIMISE, LoopRecipe, loop_recipe_of
+from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, _best, _build, _latency,
+                         _measure_latencies, _pooled_fades, _sensors, sh_lenslets_for)
 
 __all__ = ["MapRecipe", "load_map_recipe", "run_loop_map", "in_region", "regions", "latency_reaching",
            "map_verdict", "scaled_wind", "MAP_SECTION", "METASURFACE", "REGION_VS_IDEAL",
-           "REGION_FADE_PROBABILITY", "GOAL_VS_IDEAL", "GOAL_VS_SHACK_HARTMANN", "DEFAULT_SCAN_MS"]
+           "REGION_FADE_PROBABILITY", "GOAL_VS_IDEAL", "GOAL_VS_SHACK_HARTMANN", "DEFAULT_SCAN_MS", "LETTERS"]
 
 #: the metasurface sensor's loops (the best of them is the verdict's)
 METASURFACE = ("refine", "unet", "linear", "realtime")
@@ -84,6 +100,9 @@ GOAL_VS_IDEAL = 0.8
 GOAL_VS_SHACK_HARTMANN = 2.0
 #: the verdict's latency scan (ms) of a map on a rate axis that names none
 DEFAULT_SCAN_MS = (0.0, 0.25, 0.5, 1.0, 2.0)
+#: one letter per method (the text summary's region tables, the figure's gains)
+LETTERS = {"ideal": "I", "shack_hartmann": "S", "realtime": "R", "linear": "L", "unet": "U", "refine": "F",
+           "fitted": "D", "conjugate": "C", "open": "O"}
 #: the wind keys the map scales (m/s); directions stay
 _SPEEDS = ("speed_m_s", "end_speed_m_s", "speeds_m_s")
 
@@ -166,9 +185,6 @@ def load_map_recipe(path: str | Path) -> MapRecipe:
     rec = loop_recipe_of(raw, path)
     v = parse({"map": m}, (MAP_SECTION,), str(path))["map"]
     lp = rec.loop
-    if lp.gain == OPTIMISE:
-        raise ConfigError("loop.gain", 'expected a number in [0, 2]: a map runs every point at one gain '
-                          '("optimise" is the loop study\'s)')
     if "ideal" not in lp.methods:
         raise ConfigError("loop.methods", f"a map needs \"ideal\" (its regions' reference), got {list(lp.methods)}")
     rates, lats = _axis(v, "rates_hz"), _axis(v, "latency_ms")
@@ -196,6 +212,9 @@ def load_map_recipe(path: str | Path) -> MapRecipe:
     scan = v["scan_latency_ms"]
     scan = tuple(sorted({float(x) for x in scan})) if scan is not None else (lats or DEFAULT_SCAN_MS)
     steps = v["steps"] if v["steps"] is not None else lp.steps
+    if lp.gain == OPTIMISE and lp.gain_steps > steps:
+        raise ConfigError("loop.gain_steps", f"expected at most the map's steps ({steps} frames a run; "
+                          f"gain = \"{OPTIMISE}\" tries each gain on the first gain_steps), got {lp.gain_steps}")
     vr, vg, vf = v["verdict_rytov"], v["verdict_greenwood_hz"], v["verdict_rate_hz"]
     if lats and vf != lp.rate_hz:
         raise ConfigError("map.verdict_rate_hz", f"on a latency axis the map runs at loop.rate_hz ({lp.rate_hz:g}); "
@@ -277,13 +296,14 @@ def _fmt_reach(r: dict, scan: list) -> str:
     return f"reached up to {r['latency_ms']:g} ms (interpolated {r['interpolated_ms']:.3g} ms)"
 
 
-def map_verdict(cell: dict | None, scan: dict, where: dict) -> dict:
+def map_verdict(cell: dict | None, scan: dict, where: dict, optimised: bool = False) -> dict:
     """The issue's verdict at one point.  ``cell``: that point's ``{"methods": {m: {"npib_mean", "latency_ms",
     "delay_frames"}}}`` (every latency as declared or measured), or None; ``scan``: ``{m: {"latency_ms":
     [...], "npib_mean": [...]}}``, each metasurface method at declared latencies there; ``where``: the
     point (``rytov``, ``greenwood_hz``, ``rate_hz``).  Returns the best metasurface loop's ratios to the
     ideal-phase and the Shack-Hartmann loops, whether each goal is met, the latencies that keep each goal
-    (:func:`latency_reaching`) and a plain statement."""
+    (:func:`latency_reaching`) and a plain statement (with each loop's ``gain`` where ``optimised``: chosen
+    per point)."""
     out: dict = {**where, "goal_vs_ideal": GOAL_VS_IDEAL, "goal_vs_shack_hartmann": GOAL_VS_SHACK_HARTMANN}
     ms = (cell or {}).get("methods", {})
     best = max((m for m in METASURFACE if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
@@ -296,6 +316,7 @@ def map_verdict(cell: dict | None, scan: dict, where: dict) -> dict:
     ideal = ms["ideal"]["npib_mean"] if "ideal" in ms else None
     sh = ms["shack_hartmann"]["npib_mean"] if "shack_hartmann" in ms else None
     out.update(npib_mean=v, latency_ms=ms[best]["latency_ms"], delay_frames=ms[best]["delay_frames"],
+               gain=ms[best].get("gain"),
                ideal_npib_mean=ideal, shack_hartmann_npib_mean=sh,
                vs_ideal=v / ideal if ideal else None, vs_shack_hartmann=v / sh if sh else None)
     out["meets_ideal"] = None if out["vs_ideal"] is None else bool(out["vs_ideal"] >= GOAL_VS_IDEAL)
@@ -303,8 +324,9 @@ def map_verdict(cell: dict | None, scan: dict, where: dict) -> dict:
                                    bool(out["vs_shack_hartmann"] >= GOAL_VS_SHACK_HARTMANN))
     met = [x for x in (out["meets_ideal"], out["meets_shack_hartmann"]) if x is not None]
     out["met"] = bool(met) and all(met)
+    gain = f", gain {ms[best]['gain']:.3g} (optimised)" if optimised and ms[best].get("gain") is not None else ""
     parts = [f"{head}: {LABELS[best]} ({ms[best]['latency_ms']:.3g} ms latency, {ms[best]['delay_frames']:.2f} "
-             f"frames of delay) keeps mean NPiB {v:.3f}"]
+             f"frames of delay{gain}) keeps mean NPiB {v:.3f}"]
     if out["vs_ideal"] is not None:
         parts.append(f"{out['vs_ideal']:.2f} of the ideal-phase loop's (goal >= {GOAL_VS_IDEAL:g}: "
                      f"{'met' if out['meets_ideal'] else 'NOT met'})")
@@ -340,12 +362,17 @@ def map_verdict(cell: dict | None, scan: dict, where: dict) -> dict:
 class MapContext:
     """What every task of a map shares (sent to each worker once): the loop study's context of the first
     Rytov number (device, mirror, sensors, measured latencies), the turbulence and bucket at each Rytov
-    number, and each (Rytov, f_G)'s wind.  :meth:`context` is a point's :class:`LoopContext` (the last one
-    kept in the process, its drawn flow with it)."""
+    number, each (Rytov, f_G)'s wind, and per Rytov number what differs from the first's (``sensors``,
+    ``latency``, ``sh``: the Shack-Hartmann of ``sh_lenslets = "auto"``, its latency and count).
+    :meth:`context` is a point's :class:`LoopContext` (the last one kept in the process, its drawn flow with
+    it)."""
 
     base: LoopContext
     turbulence: dict  # rytov -> (Turbulence, PiB)
     winds: dict  # (rytov, f_G) -> [wind] (recipe units)
+    sensors: dict = field(default_factory=dict)  # rytov -> {method: sensor} replacing the base's
+    latency: dict = field(default_factory=dict)  # rytov -> {method: seconds} replacing the base's
+    sh: dict = field(default_factory=dict)  # rytov -> the Shack-Hartmann's count and why (sh_lenslets_for)
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __getstate__(self):
@@ -360,17 +387,54 @@ class MapContext:
             b = self.base
             rec = replace(b.rec, loop=replace(b.rec.loop, rate_hz=rate, rytov=r), wind=self.winds[(r, g)])
             wind = wind_from_dict({"wind": rec.wind}, tb.sc, str(rec.source))
-            self._cache = {"point": point, "ctx": replace(b, rec=rec, tb=tb, wind=wind, pib=pib, _cache={})}
+            self._cache = {"point": point, "ctx": replace(
+                b, rec=rec, tb=tb, wind=wind, pib=pib, sensors={**b.sensors, **self.sensors.get(r, {})},
+                latency=self.latency_at(r), sh=self.sh.get(r, b.sh), _cache={})}
         ctx = self._cache["ctx"]
         if latency_ms is not None:
             ctx = replace(ctx, latency={**ctx.latency, method: latency_ms * 1e-3})  # the drawn flow shared
         return ctx
+
+    def latency_at(self, rytov: float) -> dict:
+        """Each closed loop's latency (s) at ``rytov`` (declared or measured; no latency axis applied)."""
+        return {**self.base.latency, **self.latency.get(rytov, {})}
 
 
 def _map_task(mctx: MapContext, task: tuple) -> tuple[str, dict]:
     """One run of a map: ``(name, point, method, latency_ms, realisation, gain, steps)`` -> ``(name, series)``."""
     name, point, m, lat, r, gain, steps = task
     return name, mctx.context(point, m, lat).run(m, r, gain, steps, modal=False)
+
+
+def _trial_name(key: tuple, g: float) -> str:
+    ry, fg, rate, m, lat = key
+    return f"gain-ry{ry!r}-fg{fg!r}-rate{rate!r}-lat{'m' if lat is None else repr(lat)}-{m}-{g:.4f}"
+
+
+def _search_gains(mctx: MapContext, keys: list, steps: int, folder: TaskFolder, run: Execution) -> dict:
+    """``gain = "optimise"`` on a map: for each run ``key`` (point, closed loop, declared latency or None) the
+    loop study's search at that point (:func:`metadesign.studies.loop_study._search_gains`: the mean NPiB of
+    ``steps`` frames of realisation 0 at each gain of ``GAIN_GRID``, then at ``GAIN_REFINE`` around the
+    grid's best, the best of all winning, the lowest gain on a tie), every key's trials of a stage one task
+    set; ``{key: {"gain", "gains", "npib_mean"}}`` (the trials in increasing gain)."""
+    trials: dict = {k: {} for k in keys}
+    stages = [lambda k: GAIN_GRID,
+              lambda k: [round(_best(trials[k]) + d, 4) for d in GAIN_REFINE if 0 < _best(trials[k]) + d <= 2]]
+    for stage in stages:
+        tasks = {}
+        for k in keys:
+            for g in stage(k):
+                if g not in trials[k]:
+                    n = _trial_name(k, g)
+                    tasks[n] = (n, k[:3], k[3], k[4], 0, float(g), steps)
+        res, _ = run.run(_map_task, tasks, folder, shared=mctx, weight=lambda n: steps, unit="step")
+        for n, (_, point, m, lat, _, g, _) in tasks.items():
+            trials[(*point, m, lat)][g] = float(np.mean(res[n]["npib"]))
+    out = {}
+    for k in keys:
+        gs = sorted(trials[k])
+        out[k] = {"gain": _best(trials[k]), "gains": gs, "npib_mean": [trials[k][g] for g in gs]}
+    return out
 
 
 def _run_key(point: tuple, m: str, lat: float | None) -> tuple:
@@ -392,8 +456,11 @@ def _map_key(mrec: MapRecipe) -> str:
     grid = {"axis": mrec.axis, "rates_hz": mrec.rates_hz, "latency_ms": mrec.latency_ms,
             "greenwood_hz": mrec.greenwood_hz, "rytov": mrec.rytov, "latency_methods": mrec.latency_methods,
             "scan": mrec.scan_latency_ms, "verdict": mrec.verdict}
-    return content_key({"format": "metadesign.loop-map-tasks/1", "loop": lp, "dm": rec.dm.__dict__,
-                        "wind": rec.wind, "files": files, "map": grid})
+    doc = {"format": "metadesign.loop-map-tasks/1", "loop": lp, "dm": rec.dm.__dict__, "wind": rec.wind,
+           "files": files, "map": grid}
+    if rec.loop.sh_lenslets == AUTO and "shack_hartmann" in rec.loop.methods:
+        doc["sh_lenslets"] = "per Rytov number"  # (the key of a map that resolved it at its first only differs)
+    return content_key(doc)
 
 
 def _plan(mrec: MapRecipe) -> tuple[list, list, dict]:
@@ -422,9 +489,9 @@ def _plan(mrec: MapRecipe) -> tuple[list, list, dict]:
     return cells, scan, {k: None for k in order}
 
 
-def _summary(key: tuple, series: list, mrec: MapRecipe, latency: dict) -> dict:
-    """One run's numbers (pooled over the seeds): mean and 1 % NPiB, fade probability and rate, the latency
-    and the loop's delay."""
+def _summary(key: tuple, series: list, mrec: MapRecipe, latency: dict, gain: float | None) -> dict:
+    """One run's numbers (pooled over the seeds): mean and 1 % NPiB, fade probability and rate, the latency,
+    the loop's delay and its gain (None: an oracle)."""
     lp = mrec.loop.loop
     _, _, rate, m, lat = key
     closed = m not in ORACLES
@@ -435,7 +502,7 @@ def _summary(key: tuple, series: list, mrec: MapRecipe, latency: dict) -> dict:
     return {"npib_mean": float(np.mean(npib)), "npib_p01": float(np.percentile(npib, 1)),
             "fade_probability": fades["probability"], "fades_per_s": fades["fades_per_s"],
             "latency_ms": lat_s * 1e3, "latency_declared": bool(closed and (lat is not None or m in lp.latency_ms or m == "ideal")),
-            "delay_frames": timing.delay_frames if closed else 0.0,
+            "delay_frames": timing.delay_frames if closed else 0.0, "gain": gain,
             "seconds": float(sum(float(s["seconds"]) for s in series))}
 
 
@@ -445,7 +512,7 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
     t_start = time.perf_counter()
     rec = mrec.loop
     lp = rec.loop
-    ctx0, _, _ = _build(replace(rec, loop=replace(lp, rytov=mrec.rytov[0])), out, lambda s: None)
+    ctx0, device, _ = _build(replace(rec, loop=replace(lp, rytov=mrec.rytov[0])), out, lambda s: None)
     cells, scan_keys, runs = _plan(mrec)
     xs = ", ".join(format(x, "g") for x in mrec.xs)
     run.log(f"loop map: {mrec.name}: {'rates' if mrec.axis == 'rate_hz' else 'latencies'} {xs} "
@@ -454,34 +521,44 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
             f"{'s' if lp.seeds > 1 else ''} x {lp.steps} steps; methods {', '.join(lp.methods)}")
     folder = TaskFolder(scratch_path(out), _map_key(mrec), log=run.log, what="loop map")
     ctx0.latency = _measure_latencies(ctx0, folder)
-    ctx0._cache.clear()
     turbulence = {}
     for r in sorted({k[0] for k in runs}):
         tb = ctx0.tb.at_rytov(r)
         turbulence[r] = (tb, PiB(tb.sc, ctx0.c0, ctx0.a))
-    mctx = MapContext(ctx0, turbulence, {k: v["wind"] for k, v in mrec.scenes.items()})
+    sensors, latency, sh = _shack_hartmann_per_rytov(ctx0, device, turbulence, folder, run.log)
+    ctx0._cache.clear()
+    mctx = MapContext(ctx0, turbulence, {k: v["wind"] for k, v in mrec.scenes.items()}, sensors, latency, sh)
+    search = {}
+    if lp.optimise_gain:
+        closed = [k for k in runs if k[3] not in ORACLES]
+        run.log(f"  gains: the loop study's search at each of {len(closed)} closed-loop runs ({lp.gain_steps} steps "
+                "of the first seed a trial)")
+        search = _search_gains(mctx, closed, lp.gain_steps, folder, run)
+        for k, v in search.items():
+            run.log(f"  gain {_where(k)} {LABELS[k[3]]}: {v['gain']:.3f} ({len(v['gains'])} trials)")
+    gains = {k: None if k[3] in ORACLES else search[k]["gain"] if k in search else float(lp.gain) for k in runs}
     tasks = {}
     for k in runs:
         for r in range(lp.seeds):
             n = _name(k, r)
-            tasks[n] = (n, k[:3], k[3], k[4], r, float(lp.gain) if k[3] not in ORACLES else 0.0, lp.steps)
+            tasks[n] = (n, k[:3], k[3], k[4], r, 0.0 if gains[k] is None else gains[k], lp.steps)
     res, _ = run.run(_map_task, tasks, folder, shared=mctx, weight=lambda n: lp.steps, unit="step")
-    summ = {k: _summary(k, [res[_name(k, r)] for r in range(lp.seeds)], mrec, ctx0.latency) for k in runs}
+    summ = {k: _summary(k, [res[_name(k, r)] for r in range(lp.seeds)], mrec, mctx.latency_at(k[0]), gains[k])
+            for k in runs}
     points = []
     for r, g, x, c in cells:
         ms = {m: summ[_run_key(c[:3], m, c[3] if m in mrec.latency_methods else None)] for m in lp.methods}
-        points.append(_point(r, g, x, mrec, ms))
+        points.append(_point(r, g, x, mrec, ms, sh.get(r)))
     vr, vg, vf = mrec.verdict
     vcell = {"methods": {m: summ[_run_key(mrec.verdict, m, None)] for m in lp.methods}}
     scan: dict = {}
     for k in scan_keys:
         s = scan.setdefault(k[3], {"latency_ms": [], "npib_mean": [], "fade_probability": [],
-                                   "delay_frames": []})
-        for f, src in (("latency_ms", "latency_ms"), ("npib_mean", "npib_mean"),
-                       ("fade_probability", "fade_probability"), ("delay_frames", "delay_frames")):
-            s[f].append(summ[k][src])
+                                   "delay_frames": [], **({"gain": []} if lp.optimise_gain else {})})
+        for f in s:
+            s[f].append(summ[k][f])
     where = {"rytov": vr, "greenwood_hz": vg, "rate_hz": vf}
-    verdict = map_verdict(vcell, scan, where)
+    verdict = map_verdict(vcell, scan, where, optimised=lp.optimise_gain)
     verdict["methods"] = {m: _pick(v) for m, v in vcell["methods"].items()}
     verdict["scans"] = scan
     on_grid = any(c[:3] == mrec.verdict and c[3] is None for *_, c in cells)
@@ -503,7 +580,11 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
                                                sorted(mrec.base_greenwood_hz.items())],
                          "scenes": [{"rytov": r, "greenwood_hz": g, **s} for (r, g), s in sorted(mrec.scenes.items())]},
            "latencies_ms": {m: s * 1e3 for m, s in sorted(ctx0.latency.items())},
+           "gain": _gain_record(lp, search),
            "points": points, "regions": regions(points, mrec.axis), "verdict": verdict}
+    if sh:
+        rep["shack_hartmann"] = [{"rytov": r, **v, "latency_ms": mctx.latency_at(r)["shack_hartmann"] * 1e3}
+                                 for r, v in sorted(sh.items())]
     rep["seconds"] = time.perf_counter() - t_start
     rep["figures"] = [str(p) for p in _plot(rep, out)]
     atomic_write_text(out / "map.json", json.dumps(rep, indent=1, default=float))
@@ -511,12 +592,61 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
     return rep
 
 
+def _where(k: tuple) -> str:
+    ry, fg, rate, _, lat = k
+    return f"Rytov {ry:g}, f_G {fg:g} Hz, {rate:g} Hz{'' if lat is None else f', {lat:g} ms'}"
+
+
+def _shack_hartmann_per_rytov(ctx0: LoopContext, device, turbulence: dict, folder: TaskFolder, log) -> tuple:
+    """The Shack-Hartmann at each Rytov number of the map: ``(sensors, latency, sh)``, each ``{rytov: ...}``:
+    the sensor and its latency (s) where its count differs from the first Rytov number's (``ctx0``'s:
+    ``sh_lenslets = "auto"``), and every Rytov number's count and why (:func:`sh_lenslets_for`).  A latency
+    not declared is measured once per count on the first Rytov number's first frame (the reconstruction's
+    time, kept in the resume folder like the others)."""
+    lp = ctx0.rec.loop
+    if "shack_hartmann" not in lp.methods:
+        return {}, {}, {}
+    sh = {r: sh_lenslets_for(tb.sc, lp.sh_lenslets) for r, (tb, _) in sorted(turbulence.items())}
+    sensors, latency, built = {}, {}, {}
+    for r, v in sh.items():
+        n = v["lenslets"]
+        if n == ctx0.sh["lenslets"]:
+            continue
+        if n not in built:
+            one = replace(ctx0.rec, model=None, realtime=None, loop=replace(lp, methods=("shack_hartmann",)))
+            s = _sensors(one, device, n)["shack_hartmann"]
+            if "shack_hartmann" in lp.latency_ms:
+                lat = float(lp.latency_ms["shack_hartmann"])
+            else:
+                got, _ = folder.step(f"latency-shack-hartmann-{n}", folder.key,
+                                     lambda: {"seconds": _latency(s, ctx0.world(0))})
+                lat = float(got["seconds"])
+            built[n] = (s, lat)
+        sensors[r] = {"shack_hartmann": built[n][0]}
+        latency[r] = {"shack_hartmann": built[n][1]}
+    for r, v in sh.items():
+        log(f"  Shack-Hartmann at Rytov {r:g}: {v['lenslets']} lenslets across, d/r0 {v['d_over_r0']:.2f} ({v['why']})")
+    return sensors, latency, sh
+
+
+def _gain_record(lp, search: dict) -> dict:
+    """How the gains were set: fixed, or the search (its rule and every run's trials)."""
+    if not lp.optimise_gain:
+        return {"rule": "fixed", "gain": lp.gain}
+    return {"rule": "optimise", "grid": list(GAIN_GRID), "refine": list(GAIN_REFINE), "steps": lp.gain_steps,
+            "realisation": 0,
+            "criterion": "the highest mean NPiB over the first gain_steps frames of the first realisation (the "
+                         "lowest gain on a tie): the grid, then the refinement around its best",
+            "searches": [{"rytov": k[0], "greenwood_hz": k[1], "rate_hz": k[2], "method": k[3],
+                          "latency_ms": k[4], **v} for k, v in search.items()]}
+
+
 def _pick(s: dict) -> dict:
     return {k: s[k] for k in ("npib_mean", "npib_p01", "fade_probability", "fades_per_s", "latency_ms",
-                              "latency_declared", "delay_frames", "seconds")}
+                              "latency_declared", "delay_frames", "gain", "seconds")}
 
 
-def _point(r: float, g: float, x: float, mrec: MapRecipe, ms: dict) -> dict:
+def _point(r: float, g: float, x: float, mrec: MapRecipe, ms: dict, sh: dict | None = None) -> dict:
     ideal = ms["ideal"]["npib_mean"]
     methods = {}
     for m, s in ms.items():
@@ -526,6 +656,8 @@ def _point(r: float, g: float, x: float, mrec: MapRecipe, ms: dict) -> dict:
     if mrec.axis == "latency_ms":
         p["rate_hz"] = mrec.loop.loop.rate_hz
     p["methods"] = methods
+    if sh:
+        p["shack_hartmann"] = sh
     best = max((m for m in METASURFACE if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
     p["best_metasurface"] = best
     if best is not None and "shack_hartmann" in ms and ms["shack_hartmann"]["npib_mean"] > 0:
@@ -543,8 +675,10 @@ MARKERS = {"ideal": ("^", "tab:green"), "shack_hartmann": ("s", "tab:orange"), "
 def _plot(rep: dict, out: Path) -> list[Path]:
     """One panel per Rytov number (x: rate or latency, y: f_G, a cell per point): each method's marker filled
     where the point is in its region, hollow where not; the cell shaded by the best metasurface loop's NPiB
-    over the ideal loop's, its ratio to the Shack-Hartmann loop's written in it; the verdict's point framed.
-    A last panel: the verdict's latency scan."""
+    over the ideal loop's, its ratio to the Shack-Hartmann loop's written in it; the verdict's point framed;
+    with ``gain = "optimise"`` each closed loop's chosen gain written at the top of its cell (and beside each
+    scanned latency), with ``sh_lenslets = "auto"`` the Shack-Hartmann's count in the panel's title.  A last
+    panel: the verdict's latency scan."""
     plt = pyplot()
     mp, axis = rep["map"], rep["axis"]
     xs, gs, rys = mp["rates_hz"] if axis == "rate_hz" else mp["latency_ms"], mp["greenwood_hz"], mp["rytov"]
@@ -557,6 +691,9 @@ def _plot(rep: dict, out: Path) -> list[Path]:
     axs = axs[0]
     xlabel = "loop rate (Hz)" if axis == "rate_hz" else f"latency of {', '.join(mp['latency_methods'])} (ms)"
     shown, im = set(), None
+    optimised = rep.get("gain", {}).get("rule") == "optimise"
+    lenslets = ({s["rytov"]: s["lenslets"] for s in rep.get("shack_hartmann", [])}
+                if rep["loop"].get("sh_lenslets") == "auto" else {})
     for ax, ry in zip(axs, rys):
         pts = {(p["greenwood_hz"], p[axis]): p for p in rep["points"] if p["rytov"] == ry}
         shade = np.full((len(gs), len(xs)), np.nan)
@@ -577,6 +714,10 @@ def _plot(rep: dict, out: Path) -> list[Path]:
                     words.append(f"{p['metasurface_vs_shack_hartmann']:.2f} x SH")
                 if words:
                     ax.text(j, i - 0.22, "\n".join(words), ha="center", va="center", fontsize=7)
+                if optimised:
+                    gains = " ".join(f"{LETTERS[m]} {p['methods'][m]['gain']:.3g}" for m in methods
+                                     if p["methods"][m].get("gain") is not None)
+                    ax.text(j, i + 0.40, f"gain {gains}", ha="center", va="center", fontsize=6)
         if np.isfinite(shade).any():
             im = ax.imshow(shade, origin="lower", cmap="Greys", vmin=0, vmax=1.25, alpha=0.45, aspect="auto",
                            extent=(-0.5, len(xs) - 0.5, -0.5, len(gs) - 0.5))
@@ -589,7 +730,8 @@ def _plot(rep: dict, out: Path) -> list[Path]:
         ax.set_xlim(-0.5, len(xs) - 0.5)
         ax.set_ylim(-0.5, len(gs) - 0.5)
         ax.set(xlabel=xlabel, ylabel="f_G (Hz, plane wave)",
-               title=f"Rytov {ry:g}: filled = in region\n(NPiB >= {REGION_VS_IDEAL:g} x ideal, "
+               title=f"Rytov {ry:g}{f' (SH {lenslets[ry]} lenslets)' if ry in lenslets else ''}: filled = "
+                     f"in region\n(NPiB >= {REGION_VS_IDEAL:g} x ideal, "
                      f"P(fade {rep['criterion']['threshold_db']:g} dB) <= {REGION_FADE_PROBABILITY:g})")
         ax.title.set_fontsize(9)
     if im is not None:
@@ -601,6 +743,8 @@ def _plot(rep: dict, out: Path) -> list[Path]:
         for m, s in scan.items():
             mk, col = MARKERS[m]
             ax.plot(s["latency_ms"], s["npib_mean"], mk + "-", color=col, label=LABELS[m])
+            for lat, y, g in zip(s["latency_ms"], s["npib_mean"], s.get("gain", ())):
+                ax.annotate(f"gain {g:.2f}", (lat, y), textcoords="offset points", xytext=(3, 4), fontsize=6)
         ms = v.get("methods", {})
         if "ideal" in ms:
             ax.axhline(GOAL_VS_IDEAL * ms["ideal"]["npib_mean"], color="tab:green", ls="--", lw=1,
