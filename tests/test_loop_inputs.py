@@ -126,6 +126,14 @@ LOOP_CASES = [
     ({(L, "threshold_db"): "0"}, "loop.threshold_db"),
     ({(L, "threshold_db"): "nan"}, "loop.threshold_db"),
     ({(L, "threshold_db"): "61"}, "loop.threshold_db"),
+    ({(L, "retrieval_budget_ms"): "0"}, "loop.retrieval_budget_ms"),
+    ({(L, "retrieval_budget_ms"): "-5"}, "loop.retrieval_budget_ms"),
+    ({(L, "retrieval_budget_ms"): "nan"}, "loop.retrieval_budget_ms"),
+    ({(L, "retrieval_budget_ms"): "inf"}, "loop.retrieval_budget_ms"),
+    ({(L, "retrieval_budget_ms"): "1e6"}, "loop.retrieval_budget_ms"),
+    ({(L, "retrieval_budget_ms"): '"fast"'}, "loop.retrieval_budget_ms"),
+    ({(L, "methods"): '["refine_warm"]'}, "device.model"),  # no model
+    ({(L, "methods"): '["refine_warm", "open"]', (M, "model"): '"good.npy"'}, "device.model"),  # not a refiner
     ({(L, "colour"): "3"}, "loop.colour"),
     ({(D, "kind"): '"magic"'}, "dm.kind"),
     ({(D, "modes"): "1"}, "dm.modes"),

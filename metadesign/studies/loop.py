@@ -16,6 +16,11 @@ One step ``k`` of a loop at ``rate_hz`` (frame ``[k, k + 1) / rate_hz``):
 4. the normalised power in the bucket of the outgoing beam corrected by the mirror, sent back through the
    turbulence of the frame's first instant, and the residual phase's rms and branch points.
 
+Warm-started reconstructions (:class:`WarmStartSensor`: the retrieval capped by a latency budget,
+:class:`RetrievalLoopSensor`, and the learned refinement without its U-Net, :class:`RefineWarmSensor`)
+start each frame from the previous frame's estimate moved by the mirror (:class:`WarmStart`), so the
+engine hands them the mirror's surface during the frame.
+
 References on the same turbulence: the open loop (no correction), the zero-delay mirror-fitted oracle (the
 mirror fitted to the true phase at that instant) and the phase-conjugate oracle (the exact phase).  The
 engine takes its mirror and controller as objects with ``fit(phase, mask)`` / ``surface(commands)`` and
@@ -23,7 +28,9 @@ engine takes its mirror and controller as objects with ``fit(phase, mask)`` / ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -32,9 +39,12 @@ from ..optics.control import pseudo_open_loop as _pol
 from ..optics.dm import ORACLE_ITERATIONS, fitted_oracle, phase_of  # noqa: F401  (the loop's names, kept here)
 from ..optics.propagation import cexp
 from ..reconstruction.dataset import normalise_psf
+from ..reconstruction.estimators import make_estimator
+from ..reconstruction.retrieval import RetrievalConfig, retrieve
 
 __all__ = ["LoopTiming", "LoopWorld", "MetasurfaceSensor", "IdealPhaseSensor", "run_loop", "branch_points",
-           "fitted_oracle", "phase_of", "ORACLES", "flow_seed", "noise_stream", "pol_rejection_tf"]
+           "fitted_oracle", "phase_of", "ORACLES", "flow_seed", "noise_stream", "pol_rejection_tf", "WarmStart",
+           "WarmStartSensor", "RetrievalLoopSensor", "RefineWarmSensor", "budget_iterations", "MAX_RETRIEVAL_ITERATIONS"]
 
 #: references that need no sensor, mirror or controller
 ORACLES = ("open", "fitted", "conjugate")
@@ -165,6 +175,146 @@ class IdealPhaseSensor:
         return self.reconstruct(self.expose(crops, k))
 
 
+class WarmStart:
+    """The warm start of a reconstruction in a closed loop: frame ``k``'s start is frame ``k - 1``'s
+    estimate of its residual minus the change of the mirror's surface since that frame,
+    ``start_k = est_{k-1} - (s_k - s_{k-1})`` (``s_k`` the surface the mirror holds during frame ``k``, rad on
+    the crop).  Why: the sensor sees the residual ``phi_k - s_k`` (``phi_k`` the turbulence's phase), so
+    ``phi_k - s_k = (phi_{k-1} - s_{k-1}) - (s_k - s_{k-1}) + (phi_k - phi_{k-1})``: the previous residual, less
+    what the mirror moved (known: the loop sent the commands), plus what the turbulence moved in one frame
+    (unknown: what the reconstruction has left to find).  With frozen turbulence and a perfect previous
+    estimate the start is the current residual exactly (modulo 2 pi and a piston where the estimate was a
+    wrapped phase).  The first frame has no start (None)."""
+
+    def __init__(self):
+        self.estimate = self.surface = None
+
+    def start(self, surface: np.ndarray) -> np.ndarray | None:
+        """Frame's start given the mirror's ``surface`` during it (None: no previous estimate)."""
+        if self.estimate is None:
+            return None
+        return self.estimate - (np.asarray(surface, np.float64) - self.surface)
+
+    def update(self, estimate: np.ndarray, surface: np.ndarray) -> None:
+        """Keep the frame's ``estimate`` and the ``surface`` it was measured behind."""
+        self.estimate = np.array(estimate, np.float64)
+        self.surface = np.array(surface, np.float64)
+
+
+class WarmStartSensor:
+    """A loop sensor whose reconstruction starts from the previous frame's estimate (:class:`WarmStart`):
+    :func:`run_loop` calls ``measure(crops, k, surface=...)`` with the mirror's surface during the frame
+    (``warm_start = True``).  Frame 0 starts afresh (a new run, no state kept across runs).  Subclasses give
+    ``expose(crops, k)`` and ``reconstruct(frame, start)`` (``start`` None: the cold start); what a loop's
+    latency times is :meth:`steady_state`, a warm-started reconstruction (every frame's but the first)."""
+
+    warm_start = True
+
+    def measure(self, crops: list, k: int, surface: np.ndarray | None = None) -> np.ndarray:
+        if k == 0 or getattr(self, "_warm", None) is None:
+            self._warm = WarmStart()
+        surface = np.zeros(np.shape(crops[0])) if surface is None else surface
+        self.last_start = self._warm.start(surface)
+        est = self.reconstruct(self.expose(crops, k), self.last_start)
+        self._warm.update(est, surface)
+        return est
+
+    def reconstruct(self, frame, start: np.ndarray | None = None) -> np.ndarray:
+        raise NotImplementedError
+
+    def steady_state(self, frame) -> np.ndarray:
+        """A warm-started reconstruction of ``frame`` (from a flat start: its cost does not depend on it)."""
+        a = self.device.crop.size
+        return self.reconstruct(frame, np.zeros((a, a)))
+
+
+#: the most iterations a latency budget gives the loop's retrieval
+MAX_RETRIEVAL_ITERATIONS = 10_000
+
+
+def budget_iterations(budget_s: float, per_iteration_s: float, overhead_s: float) -> tuple[int, bool]:
+    """The iterations of a reconstruction costing ``overhead_s + n per_iteration_s`` that fit ``budget_s``:
+    ``floor((budget - overhead) / per_iteration)``, at least 1 and at most :data:`MAX_RETRIEVAL_ITERATIONS`;
+    and whether even one iteration exceeds the budget (then 1)."""
+    one = overhead_s + per_iteration_s
+    if one > budget_s:
+        return 1, True
+    n = int(np.floor((budget_s - overhead_s) / max(per_iteration_s, 1e-12) + 1e-9))
+    return int(min(max(n, 1), MAX_RETRIEVAL_ITERATIONS)), False
+
+
+class RetrievalLoopSensor(WarmStartSensor, MetasurfaceSensor):
+    """Model-based phase-diversity retrieval (:func:`~metadesign.reconstruction.retrieval.retrieve`, the
+    ``retrieval`` estimator's context) in the loop, capped by a latency budget: its zonal stage only
+    (per-pixel phase and log-amplitude through the twin), ``iterations`` Adam steps per frame, started from
+    the previous frame's estimate moved by the mirror (:class:`WarmStart`; the retrieval's API takes a start
+    phase: the log-amplitude starts at zero each frame, and so does Adam's state), the first frame from a
+    flat phase.  :meth:`calibrate` measures its cost and chooses ``iterations`` for a budget."""
+
+    def __init__(self, device, config: RetrievalConfig, detector=None, seed: int = 0, stream: tuple = (),
+                 iterations: int = 1):
+        est = make_estimator("retrieval", device, SimpleNamespace(retrieval=config))
+        MetasurfaceSensor.__init__(self, device, est, detector, seed, stream)
+        self.config, self.iterations = est.config, int(iterations)
+
+    def solve(self, psf: np.ndarray, start: np.ndarray | None, iterations: int) -> np.ndarray:
+        """The retrieval's phase (A, A) of one frame's PSFs after ``iterations`` zonal steps from ``start``."""
+        import torch
+
+        a = self.device.crop.size
+        init = torch.zeros((1, a, a)) if start is None else torch.from_numpy(np.asarray(start, np.float32))[None]
+        cfg = replace(self.config, modal_iterations=0, zonal_iterations=int(iterations))
+        out = retrieve(torch.from_numpy(np.ascontiguousarray(psf, np.float32)), self.estimator.ctx, cfg, init=init)
+        return np.asarray(out["phi"], np.float64)[0]
+
+    def reconstruct(self, frame: dict, start: np.ndarray | None = None) -> np.ndarray:
+        return self.solve(frame["psf"], start, self.iterations)
+
+    def calibrate(self, frame: dict, budget_s: float, probe: int = 16, repeats: int = 7,
+                  clock: Callable[[], float] = time.perf_counter) -> dict:
+        """Measure this machine's cost of the retrieval on ``frame`` (the median of ``repeats`` runs of 1 and
+        of ``1 + probe`` iterations after a warm-up: ``per_iteration = (t(1 + probe) - t(1)) / probe``,
+        ``overhead = t(1) - per_iteration``, the rendering's set-up and the estimate's return), set
+        ``iterations`` to what fits ``budget_s`` (:func:`budget_iterations`) and say so."""
+        psf, a = frame["psf"], self.device.crop.size
+        start = np.zeros((a, a))
+        t = {}
+        for n in (1, 1 + probe):
+            self.solve(psf, start, n)  # warm-up
+            ts = []
+            for _ in range(repeats):
+                t0 = clock()
+                self.solve(psf, start, n)
+                ts.append(clock() - t0)
+            t[n] = float(np.median(ts))
+        per = max((t[1 + probe] - t[1]) / probe, 1e-9)
+        overhead = max(t[1] - per, 0.0)
+        n, over = budget_iterations(budget_s, per, overhead)
+        self.iterations = n
+        why = (f"one iteration ({(overhead + per) * 1e3:.3f} ms: {overhead * 1e3:.3f} ms of overhead + "
+               f"{per * 1e3:.3f} ms) exceeds the {budget_s * 1e3:g} ms budget: 1 iteration, over budget" if over else
+               f"floor(({budget_s * 1e3:g} - {overhead * 1e3:.3f}) ms / {per * 1e3:.3f} ms) = {n} iterations"
+               + (f" (at most {MAX_RETRIEVAL_ITERATIONS})" if n == MAX_RETRIEVAL_ITERATIONS else ""))
+        return {"budget_ms": budget_s * 1e3, "per_iteration_ms": per * 1e3, "overhead_ms": overhead * 1e3,
+                "iterations": n, "exceeds_budget": bool(over), "probe": {"iterations": [1, 1 + probe],
+                                                                          "repeats": repeats},
+                "why": why}
+
+
+class RefineWarmSensor(WarmStartSensor, MetasurfaceSensor):
+    """The learned refinement (a refiner's ``K`` unrolled steps, the ``refine`` estimator) started from the
+    previous frame's estimate moved by the mirror (:class:`WarmStart`) instead of its U-Net's output, so the
+    U-Net's latency is skipped; the first frame starts from the U-Net (the refiner's own start)."""
+
+    def __init__(self, device, refiner, detector=None, seed: int = 0, stream: tuple = ()):
+        est = make_estimator("refine", device, refiner=refiner)
+        MetasurfaceSensor.__init__(self, device, est, detector, seed, stream)
+
+    def reconstruct(self, frame: dict, start: np.ndarray | None = None) -> np.ndarray:
+        done = None if start is None else {self.estimator.starts_from: np.asarray(start, np.float32)[None]}
+        return np.asarray(self.estimator.estimate(frame, done), np.float64)[0]
+
+
 def branch_points(field: np.ndarray, mask: np.ndarray) -> int:
     """Phase singularities of ``field`` inside ``mask``: plaquettes (2 x 2 samples, all inside) around which
     the wrapped phase differences sum to a non-zero multiple of 2 pi."""
@@ -238,7 +388,9 @@ def run_loop(world: LoopWorld, timing: LoopTiming, steps: int, method: str, sens
         if modes is not None:
             out["modal"][k] = modes.reshape(len(modes), -1) @ ph.ravel() / n
         if closed:
-            meas = sensor.measure(res, k)
+            # a warm-started reconstruction moves its last estimate by the mirror's change (WarmStart)
+            meas = (sensor.measure(res, k, surface=phi_dm) if getattr(sensor, "warm_start", False)
+                    else sensor.measure(res, k))
             e = dm.fit(meas, mask)
             if pseudo_open_loop:
                 state = controller.integrator.state

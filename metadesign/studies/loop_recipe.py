@@ -26,6 +26,7 @@ to the recipe):
     readout_frames = 0.0
     dm_frames = 0.0
     latency_ms = {}               # per method; a method not named: measured on this machine
+    retrieval_budget_ms = 5.0     # method "retrieval": its iterations capped to fit this latency here
     methods = ["unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open"]
     seed = 0
     threshold_db = 3.0
@@ -67,6 +68,20 @@ path (at Rytov 0.5 on the demo path, D / r0 = 4.9: 5 lenslets).  The report's ``
 count, the rule and ``d / r0``.  (A loop map builds its sensors at its first Rytov number: ``"auto"``
 there is that number's count.)
 
+The warm-started methods (on request: ``methods`` names them; :class:`~metadesign.studies.loop.WarmStart`):
+each frame's reconstruction starts from the previous frame's estimate minus the change of the mirror's
+surface since that frame (the sensor sees the residual; the loop knows what it sent the mirror), the
+first frame afresh.  ``retrieval``: the model-based phase-diversity retrieval (the ``retrieval``
+estimator's twin and Gaussian misfit at ``noise_percent``; its zonal stage, per-pixel phase and
+log-amplitude) capped by a latency budget: before the runs the study measures on this machine its cost on
+one frame (the fixed overhead and the cost per iteration) and gives it the most iterations that fit
+``retrieval_budget_ms`` (default 5 ms; one, and the report says so, where even one exceeds it); the
+report's ``retrieval`` records the budget, the costs and the count (kept in the resume folder with the
+latencies).  ``refine_warm``: the learned refinement of ``[device] model`` (a refiner) with its steps
+started from that warm start instead of its U-Net's output, so the U-Net's latency is skipped (the first
+frame uses the U-Net).  Each one's delay is its latency measured here (a warm-started frame's, the steady
+state) or declared in ``latency_ms``, as for the other methods.
+
 The mirror (``[dm]``).  ``stroke_um``: the mirror's surface stroke, each command clipped to
 ``+- 4 pi stroke / lambda`` rad of phase at the beacon's wavelength (a reflective mirror; the zonal mirror's
 Gaussians peak at 1 rad per unit command, so this bounds each actuator's displacement; a modal corrector's
@@ -88,6 +103,7 @@ import numpy as np
 
 from ..config import Param, Section, load_toml, parse
 from ..reconstruction.dataset import received_crop
+from ..reconstruction.refine import is_refiner
 from ..tasks import file_key
 from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
@@ -98,10 +114,13 @@ __all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
-METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear", "realtime")
-#: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, and ``realtime``, the
-#: real-time modal network of ``[device] realtime`` (issue #51), on request)
-DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime"))
+METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear", "realtime",
+           "retrieval", "refine_warm")
+#: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, ``realtime``, the
+#: real-time modal network of ``[device] realtime`` (issue #51), ``retrieval``, the phase-diversity retrieval
+#: capped by ``retrieval_budget_ms``, and ``refine_warm``, the refinement warm-started from the last frame, on
+#: request)
+DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime", "retrieval", "refine_warm"))
 #: the value of ``[loop] sh_lenslets`` that has the study choose the lenslet count from the path's r0
 AUTO = "auto"
 #: ``[loop] sh_lenslets``: the default, and the range of a given count
@@ -130,6 +149,8 @@ SECTIONS = (
         Param("dm_frames", float, 0.0, lo=0, hi=1000),
         Param("seed", int, 0, lo=0, hi=2**63 - 1),
         Param("threshold_db", float, 3.0, lo=0, open_lo=True, hi=60),
+        Param("retrieval_budget_ms", float, 5.0, lo=0, open_lo=True, hi=1e5,
+              help="method retrieval: the latency its iterations are capped to on this machine (ms)"),
     ), optional=True),
     Section("dm", (
         Param("kind", str, "zonal", choices=("zonal", "modal"),
@@ -167,6 +188,7 @@ class LoopSection:
     photons_per_frame: float = 0.0  # the detector's photons_at_peak (0: no shot or read noise)
     read_noise_e: float = 0.0
     sh_lenslets: int | str = SH_LENSLETS  # or AUTO
+    retrieval_budget_ms: float = 5.0  # method "retrieval": its latency budget on this machine
 
     @property
     def optimise_gain(self) -> bool:
@@ -311,10 +333,13 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
         if not rel(d[k]).exists():
             raise ConfigError(f"device.{k}", f"{rel(d[k])}: no such file")
     model = rel(d["model"]) if d["model"] else None
-    if model is None and {"unet", "refine"} & set(methods):
-        raise ConfigError("device.model", "the unet and refine methods need a model")
+    if model is None and {"unet", "refine", "refine_warm"} & set(methods):
+        raise ConfigError("device.model", "the unet, refine and refine_warm methods need a model")
     if model is not None and not model.exists():
         raise ConfigError("device.model", f"{model}: no such file")
+    if model is not None and "refine_warm" in methods and not is_refiner(model):
+        raise ConfigError("device.model", f"{model}: the refine_warm method needs a refiner (a U-Net with its "
+                          "learned refinement), not a U-Net")
     realtime = rel(d["realtime"]) if d["realtime"] else None
     if realtime is None and "realtime" in methods:
         raise ConfigError("device.realtime", "the realtime method needs a real-time model (a modal network)")
@@ -338,7 +363,7 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     section = LoopSection(**{k: lp[k] for k in ("rate_hz", "steps", "substeps", "rytov", "leak",
                                                 "noise_percent", "readout_frames", "dm_frames", "seed",
                                                 "threshold_db", "seeds", "gain_steps", "pseudo_open_loop",
-                                                "photons_per_frame", "read_noise_e")},
+                                                "photons_per_frame", "read_noise_e", "retrieval_budget_ms")},
                           gain=gain, methods=methods, latency_ms=_latencies(latency, methods, str(path)),
                           sh_lenslets=lenslets)
     dm_section = DMSection(**{k: dm[k] for k in ("kind", "modes", "actuators", "coupling", "regularisation",

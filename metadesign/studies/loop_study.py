@@ -12,8 +12,10 @@ worker count.  The report pools the series over the realisations.
 
 A method's delay is the loop's (:class:`~metadesign.studies.loop.LoopTiming`) with its reconstruction's
 latency: declared in the recipe (``latency_ms``), else measured on this machine (the median of single-frame
-estimates, batch 1), once per study (kept in the resume folder: a resumed study keeps the delays it began
-with).
+estimates, batch 1; a warm-started method's warm-started frame), once per study (kept in the resume folder:
+a resumed study keeps the delays it began with).  The ``retrieval`` method's iteration count is chosen for
+its latency budget just before (:meth:`~metadesign.studies.loop.RetrievalLoopSensor.calibrate`, kept
+there too).
 
 ``gain = "optimise"``: each closed loop's gain is chosen before the runs by a grid search of the mean NPiB
 over ``gain_steps`` frames of the first realisation (:data:`GAIN_GRID`, then :data:`GAIN_REFINE` around the
@@ -42,6 +44,7 @@ from ..reconstruction.linear import LinearEstimator, LinearReconstructor
 from ..reconstruction.realtime import RealtimeEstimator
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
+from ..reconstruction.retrieval import RetrievalConfig
 from ..reconstruction.shack_hartmann import SHConfig
 from ..sensing.detector import Detector, NoiseSpec
 from ..sensing.device import Device, ReceiverCrop
@@ -53,14 +56,14 @@ from ..turbulence.scenario import wind_from_dict
 from ..turbulence.temporal import temporal_summary
 from ..tasks import TaskFolder, content_key, file_key
 from ..validation import ConfigError
-from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, flow_seed, noise_stream,
-                   run_loop)
+from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, RefineWarmSensor,
+                   RetrievalLoopSensor, flow_seed, noise_stream, run_loop)
 from .loop_recipe import AUTO, SH_LENSLETS_RANGE, LoopRecipe, load_influence
 from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
 __all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE",
-           "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror"]
+           "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror", "calibrate_retrieval"]
 
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
@@ -106,11 +109,12 @@ def _latency(sensor, world: LoopWorld, repeats: int = 15) -> float:
     """Median seconds of one frame's reconstruction on this machine (batch 1, from the recorded frame to the
     phase estimate: the exposure is the camera's, not the reconstruction's)."""
     frame = sensor.expose([world.received(world.screens_at(0))], 0)
-    sensor.reconstruct(frame)  # warm-up
+    run = getattr(sensor, "steady_state", sensor.reconstruct)  # a warm-started sensor: a warm-started frame
+    run(frame)  # warm-up
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        sensor.reconstruct(frame)
+        run(frame)
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts))
 
@@ -204,6 +208,12 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
             s = MetasurfaceSensor(device, RealtimeEstimator(rt), det, lp.seed)
         elif m == "refine" and refiner is None:
             raise ValueError("loop.methods: refine needs a refiner as the model")
+        elif m == "refine_warm":
+            s = RefineWarmSensor(device, refiner, det, lp.seed)
+        elif m == "retrieval":
+            cfg = RetrievalConfig(misfit="gaussian", noise_percent=lp.noise_percent, modal_iterations=0,
+                                  zonal_iterations=1)
+            s = RetrievalLoopSensor(device, cfg, det, lp.seed)  # its iterations: calibrate_retrieval
         else:
             est = make_estimator(m, device, model=unet, refiner=refiner)
             s = MetasurfaceSensor(device, est, det, lp.seed)
@@ -240,6 +250,7 @@ class LoopContext:
     sensors: dict
     latency: dict = field(default_factory=dict)
     sh: dict = field(default_factory=dict)  # the Shack-Hartmann's lenslet count and why (sh_lenslets_for)
+    retrieval: dict = field(default_factory=dict)  # the retrieval's budget, costs and iterations (calibrate)
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __getstate__(self):
@@ -330,6 +341,7 @@ def _job_key(rec: LoopRecipe) -> str:
 def _measure_latencies(ctx: LoopContext, folder: TaskFolder) -> dict:
     """Each closed loop's latency (s): declared, else measured once (kept in the resume folder)."""
     lp = ctx.rec.loop
+    ctx.retrieval = calibrate_retrieval(ctx, folder)
 
     def measure():
         out = {}
@@ -340,6 +352,24 @@ def _measure_latencies(ctx: LoopContext, folder: TaskFolder) -> dict:
 
     lat, _ = folder.step("latencies", folder.key, measure)
     return {m: float(v) for m, v in lat.items()}
+
+
+def calibrate_retrieval(ctx: LoopContext, folder: TaskFolder) -> dict:
+    """The ``retrieval`` method's iteration count for ``[loop] retrieval_budget_ms``: its cost measured on this
+    machine on the first frame of realisation 0, once per study (kept in the resume folder), and set on its
+    sensor (:meth:`~metadesign.studies.loop.RetrievalLoopSensor.calibrate`); ``{}`` without the method."""
+    s = ctx.sensors.get("retrieval")
+    if s is None:
+        return {}
+    world = ctx.world(0)
+
+    def measure():
+        frame = s.expose([world.received(world.screens_at(0))], 0)
+        return s.calibrate(frame, ctx.rec.loop.retrieval_budget_ms * 1e-3)
+
+    cal, _ = folder.step("retrieval-budget", folder.key, measure)
+    s.iterations = int(cal["iterations"])
+    return cal
 
 
 def _gain_name(m: str, g: float) -> str:
@@ -387,6 +417,8 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
     ctx, _, temporal = _build(rec, out, run.log)
     folder = TaskFolder(scratch_path(out), _job_key(rec), log=run.log, what="loop study")
     ctx.latency = _measure_latencies(ctx, folder)
+    if ctx.retrieval:
+        run.log(f"  retrieval: {ctx.retrieval['why']} (budget {lp.retrieval_budget_ms:g} ms)")
     ctx._cache.clear()
     search = _search_gains(ctx, folder, run) if lp.optimise_gain else {}
     gains = {m: (search[m]["gain"] if m in search else lp.gain) for m in ctx.sensors}
@@ -403,6 +435,8 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
                                       temporal, t_start, GAIN_GRID, GAIN_REFINE, run.log, prov)
     if ctx.sh:
         rep["shack_hartmann"] = ctx.sh  # its lenslet count and why
+    if ctx.retrieval:
+        rep["retrieval"] = ctx.retrieval  # its budget, its measured costs and the iterations they allow
     rep["figures"] = [str(p) for p in plot_loop(rep, firsts, pooled, out)]
     atomic_write_text(out / "loop.json", json.dumps(rep, indent=1, default=float))
     folder.remove()
