@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli, tiny_dataset_recipe
+from conftest import tiny_dataset_recipe
 
 from metadesign.reconstruction.dataset import build_dataset, load_dataset_recipe
 
@@ -92,12 +92,12 @@ def test_npib_of_a_residual_counts_its_mirror(loop_dataset, tiny_dataset):
     assert float(rl["none"][0]) > float(ro["none"][0])
 
 
-def test_evaluate_refuses_a_split_of_residuals(loop_dataset, tmp_path):
-    from conftest import tiny_model
+def test_evaluate_refuses_a_split_of_residuals(loop_dataset, tmp_path, capsys):
+    from conftest import run_main, tiny_model
 
     m = tiny_model(tmp_path)
-    r = run_cli("evaluate", str(m), str(loop_dataset), "--split", "train", "-o", str(tmp_path / "ev"))
-    assert r.returncode == 2 and "closed-loop" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    rc, _, err = run_main(["evaluate", m, loop_dataset, "--split", "train", "-o", tmp_path / "ev"], capsys)
+    assert rc == 2 and len(err) == 1 and "closed-loop" in err[0], err
     assert not (tmp_path / "ev").exists()
 
 
@@ -106,10 +106,12 @@ def test_evaluate_refuses_a_split_of_residuals(loop_dataset, tmp_path):
                                         ("fraction = 0.5\ngain = [0.9, 0.2]", "closed_loop.gain"),
                                         ("fraction = 0.5\nactuators = 1", "closed_loop.actuators"),
                                         ("fraction = 0.5\ncoupling = 1.0", "closed_loop.coupling")])
-def test_bad_closed_loop_sections_exit_2_with_one_line(bad, match, demo_products, tmp_path):
+def test_bad_closed_loop_sections_exit_2_with_one_line(bad, match, demo_products, tmp_path, capsys):
+    from conftest import run_main
+
     p = tiny_dataset_recipe(tmp_path, demo_products["layout"], extra=f"[closed_loop]\n{bad}\n")
-    r = run_cli("dataset", "build", str(p), "-o", str(tmp_path / "ds"))
-    assert r.returncode == 2 and match in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    rc, _, err = run_main(["dataset", "build", p, "-o", tmp_path / "ds"], capsys)
+    assert rc == 2 and len(err) == 1 and match in err[0], err
     assert not (tmp_path / "ds").exists()
 
 
