@@ -3,7 +3,9 @@ its captured fraction at 5 % sensor noise on the held-out test split, in one run
 
 Per estimator, end to end: the camera's two frames -> the normalised (8, S, S) tensor (quadrant windows, block sums:
 :class:`~metadesign.sensing.sensor.FrameTensor`, equal to :func:`~metadesign.sensing.sensor.psf_tensor`; the same cost
-for every metasurface estimator, timed once), the estimator, and the mirror's commands: a phase estimate is fitted to the loop
+for every metasurface estimator, timed once; a real-time network with a ``window`` reads only that centred square of
+each channel, and its camera stage, ``FrameTensor(window=...)``, is timed for it), the estimator, and the mirror's
+commands: a phase estimate is fitted to the loop
 demo's zonal mirror (one matrix-vector product); a modal network answers its commands directly.  Latency:
 median, p99 and worst of ``--frames`` calls (>= 1,000) after warm-up; the fastest estimator also over
 ``--jitter`` frames (10,000) with the machine otherwise idle and beside busy neighbours (one single-thread
@@ -151,11 +153,11 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
     x1 = data["psf"][:1].numpy().copy()
     rows = {}
 
-    def add(name, label, batch_fn, one_fn, fit: bool, phis=None, note=""):
+    def add(name, label, batch_fn, one_fn, fit: bool, phis=None, note="", camera=None):
         ph = phis if phis is not None else _estimates(batch_fn, data["psf"].numpy())
         est = _npib(pib, ph, data)
         lat = _lat(one_fn, a.frames)
-        total = lat["median_us"] + cam["median_us"] + (dm_fit["median_us"] if fit else 0.0)
+        total = lat["median_us"] + (camera or cam)["median_us"] + (dm_fit["median_us"] if fit else 0.0)
         lo, hi = captured_fraction_ci(none, est, pc)
         rows[name] = {"label": label, "captured_fraction": captured_fraction(none, est, pc), "cf_ci95": [lo, hi],
                       "npib": float(est.mean()), "latency": lat, "end_to_end_median_us": total,
@@ -190,9 +192,17 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
     add("linear", "linear push-pull reconstructor (100 Zernikes)", lambda x: lin.phase(np.asarray(x)),
         lambda: lin.estimate(x1[0]), False, note="commands: 100 modal coefficients")
 
+    cam_rt, window = cam, 0
     if Path(a.realtime).exists():
         rt, card = load_network(a.realtime)
-        add("realtime_torch", "real-time modal net (torch eager)", _torch_fn(rt), lambda: _torch_fn(rt)(x1), False)
+        window = getattr(rt.config, "window", 0)
+        if window:  # the deployment's camera stage: only the window the network reads
+            ft_rt = FrameTensor(sen, window=window)
+            cam_rt = _lat(lambda: ft_rt(frames, normalised=True), a.frames)
+            log(f"camera -> the real-time network's {window} x {window} window of each channel "
+                f"{cam_rt['median_us']:.0f} us")
+        add("realtime_torch", "real-time modal net (torch eager)", _torch_fn(rt), lambda: _torch_fn(rt)(x1), False,
+            camera=cam_rt)
         if not a.no_compile:
             try:
                 t0 = time.perf_counter()
@@ -208,7 +218,7 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
                 lat = _lat(c1, a.frames)
                 rows["realtime_compile"] = {"label": "real-time modal net (torch.compile, commands)",
                                             "latency": lat, "compile_s": tc,
-                                            "end_to_end_median_us": lat["median_us"] + cam["median_us"],
+                                            "end_to_end_median_us": lat["median_us"] + cam_rt["median_us"],
                                             "captured_fraction": None, "note": "the same function as torch eager"}
                 log(f"  realtime_compile           estimator {lat['median_us']:8.0f} us (compile {tc:.0f} s)")
             except Exception as exc:  # noqa: BLE001 - a compiler missing on this machine is a line, not a failure
@@ -216,15 +226,16 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
                 log(f"  torch.compile unavailable: {rows['realtime_compile']['error']}")
         s32 = ort_session(rt, "phase")
         add("realtime_ort", "real-time modal net (ONNX Runtime fp32, phase)", _ort_fn(s32),
-            lambda: s32.run(None, {"psf": x1}), False)
+            lambda: s32.run(None, {"psf": x1}), False, camera=cam_rt)
         s8 = ort_session(rt, "phase", quantize="int8")
         add("realtime_ort_int8", "real-time modal net (ONNX Runtime int8, phase)", _ort_fn(s8),
-            lambda: s8.run(None, {"psf": x1}), False)
+            lambda: s8.run(None, {"psf": x1}), False, camera=cam_rt)
         sc = ort_session(rt, "commands")
         basis = rt.basis.numpy()
         add("realtime_commands", "real-time modal net (ONNX Runtime fp32, commands)",
             lambda x: (sc.run(None, {"psf": np.ascontiguousarray(x, np.float32)})[0] @ basis).reshape(-1, A, A),
-            lambda: sc.run(None, {"psf": x1}), False, note=f"{rt.config.n_commands} modal commands out")
+            lambda: sc.run(None, {"psf": x1}), False, note=f"{rt.config.n_commands} modal commands out",
+            camera=cam_rt)
         fastest = "realtime_commands"
         fn = lambda: sc.run(None, {"psf": x1})  # noqa: E731
     else:
@@ -246,6 +257,7 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
     best = min((r for r in rows.values() if r.get("captured_fraction") is not None
                 and r["captured_fraction"] >= GOAL_CF), key=lambda r: r["end_to_end_median_us"], default=None)
     summary = {"noise_percent": NOISE, "test_samples": len(none), "camera_to_tensor": cam,
+               "camera_to_tensor_realtime": {**cam_rt, "window": window},
                "camera_to_tensor_reference": cam_reference, "dm_fit": dm_fit,
                "npib_none": float(none.mean()), "npib_phase_conjugate": float(pc.mean()), "estimators": rows,
                "jitter": jit, "unet_median_us": u,

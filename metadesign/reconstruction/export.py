@@ -182,7 +182,14 @@ def contract(model, card: dict, cd: ContractDevice | None = None) -> dict:
                              "normalisation": card.get("input_normalisation")
                              or "each sample's 8 channels sum to 8",
                              "resampling": "each sensor quadrant area-resampled to S x S pixels (power conserved)",
-                             "training_noise_percent": card.get("noise_percent")},
+                             "training_noise_percent": card.get("noise_percent"),
+                             **({"window": {"size": c.window, "offset": (c.input_size - c.window) // 2,
+                                            "meaning": "the network reads only rows and columns offset.."
+                                                       "offset+size-1 of each channel, renormalised to sum 8 over "
+                                                       "the 8 channels: the camera stage may compute only that "
+                                                       "square (metadesign.sensing.sensor.FrameTensor window) and "
+                                                       "leave the rest 0; the normalisation above does not matter"}}
+                                if getattr(c, "window", 0) else {})},
         "metadesign.output": {"name": "phase", "shape": ["batch", c.aperture_size, c.aperture_size],
                               "units": "rad", "dtype": "float32",
                               "meaning": card.get("output") or "received phase on the receiver-aperture crop",

@@ -21,11 +21,20 @@ The basis (``basis``): ``"zernike"``, Noll modes 2..``modes`` + 1 (the modal cor
 :class:`~metadesign.optics.dm.ModalDM`, no piston) made orthonormal on the sampled disc (unit RMS each), or ``"dm"``, the Gaussian influence functions
 of a zonal mirror with ``actuators`` across the disc and ``coupling`` at the neighbour
 (:class:`~metadesign.optics.dm.DeformableMirror`).  The disc is the crop's inscribed aperture
-(diameter ``A - 1`` pixels, :func:`aperture_mask`, the U-Net's too)."""
+(diameter ``A - 1`` pixels, :func:`aperture_mask`, the U-Net's too).
+
+The window (``window``, 0: the whole tensor): the network reads only the centred ``window x window`` square of
+each channel (offset ``a = (S - window) / 2``, aligned with the convolutions' ``4 stride`` cells and the linear
+path's bins), so a real-time camera stage reads only those pixels
+(:class:`~metadesign.sensing.sensor.FrameTensor` ``window``); its input stays ``(B, 8, S, S)``.  The crop is
+renormalised to sum 8 (what a camera stage that never reads the rest can compute: the network is independent of
+the light outside its window, whatever the input's normalisation; on the datasets' tensors, whose channels sum
+to 8 over the whole square, it is the crop times ``1 / (1 - f)``, ``f`` the fraction of light outside).
+:func:`crop_to_window` starts a windowed network from a wider one."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -35,7 +44,8 @@ import torch.nn.functional as F
 from ..optics.dm import DeformableMirror, ModalDM
 from ..validation import ValidationError, check_int, check_number
 
-__all__ = ["ModalNetConfig", "ModalNet", "modal_basis", "aperture_mask", "commands_record"]
+__all__ = ["ModalNetConfig", "ModalNet", "modal_basis", "aperture_mask", "commands_record", "crop_to_window",
+           "window_reconstructor"]
 
 
 def aperture_mask(a: int) -> np.ndarray:
@@ -59,6 +69,7 @@ class ModalNetConfig:
     width: int = 32           # the stem's filters (then 2x, 4x)
     hidden: int = 256         # the hidden layer
     bin: int = 8              # the linear path's pixel blocks (0: no linear path)
+    window: int = 0           # the centred window x window square of each channel read (0: the whole S x S)
 
     def __post_init__(self) -> None:
         if self.kind != "modal":
@@ -80,10 +91,28 @@ class ModalNetConfig:
                                   f"= {4 * self.stride}")
         if self.bin and self.input_size % self.bin:
             raise ValidationError(f"model.bin: input_size {self.input_size} must be divisible by bin {self.bin}")
+        check_int("model.window", self.window, 0, 4096)
+        if self.window:
+            s, w = self.input_size, self.window
+            grid = 4 * self.stride if not self.bin else int(np.lcm(4 * self.stride, self.bin))
+            if w >= s or (s - w) % 2 or ((s - w) // 2) % grid:
+                raise ValidationError(f"model.window: expected 0 (the whole tensor) or a side below input_size {s} "
+                                      f"whose offset (S - window) / 2 is a multiple of 4 x stride and of bin "
+                                      f"({grid}), got {w}")
 
     @property
     def n_commands(self) -> int:
         return int(modal_basis(self).shape[0])
+
+    @property
+    def side(self) -> int:
+        """The side of the square of each channel the network reads (``window``, else ``input_size``)."""
+        return self.window or self.input_size
+
+    @property
+    def offset(self) -> int:
+        """The window's first row and column in the S x S tensor (0 without a window)."""
+        return (self.input_size - self.side) // 2
 
 
 def modal_basis(cfg: ModalNetConfig) -> np.ndarray:
@@ -116,13 +145,13 @@ class ModalNet(nn.Module):
         self.stem = nn.Conv2d(cfg.in_channels, w, s, stride=s)
         self.conv1 = nn.Conv2d(w, 2 * w, 3, stride=2, padding=1)
         self.conv2 = nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1)
-        side = cfg.input_size // (4 * s)
+        side = cfg.side // (4 * s)
         self.fc = nn.Linear(4 * w * side * side, cfg.hidden)
         self.head = nn.Linear(cfg.hidden, n)
         nn.init.zeros_(self.head.weight)  # the non-linear path starts at 0
         nn.init.zeros_(self.head.bias)
         if cfg.bin:
-            p = cfg.in_channels * (cfg.input_size // cfg.bin) ** 2
+            p = cfg.in_channels * (cfg.side // cfg.bin) ** 2
             self.linear = nn.Linear(p, n)
             nn.init.zeros_(self.linear.weight)
             nn.init.zeros_(self.linear.bias)
@@ -131,14 +160,29 @@ class ModalNet(nn.Module):
 
     def commands(self, x):
         """The N commands (rad RMS per Zernike mode, or rad per actuator) of a PSF tensor batch (its 8
-        channels summing to 8: a pixel's mean is 1 / S^2, so the convolutions see ``x S^2``, mean 1)."""
-        h = F.relu(self.stem(x * float(self.config.input_size ** 2)))
-        h = F.relu(self.conv1(h))
-        h = F.relu(self.conv2(h))
-        c = self.head(F.relu(self.fc(h.flatten(1))))
+        channels summing to 8: a pixel's mean is 1 / S^2, so the convolutions see ``x S^2``, mean 1).  With a
+        window: its centred square only, renormalised to sum 8."""
+        x = self.read(x)
+        c = self.head(F.relu(self.fc(self.features(x).flatten(1))))
         if self.config.bin:
             c = c + self.linear(F.avg_pool2d(x, self.config.bin).flatten(1))
         return c
+
+    def features(self, x):
+        """The convolutions' output (B, 4 width, side / (4 stride), side / (4 stride)) of the square read."""
+        h = F.relu(self.stem(x * float(self.config.input_size ** 2)))
+        h = F.relu(self.conv1(h))
+        return F.relu(self.conv2(h))
+
+    def read(self, x):
+        """The square the network reads: ``x`` itself, or its centred ``window`` square renormalised to sum 8
+        over the channels (a zero crop stays zero)."""
+        w = self.config.window
+        if not w:
+            return x
+        a = self.config.offset
+        x = x[..., a:a + w, a:a + w]
+        return x * (8.0 / x.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12))
 
     def phase(self, c):
         a = self.config.aperture_size
@@ -174,3 +218,64 @@ def commands_record(cfg: ModalNetConfig) -> dict:
                 f"{a - 1} samples (Fried geometry), Gaussian influence {cfg.coupling:g} at the neighbour")
     return {"count": cfg.n_commands, "basis": cfg.basis, "meaning": what,
             "phase": "phase = commands @ basis (the network's phase output); the correction is its conjugate"}
+
+
+def crop_to_window(net: ModalNet, window: int) -> ModalNet:
+    """A network reading the centred ``window`` square, started from ``net`` (the same architecture reading the
+    whole tensor or a wider window): the convolutions as they are; the hidden layer's weights on the window's
+    cells (offset ``(side - window) / 2 / (4 stride)`` cells); the linear path's on the window's bins.
+
+    The cells the window drops, and the window's edge cells (whose convolutions see zero padding where ``net``
+    saw its neighbours), hold on a dark input the values ``net`` and the new network compute on an all-zero
+    tensor; their difference through the hidden layer goes into its bias.  So, exactly (to float rounding), the
+    two networks answer the same commands for every input whose 8 channels sum to 8 and which is zero outside
+    the window and in its first ``4 stride`` and last ``3 stride`` rows and columns (the receptive field of
+    the last convolution's cells that cross the window's edge: a ``3 x 3`` stride-2 convolution with padding 1
+    reads one cell before its own and none past it); the linear path alone needs only the zeros outside."""
+    src = net.config
+    cfg = replace(src, window=window)
+    if not window or window >= src.side:
+        raise ValidationError(f"model.window: {window} cannot start from a network reading a {src.side} x "
+                              f"{src.side} square (a windowed network starts from a wider one)")
+    out = ModalNet(cfg)
+    st = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    fc = st["fc.weight"]
+    cells_src, cells = src.side // (4 * src.stride), cfg.side // (4 * cfg.stride)
+    c = (src.side - cfg.side) // 2 // (4 * cfg.stride)
+    st["fc.weight"] = fc.view(len(fc), -1, cells_src, cells_src)[:, :, c:c + cells, c:c + cells] \
+        .reshape(len(fc), -1).contiguous()
+    with torch.no_grad():  # the dark cells' values in each network, and their difference into the bias
+        dark_src = net.features(torch.zeros(1, src.in_channels, src.side, src.side)).double().flatten()
+        dark = net.features(torch.zeros(1, cfg.in_channels, cfg.side, cfg.side)).double().flatten()
+        st["fc.bias"] = (st["fc.bias"].double() + fc.double() @ dark_src
+                         - st["fc.weight"].double() @ dark).float()
+    if cfg.bin:
+        lw = st["linear.weight"]
+        b_src, b = src.side // cfg.bin, cfg.side // cfg.bin
+        o = (src.side - cfg.side) // 2 // cfg.bin
+        st["linear.weight"] = lw.view(len(lw), -1, b_src, b_src)[:, :, o:o + b, o:o + b] \
+            .reshape(len(lw), -1).contiguous()
+    out.load_state_dict(st)
+    return out.train(net.training)
+
+
+def window_reconstructor(interaction: np.ndarray, reference: np.ndarray, cfg: ModalNetConfig,
+                         regularisation: float) -> tuple[np.ndarray, np.ndarray]:
+    """The linear path's reconstructor ``(R, reference)`` (:meth:`ModalNet.set_linear`) of a windowed network
+    from the push-pull interaction matrix ``(P, M)`` and reference ``(P,)`` of the whole tensor binned
+    ``cfg.bin`` (:class:`~.linear.LinearReconstructor`): the window's bins, renormalised as the network
+    renormalises its crop (to first order about the reference ``I`` of window total ``s``:
+    ``d(8 I / s) = 8 / s (dI - I ds / s)``), then the same Tikhonov-regularised least squares
+    (``alpha = regularisation x mean diag(M^T M)``)."""
+    n, nw, o = cfg.input_size // cfg.bin, cfg.side // cfg.bin, cfg.offset // cfg.bin
+    sel = np.zeros((cfg.in_channels, n, n), bool)
+    sel[:, o:o + nw, o:o + nw] = True
+    sel = sel.ravel()
+    ref = np.asarray(reference, np.float64)[sel]
+    Mx = np.asarray(interaction, np.float64)[sel]
+    tot = ref.sum()
+    Mw = 8.0 / tot * (Mx - ref[:, None] * Mx.sum(axis=0)[None, :] / tot)
+    mtm = Mw.T @ Mw
+    alpha = regularisation * float(np.mean(np.diag(mtm)))
+    R = np.linalg.solve(mtm + alpha * np.eye(mtm.shape[0]), Mw.T)
+    return R.astype(np.float32), (8.0 * ref / tot).astype(np.float32)

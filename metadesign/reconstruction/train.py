@@ -35,7 +35,7 @@ from .dataset_store import load_device
 from .losses import LOSSES, PiB
 from .metrics import captured_fraction, npib_rows
 from .linear import LinearReconstructor
-from .modal_net import ModalNet, ModalNetConfig, commands_record, modal_basis
+from .modal_net import ModalNet, ModalNetConfig, commands_record, crop_to_window, modal_basis, window_reconstructor
 from .model import UNetConfig, build_unet, check_sizes, load_model, save_model, widen_unet
 from .operators import has_operators
 from .refine import build_refiner, deepen_refiner, load_network, load_refiner, save_refiner
@@ -456,7 +456,9 @@ def _build_refiner(recipe: TrainRecipe, dataset: Path, tensor_size: int, apertur
 def _build_modal(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Path | None, device,
                  dataset: Path | None):
     """The recipe's real-time modal network (seeded); its linear path from the reconstructor measured on the
-    dataset's device (``linear_init``) or from ``--init`` weights of the same architecture."""
+    dataset's device (``linear_init``; with a window: :func:`~.modal_net.window_reconstructor`) or from
+    ``--init`` weights of the same architecture, or of the same one reading a wider square (cropped to the
+    window: :func:`~.modal_net.crop_to_window`)."""
     import torch
 
     cfg = ModalNetConfig(input_size=tensor_size, aperture_size=aperture, **recipe.modal)
@@ -465,16 +467,23 @@ def _build_modal(recipe: TrainRecipe, tensor_size: int, aperture: int, init: Pat
     record = None
     if init is not None:
         src, card = load_model(init)
-        if asdict(src.config) != asdict(cfg):
-            raise ValidationError(f"--init {init}: architecture {asdict(src.config)} differs from the recipe's "
-                                  f"{asdict(cfg)}")
-        model.load_state_dict(src.state_dict())
         record = {"path": str(init), "weights_sha256": card.get("weights_sha256"), "epoch": card.get("epoch")}
+        a, b = asdict(src.config), asdict(cfg)
+        if a != b and {**a, "window": b["window"]} == b and b["window"] and src.config.side > cfg.side:
+            src = crop_to_window(src, cfg.window)  # the same function on light inside the window
+            record["windowed_from"] = a["window"]
+        elif a != b:
+            raise ValidationError(f"--init {init}: architecture {a} differs from the recipe's {b} (a modal "
+                                  f"network reading a wider square starts a windowed one)")
+        model.load_state_dict(src.state_dict())
     elif recipe.linear_init and cfg.bin:
         lin = LinearReconstructor.build(load_device(dataset), modal_basis(cfg), bin=cfg.bin)
-        model.set_linear(lin.R, lin.reference)
+        R, ref = (window_reconstructor(lin.interaction, lin.reference, cfg, lin.regularisation) if cfg.window
+                  else (lin.R, lin.reference))
+        model.set_linear(R, ref)
         record = {"linear_init": {"amplitude_rad": lin.amplitude, "regularisation": lin.regularisation,
-                                  "bin": lin.bin, "basis": cfg.basis, "commands": lin.n_modes}}
+                                  "bin": lin.bin, "basis": cfg.basis, "commands": lin.n_modes,
+                                  "window": cfg.window}}
     return model.to(device), record
 
 

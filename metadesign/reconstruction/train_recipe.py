@@ -38,11 +38,13 @@ SECTIONS = (
         Param("width", int, 32, lo=1, hi=1024),
         Param("hidden", int, 256, lo=1, hi=8192),
         Param("bin", int, 8, lo=0, hi=4096),
+        Param("window", int, 0, lo=0, hi=4096),
         Param("linear_init", bool, True),
     ), optional=True, help="the network: kind = \"unet\" (metadesign.reconstruction.model; output = \"field\": "
                            "the phase of exp(i phi) + a learned field, which can hold branch points) or \"modal\" "
                            "(the real-time metadesign.reconstruction.modal_net: basis, modes | actuators + coupling, "
-                           "stride, width, hidden, bin; linear_init: its linear path starts as the measured "
+                           "stride, width, hidden, bin; window: the centred square of each channel it reads, 0 the whole "
+                           "tensor; linear_init: its linear path starts as the measured "
                            "least-squares reconstructor)"),
     Section("train", (
         Param("epochs", int, 500, lo=1, hi=100000),
@@ -91,7 +93,7 @@ SECTIONS = (
 
 
 _UNET_KEYS = ("base", "depth", "norm", "output")
-_MODAL_KEYS = ("basis", "modes", "actuators", "coupling", "stride", "width", "hidden", "bin")
+_MODAL_KEYS = ("basis", "modes", "actuators", "coupling", "stride", "width", "hidden", "bin", "window")
 
 
 @dataclass(frozen=True)
@@ -176,6 +178,10 @@ def train_recipe_from_dict(data: dict, name: str = "train", source: Path | None 
         if wrong:
             raise ConfigError(f"model.{wrong[0]}", "is a U-Net key; a modal network takes " + ", ".join(_MODAL_KEYS))
         modal = {k: m[k] for k in _MODAL_KEYS}  # checked with the tensor's size when the network is built
+        w, grid = m["window"], 4 * m["stride"]
+        if w and (w % grid or (m["bin"] and w % m["bin"])):
+            raise ConfigError("model.window", f"expected 0 (the whole tensor) or a multiple of 4 x stride ({grid})"
+                                              + (f" and of bin ({m['bin']})" if m["bin"] else "") + f", got {w}")
         if "refine" in data or "codesign" in data:
             raise ConfigError("model.kind", "a modal network is trained alone (no [refine] or [codesign])")
     else:

@@ -115,10 +115,21 @@ class FrameTensor:
     sensor: what a real-time loop runs per frame.  A quadrant window whose sides are whole multiples of S is
     area-resampled by block sums (a reshape and a sum: O(pixels)); any other by the precomputed float32
     overlap matrices.  ``normalised=True`` also divides by the total and multiplies by 8 (the datasets'
-    normalisation).  Equals :func:`psf_tensor` to float32 rounding."""
+    normalisation).  Equals :func:`psf_tensor` to float32 rounding.
 
-    def __init__(self, sensor: SensorSpec):
+    ``window`` (0: the whole tensor): only the centred ``window x window`` square of each channel is computed
+    and the rest of the ``(8, S, S)`` tensor is 0, reading only the quadrant pixels that square covers (a
+    windowed real-time network reads nothing else: :class:`~metadesign.reconstruction.modal_net.ModalNet`);
+    the square is the whole tensor's there (bit for bit with block sums); ``normalised=True`` divides by the
+    window's total."""
+
+    def __init__(self, sensor: SensorSpec, window: int = 0):
         self.size = s = sensor.tensor_size
+        self.window = w = check_int("window", window, 0, s)
+        if w and (s - w) % 2:
+            raise ConfigError("window", f"expected a side of the same parity as the tensor's {s} (a centred "
+                                        f"square), got {w}")
+        self.offset = (s - w) // 2 if w else 0
         self.windows = []
         for k in range(1, 5):
             r, c = quadrant_slices(sensor, k)
@@ -134,6 +145,8 @@ class FrameTensor:
 
     def __call__(self, frames: np.ndarray, normalised: bool = False) -> np.ndarray:
         s = self.size
+        if self.window:
+            return self._windowed(frames, normalised)
         if self.whole:
             fy, fx = self.whole
             f = np.asarray(frames, np.float32)
@@ -163,6 +176,51 @@ class FrameTensor:
                         y += x[:, j::fx]
                 else:
                     out[4 * p + k] = mats[0] @ win @ mats[1]
+        if normalised:
+            out *= np.float32(8.0) / out.sum()
+        return out
+
+    def _windowed(self, frames: np.ndarray, normalised: bool) -> np.ndarray:
+        """The (8, S, S) tensor of :meth:`__call__` inside the centred window, 0 outside; only the window's
+        pixels are read, and converted to float32 (the same strided adds as the whole tensor's, on views)."""
+        s, w, a = self.size, self.window, self.offset
+        out = np.zeros((8, s, s), np.float32)
+        f = np.asarray(frames)
+
+        def f32(v):
+            return v if v.dtype == np.float32 else v.astype(np.float32)
+
+        if self.whole:  # the four quadrants' windows of both frames as one strided view
+            fy, fx = self.whole
+            h2, w2 = self.windows[0][0].stop, self.windows[0][1].stop
+            v = f32(f.reshape(2, 2, h2, 2, w2)[:, :, a * fy:(a + w) * fy, :, a * fx:(a + w) * fx])
+            x = v[:, :, 0::fy] + v[:, :, 1::fy] if fy > 1 else v.copy()
+            for i in range(2, fy):
+                x += v[:, :, i::fy]
+            y = x[..., 0::fx] + x[..., 1::fx] if fx > 1 else x
+            for j in range(2, fx):
+                y += x[..., j::fx]
+            out[:, a:a + w, a:a + w] = y.transpose(0, 1, 3, 2, 4).reshape(8, w, w)
+        else:
+            for p in range(2):
+                for k, (r, c, block, mats) in enumerate(self.windows):
+                    win = f[p][r, c]
+                    if block:
+                        fy, fx = block
+                        win = f32(win[a * fy:(a + w) * fy, a * fx:(a + w) * fx])
+                        x = win[0::fy].copy()
+                        for i in range(1, fy):
+                            x += win[i::fy]
+                        y = out[4 * p + k, a:a + w, a:a + w]
+                        y[...] = x[:, 0::fx]
+                        for j in range(1, fx):
+                            y += x[:, j::fx]
+                    else:  # the overlap matrices' window rows and columns, on the pixels they touch
+                        ry, rx = mats[0][a:a + w], mats[1][:, a:a + w]
+                        i0, i1 = np.flatnonzero(ry.any(axis=0))[[0, -1]]
+                        j0, j1 = np.flatnonzero(rx.any(axis=1))[[0, -1]]
+                        out[4 * p + k, a:a + w, a:a + w] = (ry[:, i0:i1 + 1] @ f32(win[i0:i1 + 1, j0:j1 + 1])
+                                                            @ rx[j0:j1 + 1])
         if normalised:
             out *= np.float32(8.0) / out.sum()
         return out
