@@ -28,9 +28,27 @@ def _group(path):
     return zarr.open_group(str(path), mode="r")
 
 
-def _piston_free_rms(u, mask):
-    ph = np.angle(u * np.conj(u[mask].sum()))[mask]
-    return float(np.sqrt(np.mean((ph - ph.mean()) ** 2)))
+def _unwrapped_rms(u, mask):
+    """rms of the least-squares unwrapped phase on ``mask`` (an independent numpy route: scipy's DCT Poisson
+    solve is the project's; here the plain residual of a gradient fit by lstsq)."""
+    ph = np.angle(u)
+    m = mask
+    idx = -np.ones(m.shape, int)
+    idx[m] = np.arange(m.sum())
+    rows, rhs = [], []
+    for dy, dx in ((0, 1), (1, 0)):
+        a = m[: m.shape[0] - dy, : m.shape[1] - dx] & m[dy:, dx:]
+        i0, i1 = idx[: m.shape[0] - dy, : m.shape[1] - dx][a], idx[dy:, dx:][a]
+        d = np.angle(np.exp(1j * (ph[dy:, dx:][a] - ph[: m.shape[0] - dy, : m.shape[1] - dx][a])))
+        for p, q, v in zip(i0, i1, d):
+            rows.append((p, q))
+            rhs.append(v)
+    A = np.zeros((len(rows) + 1, m.sum()))
+    for k, (p, q) in enumerate(rows):
+        A[k, p], A[k, q] = -1.0, 1.0
+    A[-1] = 1.0  # piston 0
+    sol = np.linalg.lstsq(A, np.r_[rhs, 0.0], rcond=None)[0]
+    return float(np.std(sol))
 
 
 def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_dataset, demo_products):
@@ -52,7 +70,7 @@ def test_residual_beacons_are_the_open_loop_ones_corrected(loop_dataset, tiny_da
     mask = np.abs(rec_o[0]) > 0
     for u0, u1 in zip(rec_o, rec_c):
         np.testing.assert_allclose(np.abs(u1), np.abs(u0), rtol=1e-5, atol=1e-6)  # a phase-only mirror
-        assert _piston_free_rms(u1, mask) < 0.8 * _piston_free_rms(u0, mask)  # gain >= 0.6 of a good fit
+        assert _unwrapped_rms(u1, mask) < 0.7 * _unwrapped_rms(u0, mask)  # gain >= 0.6 of a converged fit
     m = np.asarray(g["mirror_phase"][:])
     assert np.all(m[same] == 0)
     for u0, u1, mk in zip(rec_o, rec_c, m[res]):  # the stored mirror phase is what was taken off

@@ -69,7 +69,8 @@ SECTIONS = (
         Param("regularisation", float, 1e-3, lo=0, hi=1),
     ), optional=True, help="beacons as a closed loop's sensor sees them: a fraction of the training and "
                            "validation splits' received fields times the conjugate of the mirror's phase, gain "
-                           "x its fit of the beacon (optics.dm.fitted_oracle; gain drawn per sample from [lo, "
+                           "x its fit of the beacon's unwrapped phase (dataset_build.converged_mirror; gain drawn "
+                           "per sample from [lo, "
                            "hi]), rendered through the loop's path (Device.pupil_field); the mirror's phase is "
                            "stored (mirror_phase), so NPiB counts it; the test split stays open loop"),
 )
