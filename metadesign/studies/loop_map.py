@@ -82,7 +82,7 @@ from ..turbulence.temporal import greenwood_frequency, temporal_summary
 from ..validation import ConfigError
 from .loop import ORACLES, LoopTiming
 from .loop_recipe import AUTO, OPTIMISE, LoopRecipe, loop_recipe_of
-from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, _best, _build, _latency,
+from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, _build, _latency, gain_search,
                          _measure_latencies, _pooled_fades, _sensors, sh_lenslets_for)
 
 __all__ = ["MapRecipe", "load_map_recipe", "run_loop_map", "in_region", "regions", "latency_reaching",
@@ -413,28 +413,17 @@ def _trial_name(key: tuple, g: float) -> str:
 
 def _search_gains(mctx: MapContext, keys: list, steps: int, folder: TaskFolder, run: Execution) -> dict:
     """``gain = "optimise"`` on a map: for each run ``key`` (point, closed loop, declared latency or None) the
-    loop study's search at that point (:func:`metadesign.studies.loop_study._search_gains`: the mean NPiB of
+    loop study's search at that point (:func:`metadesign.studies.loop_study.gain_search`: the mean NPiB of
     ``steps`` frames of realisation 0 at each gain of ``GAIN_GRID``, then at ``GAIN_REFINE`` around the
     grid's best, the best of all winning, the lowest gain on a tie), every key's trials of a stage one task
     set; ``{key: {"gain", "gains", "npib_mean"}}`` (the trials in increasing gain)."""
-    trials: dict = {k: {} for k in keys}
-    stages = [lambda k: GAIN_GRID,
-              lambda k: [round(_best(trials[k]) + d, 4) for d in GAIN_REFINE if 0 < _best(trials[k]) + d <= 2]]
-    for stage in stages:
-        tasks = {}
-        for k in keys:
-            for g in stage(k):
-                if g not in trials[k]:
-                    n = _trial_name(k, g)
-                    tasks[n] = (n, k[:3], k[3], k[4], 0, float(g), steps)
+    def run_stage(trials: list) -> dict:
+        tasks = {_trial_name(k, g): (_trial_name(k, g), k[:3], k[3], k[4], 0, float(g), steps) for k, g in trials}
         res, _ = run.run(_map_task, tasks, folder, shared=mctx, weight=lambda n: steps, unit="step")
-        for n, (_, point, m, lat, _, g, _) in tasks.items():
-            trials[(*point, m, lat)][g] = float(np.mean(res[n]["npib"]))
-    out = {}
-    for k in keys:
-        gs = sorted(trials[k])
-        out[k] = {"gain": _best(trials[k]), "gains": gs, "npib_mean": [trials[k][g] for g in gs]}
-    return out
+        return {((*point, m, lat), g): float(np.mean(res[n]["npib"]))
+                for n, (_, point, m, lat, _, g, _) in tasks.items()}
+
+    return gain_search(keys, run_stage)
 
 
 def _run_key(point: tuple, m: str, lat: float | None) -> tuple:

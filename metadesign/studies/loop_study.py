@@ -26,6 +26,7 @@ from __future__ import annotations
 import copy
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -63,7 +64,7 @@ from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
 __all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE",
-           "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror", "calibrate_retrieval"]
+           "gain_search", "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror", "calibrate_retrieval"]
 
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
@@ -381,25 +382,38 @@ def _search_gains(ctx: LoopContext, folder: TaskFolder, run: Execution) -> dict:
     gain of :data:`GAIN_GRID`, then at :data:`GAIN_REFINE` around the grid's best; ``{method: {"gain": best,
     "gains": [...], "npib_mean": [...]}}`` (the trials in increasing gain)."""
     lp = ctx.rec.loop
-    closed = list(ctx.sensors)
-    trials: dict = {m: {} for m in closed}
-    stages = [lambda m: GAIN_GRID,
-              lambda m: [round(_best(trials[m]) + d, 4) for d in GAIN_REFINE if 0 < _best(trials[m]) + d <= 2]]
-    for stage in stages:
-        tasks = {}
-        for m in closed:
-            for g in stage(m):
-                if g not in trials[m]:
-                    tasks[_gain_name(m, g)] = (_gain_name(m, g), m, 0, float(g), lp.gain_steps, False)
+
+    def run_stage(trials: list) -> dict:
+        tasks = {_gain_name(m, g): (_gain_name(m, g), m, 0, float(g), lp.gain_steps, False) for m, g in trials}
         res, _ = run.run(_task, tasks, folder, shared=ctx, weight=lambda n: lp.gain_steps, unit="step")
-        for name, (_, m, _, g, _, _) in tasks.items():
-            trials[m][g] = float(np.mean(res[name]["npib"]))
+        return {(m, g): float(np.mean(res[name]["npib"])) for name, (_, m, _, g, _, _) in tasks.items()}
+
+    out = gain_search(list(ctx.sensors), run_stage)
+    for m, v in out.items():
+        trials = dict(zip(v["gains"], v["npib_mean"]))
+        run.log(f"  gain {LABELS[m]:<29} {v['gain']:.3f} (mean NPiB {trials[v['gain']]:.3f} over "
+                f"{lp.gain_steps} steps; {len(trials)} trials)")
+    return out
+
+
+def gain_search(keys: list, run_stage: Callable[[list], dict]) -> dict:
+    """The two-stage gain search of ``gain = "optimise"`` (the loop study's and the loop map's): for each of
+    ``keys`` the gains of :data:`GAIN_GRID`, then :data:`GAIN_REFINE` around the grid's best (rounded to 1e-4,
+    kept in (0, 2], those already tried skipped), the best of all winning (the lowest gain on a tie).
+    ``run_stage([(key, gain), ...])`` (every key's trials of a stage, in key then gain order) returns
+    ``{(key, gain): mean NPiB}``; ``{key: {"gain": best, "gains": [...], "npib_mean": [...]}}`` (the trials in
+    increasing gain)."""
+    trials: dict = {k: {} for k in keys}
+    stages = [lambda k: GAIN_GRID,
+              lambda k: [round(_best(trials[k]) + d, 4) for d in GAIN_REFINE if 0 < _best(trials[k]) + d <= 2]]
+    for stage in stages:
+        todo = [(k, g) for k in keys for g in stage(k) if g not in trials[k]]
+        for (k, g), npib in run_stage(todo).items():
+            trials[k][g] = npib
     out = {}
-    for m in closed:
-        gs = sorted(trials[m])
-        out[m] = {"gain": _best(trials[m]), "gains": gs, "npib_mean": [trials[m][g] for g in gs]}
-        run.log(f"  gain {LABELS[m]:<29} {out[m]['gain']:.3f} (mean NPiB {trials[m][out[m]['gain']]:.3f} over "
-                f"{lp.gain_steps} steps; {len(gs)} trials)")
+    for k in keys:
+        gs = sorted(trials[k])
+        out[k] = {"gain": _best(trials[k]), "gains": gs, "npib_mean": [trials[k][g] for g in gs]}
     return out
 
 
