@@ -9,27 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import run_main
+from loop_helpers import loop_numbers as _numbers
+from loop_helpers import loop_world as _world
 
 torch = pytest.importorskip("torch")
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _world(speed: float, steps: int, substeps: int = 2, seed: int = 3):
-    from metadesign.reconstruction.dataset import received_crop
-    from metadesign.reconstruction.losses import PiB
-    from metadesign.studies.loop import LoopWorld
-    from metadesign.turbulence.frozen import FrozenFlow
-    from metadesign.turbulence.propagate import Turbulence
-    from metadesign.turbulence.scenario import scenario_from_dict
-    from metadesign.turbulence.temporal import Wind
-
-    sc = scenario_from_dict({"path": {"n_screens": 5, "rytov": 0.2, "length_m": 1000.0},
-                             "grid": {"n": 64, "spacing_mm": 5.0}, "receiver": {"aperture_cm": 10.0}})
-    tb = Turbulence(sc, check=False).at_rytov(0.2, check=False)
-    c0, a = received_crop(sc)
-    flow = FrozenFlow(tb.grid, tb.path.r0_screens, Wind.from_speeds([speed] * sc.n_screens), 1e-4,
-                      steps * substeps, seed)
-    return LoopWorld(tb, flow.screens, c0, a, PiB(sc, c0, a))
 
 
 def _dm(world):
@@ -136,20 +120,6 @@ def test_bad_loop_options_are_refused(tmp_path, capsys):
     rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out", "--scheduler", "nowhere"], capsys)
     assert rc == 2 and len(err) == 1 and "--scheduler" in err[0], err
     assert not (tmp_path / "out").exists()
-
-
-def _numbers(out: Path) -> str:
-    """loop.json without its timings, paths and provenance (what must not depend on the worker count)."""
-    import json
-
-    def strip(d):
-        if isinstance(d, dict):
-            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe", "provenance")}
-        if isinstance(d, list):
-            return [strip(v) for v in d]
-        return d
-
-    return json.dumps(strip(json.loads((out / "loop.json").read_text())), sort_keys=True)
 
 
 def test_many_seeds_same_bytes_on_any_worker_count_and_a_killed_run_resumes(tmp_path, capsys, monkeypatch):

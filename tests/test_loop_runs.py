@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import run_main
+from loop_helpers import loop_numbers as _numbers
 
 torch = pytest.importorskip("torch")
 REPO = Path(__file__).resolve().parents[1]
@@ -32,18 +33,6 @@ def _recipe(folder: Path) -> Path:
     p.write_text(f'[device]\ndesign = "{REPO / "layouts" / "demo.toml"}"\nsensor = "{REPO / "sensing" / "demo.toml"}"\n'
                  f'turbulence = "{REPO / "sensing" / "turbulence.toml"}"\n[loop]\n{LOOP}[wind]\nspeed_m_s = 3.0\n')
     return p
-
-
-def _numbers(out: Path) -> str:
-    """loop.json without its timings, paths and provenance (what must not depend on how it ran)."""
-    def strip(d):
-        if isinstance(d, dict):
-            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe", "provenance")}
-        if isinstance(d, list):
-            return [strip(v) for v in d]
-        return d
-
-    return json.dumps(strip(json.loads((out / "loop.json").read_text())), sort_keys=True)
 
 
 @pytest.fixture(scope="module")

@@ -14,27 +14,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from conftest import run_main
+from loop_helpers import loop_world as _world
 
 torch = pytest.importorskip("torch")
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _world(speed: float, steps: int, substeps: int = 2, seed: int = 3):
-    from metadesign.reconstruction.dataset import received_crop
-    from metadesign.reconstruction.losses import PiB
-    from metadesign.studies.loop import LoopWorld
-    from metadesign.turbulence.frozen import FrozenFlow
-    from metadesign.turbulence.propagate import Turbulence
-    from metadesign.turbulence.scenario import scenario_from_dict
-    from metadesign.turbulence.temporal import Wind
-
-    sc = scenario_from_dict({"path": {"n_screens": 5, "rytov": 0.2, "length_m": 1000.0},
-                             "grid": {"n": 64, "spacing_mm": 5.0}, "receiver": {"aperture_cm": 10.0}})
-    tb = Turbulence(sc, check=False).at_rytov(0.2, check=False)
-    c0, a = received_crop(sc)
-    flow = FrozenFlow(tb.grid, tb.path.r0_screens, Wind.from_speeds([speed] * sc.n_screens), 1e-4,
-                      steps * substeps, seed)
-    return LoopWorld(tb, flow.screens, c0, a, PiB(sc, c0, a))
 
 
 def _misfit_rad(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
