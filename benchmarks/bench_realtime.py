@@ -102,7 +102,7 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
     ap.add_argument("--dataset", default=str(REPO / "sensing" / "dataset-demo"))
     ap.add_argument("--unet", default=str(REPO / "sensing" / "models" / "demo-unet-robust.safetensors"))
     ap.add_argument("--refine", default=str(REPO / "sensing" / "models" / "demo-refine.safetensors"))
-    ap.add_argument("--realtime", default=str(REPO / "sensing" / "models" / "realtime-modal100.safetensors"))
+    ap.add_argument("--realtime", default=str(REPO / "sensing" / "models" / "realtime-w48.safetensors"))
     ap.add_argument("--limit", type=int, default=320, help="test samples for the captured fraction")
     ap.add_argument("--frames", type=int, default=1000, help="timed frames per estimator (>= 1000)")
     ap.add_argument("--jitter", type=int, default=10000, help="frames of the fastest estimator, idle and busy")

@@ -71,7 +71,7 @@ def _models(small: bool, dev):
     m = REPO / "sensing" / "models"
     out = {}
     for name, f in (("unet", "demo-unet-robust.safetensors"), ("refine", "demo-refine.safetensors"),
-                    ("realtime", "realtime-modal100.safetensors")):
+                    ("realtime", "realtime-w48.safetensors")):
         if (m / f).exists():
             net, _ = load_network(m / f, str(dev))
         elif name == "realtime":
