@@ -265,14 +265,18 @@ def main() -> int:  # noqa: C901 - one benchmark, read top to bottom
                "machine": {"cpu": _cpu(), "threads": 1}}
     if "realtime_commands" in rows:
         r = rows["realtime_commands"]
+        e2e, ue2e = r["end_to_end_median_us"], rows["unet"]["end_to_end_median_us"]
+        # the goal is frame in -> commands out: the camera stage (crop, block sums, normalisation) counts
         summary["verdict"] = {"estimator": "realtime_commands", "median_us": r["latency"]["median_us"],
-                              "speedup_vs_unet": u / r["latency"]["median_us"],
+                              "end_to_end_us": e2e, "speedup_vs_unet": u / r["latency"]["median_us"],
+                              "end_to_end_speedup_vs_unet": ue2e / e2e,
                               "captured_fraction": r["captured_fraction"],
-                              "met": bool(r["latency"]["median_us"] <= GOAL_US and r["captured_fraction"] >= GOAL_CF
+                              "met": bool(e2e <= GOAL_US and r["captured_fraction"] >= GOAL_CF
                                           and u / r["latency"]["median_us"] >= GOAL_SPEEDUP)}
         v = summary["verdict"]
-        log(f"verdict: real-time commands {v['median_us']:.0f} us ({v['speedup_vs_unet']:.0f}x the U-Net's "
-            f"{u:.0f} us), captured fraction {v['captured_fraction']:.3f}: goal {'met' if v['met'] else 'NOT met'}")
+        log(f"verdict: real-time commands {v['median_us']:.0f} us, {e2e:.0f} us from the camera's frames "
+            f"({v['speedup_vs_unet']:.0f}x the U-Net's {u:.0f} us), captured fraction {v['captured_fraction']:.3f}: "
+            f"goal {'met' if v['met'] else 'NOT met'}")
     summary["fastest_at_goal_cf"] = best["label"] if best else None
     if a.output:
         _write(Path(a.output), summary)
