@@ -301,6 +301,8 @@ MEASURED: dict[str, Q | D] = {
     "rt_cf_hi": Q(RT, "estimators/realtime_commands/cf_ci95[1]"),
     "rt_speedup": Q(RT, "verdict/speedup_vs_unet", "{:.0f}"),
     "rt_cam_us": Q(RT, "camera_to_tensor/median_us", "{:,.0f}"),
+    "rt_cam_rt_us": Q(RT, "camera_to_tensor_realtime/median_us", "{:,.0f}"),
+    "rt_e2e_speedup": Q(RT, "verdict/end_to_end_speedup_vs_unet", "{:.0f}"),
     "rt_cam_ref_us": Q(RT, "camera_to_tensor_reference/median_us", "{:,.0f}"),
     "rt_fit_us": Q(RT, "dm_fit/median_us", "{:,.0f}"),
     "rt_compile_s": Q(RT, "estimators/realtime_compile/compile_s", "{:.0f}"),
