@@ -82,6 +82,9 @@ LOOP_CASES = [
     ({(L, "gain"): "nan"}, "loop.gain"),
     ({(L, "gain"): "-inf"}, "loop.gain"),
     ({(L, "gain"): '"fast"'}, "loop.gain"),
+    ({(L, "gain"): "{ ideal = 3.0 }"}, "loop.gain.ideal"),
+    ({(L, "gain"): "{ ideal = nan }"}, "loop.gain.ideal"),
+    ({(L, "gain"): "{ bogus = 0.2 }"}, "loop.gain"),  # a table names every closed loop, no other
     ({(L, "gain_steps"): "1"}, "loop.gain_steps"),
     ({(L, "gain_steps"): "inf"}, "loop.gain_steps"),
     ({(L, "pseudo_open_loop"): "1"}, "loop.pseudo_open_loop"),
@@ -216,6 +219,7 @@ MAP_CASES = [
     ({(P, None): "3"}, "map"),
     ({(L, "gain"): '"fast"'}, "loop.gain"),
     ({(L, "gain"): '"optimise"', (L, "gain_steps"): "300", (P, "steps"): "200"}, "loop.gain_steps"),  # > the map's
+    ({(L, "gain"): "{ ideal = 0.4 }"}, "loop.gain"),  # a table of gains is the loop's, not the map's
     ({(L, "methods"): '["open"]'}, "loop.methods"),
     ({(L, "photons_per_frame"): "nan"}, "loop.photons_per_frame"),
     ({(L, "sh_lenslets"): "0"}, "loop.sh_lenslets"),

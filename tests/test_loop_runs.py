@@ -186,3 +186,22 @@ def test_the_figure_shows_the_modal_spectra_of_the_open_and_closed_loops(tmp_pat
     assert len(figs[-1].axes) == 3
     for fig in figs:
         pyplot().close(fig)
+
+
+def test_a_table_of_gains_runs_each_closed_loop_at_its_own(serial, tmp_path):
+    """``gain = {ideal = 0.3}``: the ideal loop runs at 0.3, the same numbers as a recipe whose one gain is 0.3,
+    and different from the serial run's default 0.4."""
+    from metadesign.cli import main
+
+    runs = {}
+    for name, g in (("table", "{ ideal = 0.3 }"), ("scalar", "0.3")):
+        rec = _recipe(tmp_path / name) if (tmp_path / name).mkdir() is None else None
+        rec.write_text(rec.read_text().replace("[loop]\n", f"[loop]\ngain = {g}\n"))
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            assert main(["loop", str(rec), "-o", str(tmp_path / name / "out"), "-j", "1", "--json"]) == 0
+        runs[name] = json.loads((tmp_path / name / "out" / "loop.json").read_text())
+    ideal = [runs[k]["methods"]["ideal"] for k in ("table", "scalar")]
+    assert ideal[0]["gain"] == ideal[1]["gain"] == 0.3
+    assert ideal[0]["npib_mean"] == ideal[1]["npib_mean"]
+    base = json.loads((serial / "loop.json").read_text())["methods"]["ideal"]
+    assert base["gain"] == 0.4 and base["npib_mean"] != ideal[0]["npib_mean"]

@@ -212,6 +212,9 @@ def load_map_recipe(path: str | Path) -> MapRecipe:
     scan = v["scan_latency_ms"]
     scan = tuple(sorted({float(x) for x in scan})) if scan is not None else (lats or DEFAULT_SCAN_MS)
     steps = v["steps"] if v["steps"] is not None else lp.steps
+    if isinstance(lp.gain, dict):
+        raise ConfigError("loop.gain", f"a table of gains per method is the loop's (metadesign loop); a map takes "
+                                       f"one gain or \"{OPTIMISE}\" (chosen per point)")
     if lp.gain == OPTIMISE and lp.gain_steps > steps:
         raise ConfigError("loop.gain_steps", f"expected at most the map's steps ({steps} frames a run; "
                           f"gain = \"{OPTIMISE}\" tries each gain on the first gain_steps), got {lp.gain_steps}")

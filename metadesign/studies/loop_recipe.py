@@ -14,7 +14,8 @@ to the recipe):
     steps = 400
     substeps = 4                  # exposure sub-steps (the turbulence moves during a frame)
     rytov = 0.5
-    gain = 0.4                    # or "optimise": chosen per closed loop (see gain_steps)
+    gain = 0.4                    # or "optimise": chosen per closed loop (see gain_steps), or a table
+                                  # {method = gain, ...} naming every closed loop (a long run at searched gains)
     gain_steps = 100              # "optimise": the steps of each trial run (the first seed's first frames)
     pseudo_open_loop = false      # the controller integrates the residual's fit plus the mirror's commands
     seeds = 1                     # independent turbulence realisations (each method runs on every one)
@@ -173,7 +174,7 @@ class LoopSection:
     steps: int
     substeps: int
     rytov: float
-    gain: float
+    gain: float | str | dict  # a number, OPTIMISE, or {closed-loop method: gain}
     leak: float
     noise_percent: float
     readout_frames: float
@@ -247,6 +248,13 @@ def _gain(raw):
         return 0.4
     if raw == OPTIMISE:
         return OPTIMISE
+    if isinstance(raw, dict):  # per closed loop (the methods are checked against it at load)
+        out = {}
+        for m, g in raw.items():
+            if isinstance(g, bool) or not isinstance(g, (int, float)) or not (0 <= float(g) <= 2):
+                raise ConfigError(f"loop.gain.{m}", f"expected a number in [0, 2], got {g!r}")
+            out[str(m)] = float(g)
+        return out
     if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not (0 <= float(raw) <= 2):
         raise ConfigError("loop.gain", f'expected a number in [0, 2] or "{OPTIMISE}", got {raw!r}')
     return float(raw)
@@ -323,6 +331,11 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods or len(set(methods)) != len(methods):
         raise ConfigError("loop.methods", f"expected distinct methods among {', '.join(METHODS)}, got {list(methods)}")
+    if isinstance(gain, dict):
+        closed = [m for m in methods if m not in ("open", "fitted", "conjugate")]
+        if set(gain) != set(closed):
+            raise ConfigError("loop.gain", f"a table of gains names every closed loop of loop.methods "
+                                           f"({', '.join(closed)}), got {', '.join(gain) or 'none'}")
     d = v["device"]
 
     def rel(p):
