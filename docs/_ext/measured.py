@@ -98,6 +98,8 @@ TRANSFER = "sensing/transfer-demo-out/transfer.json"
 RT = "sensing/realtime-bench/results.json"
 LOOP = "sensing/loop-demo-out/loop.json"
 LOOP_G = "sensing/loop-demo-gain-out/loop.json"
+LOOP_N = "sensing/loop-demo-loopnet-out/loop.json"
+LOOP_W = "sensing/loop-demo-w48-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
@@ -105,6 +107,12 @@ _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 u
 
 def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}", scale: float = 1.0) -> Q:
     return Q(CC.format(run), f"cases/{case}/{stat}/{what}", fmt, scale)
+
+
+def _searched(rec: dict, m: str) -> float:
+    """A loop's mean NPiB over the gain search's trial at the gain it chose."""
+    gs = rec["methods"][m]["gain_search"]
+    return gs["npib_mean"][gs["gains"].index(rec["methods"][m]["gain"])]
 
 
 def _loop_band(m: str, modes: str, f_max: float | None = 50.0) -> D:
@@ -321,6 +329,23 @@ MEASURED: dict[str, Q | D] = {
     **{f"loopg_{m}_gain": Q(LOOP_G, f"methods/{m}/gain") for m in ("realtime", "ideal")},
     "loopg_rt_fade": Q(LOOP_G, "methods/realtime/fades/probability"),
     "loopg_rt_vs_ideal": Q(LOOP_G, "verdict/vs_ideal", "{:.2f}"),
+    # the demo loop with the network trained on closed-loop residuals (sensing/loop-demo-loopnet.toml)
+    **{f"loopn_{m}_npib": Q(LOOP_N, f"methods/{m}/npib_mean") for m in ("realtime", "ideal", "shack_hartmann", "open")},
+    **{f"loopn_{m}_gain": Q(LOOP_N, f"methods/{m}/gain") for m in ("realtime", "ideal", "shack_hartmann")},
+    **{f"loopn_{m}_fade": Q(LOOP_N, f"methods/{m}/fades/probability") for m in ("realtime", "ideal", "open")},
+    "loopn_realtime_delay": Q(LOOP_N, "methods/realtime/delay_frames", "{:.1f}"),
+    "loopn_shack_hartmann_delay": Q(LOOP_N, "methods/shack_hartmann/delay_frames", "{:.1f}"),
+    "loopn_rt_vs_ideal": Q(LOOP_N, "verdict/vs_ideal", "{:.2f}"),
+    "loopn_rt_vs_sh": Q(LOOP_N, "verdict/vs_shack_hartmann", "{:.2f}"),
+    # the demo loop with the real-time network of issue #51 (sensing/loop-demo-w48.toml): the headline
+    **{f"loopw_{m}_npib": Q(LOOP_W, f"methods/{m}/npib_mean") for m in ("realtime", "ideal", "shack_hartmann", "open")},
+    **{f"loopw_{m}_gain": Q(LOOP_W, f"methods/{m}/gain") for m in ("realtime", "ideal", "shack_hartmann")},
+    **{f"loopw_{m}_fade": Q(LOOP_W, f"methods/{m}/fades/probability") for m in ("realtime", "ideal", "shack_hartmann", "open")},
+    **{f"loopw_{m}_delay": Q(LOOP_W, f"methods/{m}/delay_frames", "{:.1f}") for m in ("realtime", "ideal", "shack_hartmann")},
+    "loopw_rt_vs_ideal": Q(LOOP_W, "verdict/vs_ideal", "{:.2f}"),
+    "loopw_rt_vs_sh": Q(LOOP_W, "verdict/vs_shack_hartmann", "{:.2f}"),
+    "loopw_rt_search_npib": D(lambda get: _searched(get(LOOP_W), "realtime")),
+    "loopw_ideal_search_npib": D(lambda get: _searched(get(LOOP_W), "ideal")),
     # its modal temporal spectra (docs/figures/loop_psd.py): power below 50 Hz over the open loop's; variances
     **{f"loopg_psd_{m}_{b}": _loop_band(m, b) for m in ("realtime", "ideal") for b in ("tt", "ho")},
     **{f"loopg_psd_{m}_var": _loop_band(m, "", None) for m in ("realtime", "ideal", "open")},
