@@ -110,6 +110,25 @@ def psf_tensor(frames: np.ndarray, sensor: SensorSpec) -> np.ndarray:
 
 
 
+def _strided_sum(v: np.ndarray, step: int, axis: int) -> np.ndarray:
+    """``v`` summed over consecutive blocks of ``step`` samples along ``axis`` by strided adds (a multi-axis
+    sum of a reshape is 3x slower); the adds run in sample order, so every caller rounds alike."""
+    def part(i):
+        return v[(slice(None),) * (axis % v.ndim) + (slice(i, None, step),)]
+
+    if step == 1:
+        return v
+    x = part(0) + part(1)
+    for i in range(2, step):
+        x += part(i)
+    return x
+
+
+def _block_sums(v: np.ndarray, fy: int, fx: int, row_axis: int = -2) -> np.ndarray:
+    """Block sums of ``fy`` rows (``row_axis``) by ``fx`` columns (the last axis): rows first, then columns."""
+    return _strided_sum(_strided_sum(v, fy, row_axis), fx, -1)
+
+
 class FrameTensor:
     """The camera's two frames -> the (8, S, S) float32 tensor of :func:`psf_tensor`, prepared once for a
     sensor: what a real-time loop runs per frame.  A quadrant window whose sides are whole multiples of S is
@@ -148,14 +167,7 @@ class FrameTensor:
         if self.window:
             return self._windowed(frames, normalised)
         if self.whole:
-            fy, fx = self.whole
-            f = np.asarray(frames, np.float32)
-            x = f[:, 0::fy] + f[:, 1::fy] if fy > 1 else f.copy()
-            for i in range(2, fy):
-                x += f[:, i::fy]
-            y = x[..., 0::fx] + x[..., 1::fx] if fx > 1 else x
-            for j in range(2, fx):
-                y += x[..., j::fx]
+            y = _block_sums(np.asarray(frames, np.float32), *self.whole)
             out = np.ascontiguousarray(y.reshape(2, 2, s, 2, s).transpose(0, 1, 3, 2, 4).reshape(8, s, s))
             if normalised:
                 out *= np.float32(8.0) / out.sum()
@@ -165,15 +177,8 @@ class FrameTensor:
             f = np.asarray(frames[p], np.float32)
             for k, (r, c, block, mats) in enumerate(self.windows):
                 win = f[r, c]
-                if block:  # strided adds: rows, then columns (a multi-axis sum of a reshape is 3x slower)
-                    fy, fx = block
-                    x = win[0::fy].copy()
-                    for i in range(1, fy):
-                        x += win[i::fy]
-                    y = out[4 * p + k]
-                    y[...] = x[:, 0::fx]
-                    for j in range(1, fx):
-                        y += x[:, j::fx]
+                if block:
+                    out[4 * p + k] = _block_sums(win, *block)
                 else:
                     out[4 * p + k] = mats[0] @ win @ mats[1]
         if normalised:
@@ -194,12 +199,7 @@ class FrameTensor:
             fy, fx = self.whole
             h2, w2 = self.windows[0][0].stop, self.windows[0][1].stop
             v = f32(f.reshape(2, 2, h2, 2, w2)[:, :, a * fy:(a + w) * fy, :, a * fx:(a + w) * fx])
-            x = v[:, :, 0::fy] + v[:, :, 1::fy] if fy > 1 else v.copy()
-            for i in range(2, fy):
-                x += v[:, :, i::fy]
-            y = x[..., 0::fx] + x[..., 1::fx] if fx > 1 else x
-            for j in range(2, fx):
-                y += x[..., j::fx]
+            y = _block_sums(v, fy, fx, row_axis=2)
             out[:, a:a + w, a:a + w] = y.transpose(0, 1, 3, 2, 4).reshape(8, w, w)
         else:
             for p in range(2):
@@ -208,13 +208,7 @@ class FrameTensor:
                     if block:
                         fy, fx = block
                         win = f32(win[a * fy:(a + w) * fy, a * fx:(a + w) * fx])
-                        x = win[0::fy].copy()
-                        for i in range(1, fy):
-                            x += win[i::fy]
-                        y = out[4 * p + k, a:a + w, a:a + w]
-                        y[...] = x[:, 0::fx]
-                        for j in range(1, fx):
-                            y += x[:, j::fx]
+                        out[4 * p + k, a:a + w, a:a + w] = _block_sums(win, fy, fx)
                     else:  # the overlap matrices' window rows and columns, on the pixels they touch
                         ry, rx = mats[0][a:a + w], mats[1][:, a:a + w]
                         i0, i1 = np.flatnonzero(ry.any(axis=0))[[0, -1]]
