@@ -111,11 +111,12 @@ def make_sample(ctx: ShardContext, i: int) -> dict:
     chain = ctx.chain()
     seed = sample_seed(ctx.root_seed, i)
     rytov = sample_rytov(ctx.root_seed, i, ctx.rytov_range, ctx.rytov_values)
-    s = chain.sample(seed, rytov)
+    gain = ctx.loop_gain(i)
+    s = chain.sample(seed, rytov, render=gain == 0)  # a residual is rendered once, after its mirror
     t1 = time.perf_counter()
     c0, a = received_crop(chain.turbulence.sc)
     rec = s.received[c0:c0 + a, c0:c0 + a]
-    tensor, gain, mirror = s.tensor, ctx.loop_gain(i), np.zeros(rec.shape, np.float32)
+    tensor, mirror = s.tensor, np.zeros(rec.shape, np.float32)
     if gain > 0:  # a closed loop's residual: the mirror holds gain x its best fit of this beacon
         device, dm, mask = ctx.loop_parts()
         mirror = (gain * converged_mirror(dm, rec, mask) * mask).astype(np.float32)

@@ -27,8 +27,8 @@ class BeaconSample:
     rytov: float  # nominal Rytov number of the path
     received: np.ndarray  # (n, n) complex64: collimated field on the turbulence grid, 0 outside the receiver
     e_in: np.ndarray  # (N, N) complex64: that field imaged onto the metasurface's coarse pupil grid
-    frames: np.ndarray  # (2, H, W) float32 sensor frames (noise-free)
-    tensor: np.ndarray  # (8, S, S) float32 PSF tensor (noise-free)
+    frames: np.ndarray | None  # (2, H, W) float32 sensor frames (noise-free; None: not rendered)
+    tensor: np.ndarray | None  # (8, S, S) float32 PSF tensor (noise-free; None: not rendered)
     timings: dict
 
 
@@ -57,7 +57,9 @@ class BeaconChain:
     def at(self, rytov: float) -> Turbulence:
         return self.turbulence.at_rytov(rytov)
 
-    def sample(self, seed: int, rytov: float) -> BeaconSample:
+    def sample(self, seed: int, rytov: float, render: bool = True) -> BeaconSample:
+        """Beacon ``seed`` at ``rytov`` through to the sensor (``render=False``: up to the received field, for
+        a caller that changes the field before rendering it)."""
         tb = self.at(rytov)
         t0 = time.perf_counter()
         ph = tb.screens(seed)
@@ -67,7 +69,8 @@ class BeaconChain:
         received = tb.collimated(field)
         e_in = tb.to_metasurface(field, self.pupil.G.shape[-1])
         t3 = time.perf_counter()
-        shot = self.device.render(e_in)
+        shot = self.device.render(e_in) if render else None
         t4 = time.perf_counter()
-        return BeaconSample(seed, rytov, received, e_in, shot.frames, shot.psfs,
+        return BeaconSample(seed, rytov, received, e_in, None if shot is None else shot.frames,
+                            None if shot is None else shot.psfs,
                             {"screens": t1 - t0, "split_step": t2 - t1, "to_metasurface": t3 - t2, "psf": t4 - t3})
