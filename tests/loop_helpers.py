@@ -31,7 +31,7 @@ def loop_numbers(out: Path) -> str:
     it ran)."""
     def strip(d):
         if isinstance(d, dict):
-            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "figures", "recipe", "provenance")}
+            return {k: strip(v) for k, v in d.items() if k not in ("seconds", "core_s_per_link_s", "figures", "recipe", "provenance")}
         if isinstance(d, list):
             return [strip(v) for v in d]
         return d

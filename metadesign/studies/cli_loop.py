@@ -9,6 +9,9 @@ from ..cliutil import emit, log_to, out_dir, progress_bar, workers_arg
 from ..execution import Execution, scratch_path
 from ..outputs import product
 
+#: the steps a fade probability of 1e-3 needs (~100 fades of a few frames each; issue #50)
+FADE_STEPS = 100_000
+
 __all__ = ["register", "loop_inputs"]
 
 
@@ -56,6 +59,12 @@ def _cmd_loop(a: argparse.Namespace) -> int:
                 g = r["gain_search"]
                 trials = " ".join(f"{x:g}:{v:.3f}" for x, v in zip(g["gains"], g["npib_mean"]))
                 lines.append(f"    {r['label']:<32} {g['gain']:.3f}  [{trials}]")
+    cost = {r["label"]: r["core_s_per_link_s"] for r in rep["methods"].values() if "core_s_per_link_s" in r}
+    if cost:
+        total = sum(cost.values())
+        lines.append(f"  cost per second of link time (core-s): {', '.join(f'{k} {v:.0f}' for k, v in cost.items())}; "
+                     f"{FADE_STEPS:,} steps of every method (fades to 1e-3): "
+                     f"{total * FADE_STEPS / rep['loop']['rate_hz'] / 3600:.1f} core-h")
     if rep["loop"]["seeds"] > 1:
         lines.append(f"  pooled over {rep['loop']['seeds']} seeds x {rep['loop']['steps']} steps")
     lines.append(f"  figures: {', '.join(Path(p).name for p in rep['figures'])}")

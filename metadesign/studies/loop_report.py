@@ -214,6 +214,8 @@ def method_report(m: str, runs: list, lat: float, timing: LoopTiming, rec: LoopR
     r["seeds"] = len(runs)
     r["seconds"] = float(sum(float(s["seconds"]) for s in runs))
     steps = len(runs[0]["npib"])
+    # each realisation is one task on one worker (one core): its wall seconds per second of link time
+    r["core_s_per_link_s"] = r["seconds"] / (steps * len(runs) / lp.rate_hz)
     segment = min(256, steps // 2)
     if closed and open_runs is not None and steps >= 64:
         f, pc = mean_psd(runs, lp.rate_hz, segment)
