@@ -132,3 +132,60 @@ def test_the_loop_recipe_takes_linear_on_request(tmp_path):
     p.write_text(p.read_text().replace('methods = ["ideal", "open"]', 'methods = ["linear", "open"]'))
     assert load_loop_recipe(p).loop.methods == ("linear", "open")
     assert "linear" not in DEFAULT_METHODS  # a recipe that names no methods runs what it ran before
+
+
+class _Fixed:
+    """A stand-in estimator returning one phase per frame of the batch."""
+
+    def __init__(self, phase):
+        self.phase = np.asarray(phase, np.float32)
+
+    def estimate(self, batch):
+        return np.repeat(self.phase[None], len(batch["psf"]), axis=0)
+
+
+def test_tip_tilt_split_replaces_only_the_tilts(setup):
+    """The main estimate's tip and tilt swapped for the linear reconstructor's, everything else kept: with a
+    main estimate of 0.7 Noll 2 - 0.3 Noll 3 + 0.4 Noll 5 (orthogonal to the tilts on the disc) and a frame
+    of 0.15 rad of Noll 3 and 0.1 of Noll 4, the output is 0.4 Noll 5 plus the reconstructor's tilts, which
+    read the frame's 0.15 of Noll 3 (10 %) and no Noll 2."""
+    from metadesign.reconstruction.linear import TipTiltSplitEstimator
+
+    dev, basis, _ = setup
+    tt = LinearReconstructor.build(dev, basis[:2], amplitude=0.2, bin=4, regularisation=1e-2)
+    main = 0.7 * basis[0] - 0.3 * basis[1] + 0.4 * basis[3]
+    est = TipTiltSplitEstimator(_Fixed(main), tt)
+    psf = _render(dev, 0.15 * basis[1] + 0.1 * basis[2])
+    out = est.estimate({"psf": psf[None]})
+    assert out.shape == (1, *basis.shape[1:])
+    c = tt.estimate(psf)
+    assert abs(c[1] - 0.15) < 0.015 and abs(c[0]) < 0.015
+    expected = 0.4 * basis[3] + c[0] * basis[0] + c[1] * basis[1]
+    assert np.max(np.abs(out[0] - expected)) < 1e-4
+    # the main estimate's own tilts are gone: its Noll 2 does not leak through
+    assert np.max(np.abs(TipTiltSplitEstimator(_Fixed(0.7 * basis[0]), tt).estimate({"psf": psf[None]})[0]
+                         - c[0] * basis[0] - c[1] * basis[1])) < 1e-4
+
+
+def test_the_loop_recipe_takes_realtime_tt_and_searches_only_the_gains_it_is_told(tmp_path):
+    """``realtime_tt`` on request (it needs [device] realtime); a gain table whose entry is "optimise"
+    searches that loop only, the others at their given gains."""
+    from test_loop import _recipe
+
+    from metadesign.studies.loop_recipe import DEFAULT_METHODS, load_loop_recipe
+    from metadesign.validation import ConfigError
+
+    assert "realtime_tt" not in DEFAULT_METHODS
+    p = _recipe(tmp_path)
+    text = p.read_text()
+    p.write_text(text.replace('methods = ["ideal", "open"]', 'methods = ["realtime_tt", "open"]'))
+    with pytest.raises(ConfigError, match="device.realtime"):
+        load_loop_recipe(p)
+    p.write_text(text.replace('methods = ["ideal", "open"]', 'methods = ["ideal", "linear", "open"]\n'
+                              'gain = { ideal = 0.5, linear = "optimise" }'))
+    lp = load_loop_recipe(p).loop
+    assert lp.optimise_gain and lp.searched(["ideal", "linear"]) == ["linear"]
+    assert lp.gain == {"ideal": 0.5, "linear": "optimise"}
+    p.write_text(text.replace('methods = ["ideal", "open"]', 'methods = ["ideal", "open"]\ngain = { ideal = 0.5 }'))
+    lp = load_loop_recipe(p).loop
+    assert not lp.optimise_gain and lp.searched(["ideal"]) == []

@@ -65,6 +65,7 @@ LOOP_CASES = [
     ({(M, "turbulence"): None}, "device.turbulence"),
     ({(M, "model"): '"nope.safetensors"'}, "device.model"),
     ({(L, "methods"): '["unet"]'}, "device.model"),
+    ({(L, "methods"): '["realtime_tt", "open"]'}, "device.realtime"),
     ({(M, "realtime"): '"nope.safetensors"'}, "device.realtime"),
     ({(M, "colour"): '"red"'}, "device.colour"),
     ({(L, "rate_hz"): "nan"}, "loop.rate_hz"),
@@ -85,6 +86,8 @@ LOOP_CASES = [
     ({(L, "gain"): "{ ideal = 3.0 }"}, "loop.gain.ideal"),
     ({(L, "gain"): "{ ideal = nan }"}, "loop.gain.ideal"),
     ({(L, "gain"): "{ bogus = 0.2 }"}, "loop.gain"),  # a table names every closed loop, no other
+    ({(L, "gain"): '{ ideal = "fast" }'}, "loop.gain.ideal"),
+    ({(L, "gain"): '{ ideal = "optimise" }', (L, "gain_steps"): "100000"}, "loop.gain_steps"),  # > loop.steps
     ({(L, "gain_steps"): "1"}, "loop.gain_steps"),
     ({(L, "gain_steps"): "inf"}, "loop.gain_steps"),
     ({(L, "pseudo_open_loop"): "1"}, "loop.pseudo_open_loop"),

@@ -18,7 +18,7 @@ import numpy as np
 from ..validation import InputError
 from .dataset import normalise_psf
 
-__all__ = ["LinearReconstructor", "LinearEstimator", "bin_tensor"]
+__all__ = ["LinearReconstructor", "LinearEstimator", "TipTiltSplitEstimator", "bin_tensor"]
 
 
 def bin_tensor(psf: np.ndarray, b: int) -> np.ndarray:
@@ -98,3 +98,32 @@ class LinearEstimator:
 
     def estimate(self, batch: dict) -> np.ndarray:
         return self.reconstructor.phase(np.asarray(batch["psf"], np.float32))
+
+
+class TipTiltSplitEstimator:
+    """Another estimator's phase with its tip and tilt read by a linear reconstructor instead (issue #50):
+    ``estimate(batch) = main - P(main) + tiptilt.phase(psf)``, ``P`` the least-squares projection onto the
+    reconstructor's basis (its modes, e.g. the unit-rms Noll 2 and 3 on the crop, fitted over the samples
+    where any of them is non-zero).  Why: the real-time network reads tip and tilt with a ~0.4 rad rms error
+    whatever their size (``benchmarks/crosscheck_realtime_tilt.py``), which a closed loop keeps below its
+    bandwidth; the push-pull reconstructor around the flat wavefront is precise where a converged loop's
+    residual lies (small tilts) and costs one binning and a (2, P) matvec.  ``estimate({"psf": (B, 8, S, S)})
+    -> (B, A, A)`` rad."""
+
+    def __init__(self, main, tiptilt: LinearReconstructor):
+        self.main, self.tiptilt = main, tiptilt
+        self.name = f"{getattr(main, 'name', 'estimator')}+tiptilt"
+        B = np.asarray(tiptilt.basis, np.float64)
+        M, A, _ = B.shape
+        self._support = np.any(B != 0, axis=0).ravel()
+        flat = B.reshape(M, A * A)[:, self._support]
+        self._fit = np.linalg.pinv(flat.T)  # (M, n_support): coefficients of a phase's support samples
+        self._basis = B.reshape(M, A * A)
+
+    def estimate(self, batch: dict) -> np.ndarray:
+        phase = np.asarray(self.main.estimate(batch), np.float64)
+        shape = phase.shape
+        flat = phase.reshape(shape[0], -1)
+        own = flat[:, self._support] @ self._fit.T  # (B, M): the main estimate's tip and tilt
+        tt = np.asarray(self.tiptilt.estimate(np.asarray(batch["psf"], np.float32)), np.float64).reshape(shape[0], -1)
+        return (flat + (tt - own) @ self._basis).reshape(shape).astype(np.float32)

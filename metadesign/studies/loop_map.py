@@ -90,7 +90,7 @@ __all__ = ["MapRecipe", "load_map_recipe", "run_loop_map", "in_region", "regions
            "REGION_FADE_PROBABILITY", "GOAL_VS_IDEAL", "GOAL_VS_SHACK_HARTMANN", "DEFAULT_SCAN_MS", "LETTERS"]
 
 #: the metasurface sensor's loops (the best of them is the verdict's)
-METASURFACE = ("refine", "unet", "linear", "realtime")
+METASURFACE = ("refine", "unet", "linear", "realtime", "realtime_tt")
 #: the region: mean NPiB at least this fraction of the ideal-phase loop's ...
 REGION_VS_IDEAL = 0.8
 #: ... and a fade probability at most this
@@ -102,7 +102,7 @@ GOAL_VS_SHACK_HARTMANN = 2.0
 DEFAULT_SCAN_MS = (0.0, 0.25, 0.5, 1.0, 2.0)
 #: one letter per method (the text summary's region tables, the figure's gains)
 LETTERS = {"ideal": "I", "shack_hartmann": "S", "realtime": "R", "linear": "L", "unet": "U", "refine": "F",
-           "fitted": "D", "conjugate": "C", "open": "O"}
+           "fitted": "D", "conjugate": "C", "open": "O", "realtime_tt": "T", "retrieval": "B", "refine_warm": "W"}
 #: the wind keys the map scales (m/s); directions stay
 _SPEEDS = ("speed_m_s", "end_speed_m_s", "speeds_m_s")
 
@@ -661,7 +661,8 @@ def _point(r: float, g: float, x: float, mrec: MapRecipe, ms: dict, sh: dict | N
 
 MARKERS = {"ideal": ("^", "tab:green"), "shack_hartmann": ("s", "tab:orange"), "realtime": ("o", "tab:blue"),
            "linear": ("D", "tab:purple"), "unet": ("o", "tab:cyan"), "refine": ("P", "tab:red"),
-           "fitted": ("*", "tab:olive"), "conjugate": ("X", "tab:brown"), "open": ("v", "tab:gray")}
+           "fitted": ("*", "tab:olive"), "conjugate": ("X", "tab:brown"), "open": ("v", "tab:gray"),
+           "realtime_tt": ("h", "tab:pink"), "retrieval": ("d", "black"), "refine_warm": ("p", "gold")}
 
 
 def _plot(rep: dict, out: Path) -> list[Path]:

@@ -15,7 +15,8 @@ to the recipe):
     substeps = 4                  # exposure sub-steps (the turbulence moves during a frame)
     rytov = 0.5
     gain = 0.4                    # or "optimise": chosen per closed loop (see gain_steps), or a table
-                                  # {method = gain, ...} naming every closed loop (a long run at searched gains)
+                                  # {method = gain, ...} naming every closed loop (a long run at searched gains;
+                                  # a loop's entry "optimise": only its gain searched)
     gain_steps = 100              # "optimise": the steps of each trial run (the first seed's first frames)
     pseudo_open_loop = false      # the controller integrates the residual's fit plus the mirror's commands
     seeds = 1                     # independent turbulence realisations (each method runs on every one)
@@ -116,12 +117,14 @@ __all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS
 OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
 METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear", "realtime",
-           "retrieval", "refine_warm")
+           "retrieval", "refine_warm", "realtime_tt")
 #: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, ``realtime``, the
 #: real-time modal network of ``[device] realtime`` (issue #51), ``retrieval``, the phase-diversity retrieval
-#: capped by ``retrieval_budget_ms``, and ``refine_warm``, the refinement warm-started from the last frame, on
+#: capped by ``retrieval_budget_ms``, ``refine_warm``, the refinement warm-started from the last frame, and
+#: ``realtime_tt``, the real-time network with its tip and tilt read by the push-pull linear reconstructor, on
 #: request)
-DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime", "retrieval", "refine_warm"))
+DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime", "retrieval", "refine_warm",
+                                                        "realtime_tt"))
 #: the value of ``[loop] sh_lenslets`` that has the study choose the lenslet count from the path's r0
 AUTO = "auto"
 #: ``[loop] sh_lenslets``: the default, and the range of a given count
@@ -193,8 +196,15 @@ class LoopSection:
 
     @property
     def optimise_gain(self) -> bool:
-        """Whether each closed loop's gain is chosen (``gain = "optimise"``) rather than given."""
-        return self.gain == OPTIMISE
+        """Whether a closed loop's gain is chosen (``gain = "optimise"``, or a table naming it so) rather
+        than given."""
+        return self.gain == OPTIMISE or (isinstance(self.gain, dict) and OPTIMISE in self.gain.values())
+
+    def searched(self, closed: list) -> list:
+        """The closed loops among ``closed`` whose gain the study searches."""
+        if self.gain == OPTIMISE:
+            return list(closed)
+        return [m for m in closed if isinstance(self.gain, dict) and self.gain.get(m) == OPTIMISE]
 
 
 @dataclass(frozen=True)
@@ -251,8 +261,11 @@ def _gain(raw):
     if isinstance(raw, dict):  # per closed loop (the methods are checked against it at load)
         out = {}
         for m, g in raw.items():
+            if g == OPTIMISE:  # this loop's gain searched, the others' given
+                out[str(m)] = OPTIMISE
+                continue
             if isinstance(g, bool) or not isinstance(g, (int, float)) or not (0 <= float(g) <= 2):
-                raise ConfigError(f"loop.gain.{m}", f"expected a number in [0, 2], got {g!r}")
+                raise ConfigError(f"loop.gain.{m}", f'expected a number in [0, 2] or "{OPTIMISE}", got {g!r}')
             out[str(m)] = float(g)
         return out
     if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not (0 <= float(raw) <= 2):
@@ -323,7 +336,8 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     if lp["read_noise_e"] and not lp["photons_per_frame"]:
         raise ConfigError("loop.read_noise_e", "needs loop.photons_per_frame > 0 (read noise is counted in "
                                                f"photo-electrons), got {lp['read_noise_e']:g} with none")
-    if gain == OPTIMISE and lp["gain_steps"] > lp["steps"]:
+    if (gain == OPTIMISE or (isinstance(gain, dict) and OPTIMISE in gain.values())) \
+            and lp["gain_steps"] > lp["steps"]:
         raise ConfigError("loop.gain_steps", f"expected at most loop.steps ({lp['steps']}), got {lp['gain_steps']}")
     if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
         raise ConfigError("loop.methods", f"expected a list of method names, got {methods!r}")
@@ -354,8 +368,9 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
         raise ConfigError("device.model", f"{model}: the refine_warm method needs a refiner (a U-Net with its "
                           "learned refinement), not a U-Net")
     realtime = rel(d["realtime"]) if d["realtime"] else None
-    if realtime is None and "realtime" in methods:
-        raise ConfigError("device.realtime", "the realtime method needs a real-time model (a modal network)")
+    if realtime is None and {"realtime", "realtime_tt"} & set(methods):
+        raise ConfigError("device.realtime", "the realtime and realtime_tt methods need a real-time model (a modal "
+                                             "network)")
     if realtime is not None and not realtime.exists():
         raise ConfigError("device.realtime", f"{realtime}: no such file")
     if wind is not None and not isinstance(wind, dict):

@@ -41,7 +41,7 @@ from ..optics.control import Controller
 from ..optics.dm import DeformableMirror, ModalDM, TipTiltSplit
 from ..reconstruction.dataset import received_crop
 from ..reconstruction.estimators import ShackHartmannEstimator, make_estimator
-from ..reconstruction.linear import LinearEstimator, LinearReconstructor
+from ..reconstruction.linear import LinearEstimator, LinearReconstructor, TipTiltSplitEstimator
 from ..reconstruction.realtime import RealtimeEstimator
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
@@ -202,11 +202,14 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
             s = ShackHartmannLoopSensor(est, det, lp.seed)
         elif m == "linear":
             s = MetasurfaceSensor(device, _linear_estimator(rec, device), det, lp.seed)
-        elif m == "realtime":
+        elif m in ("realtime", "realtime_tt"):
             rt, _ = load_network(rec.realtime)
             if not hasattr(rt, "commands"):
                 raise ConfigError("device.realtime", f"{rec.realtime} is not a modal network (model.kind = \"modal\")")
-            s = MetasurfaceSensor(device, RealtimeEstimator(rt), det, lp.seed)
+            est = RealtimeEstimator(rt)
+            if m == "realtime_tt":  # its tip and tilt from the push-pull reconstructor of Noll 2, 3
+                est = TipTiltSplitEstimator(est, _linear_estimator(rec, device, modes=2).reconstructor)
+            s = MetasurfaceSensor(device, est, det, lp.seed)
         elif m == "refine" and refiner is None:
             raise ValueError("loop.methods: refine needs a refiner as the model")
         elif m == "refine_warm":
@@ -222,13 +225,13 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
     return out
 
 
-def _linear_estimator(rec: LoopRecipe, device: Device):
-    """The push-pull linear reconstructor (:mod:`metadesign.reconstruction.linear`) of the first
-    ``[dm] modes`` unit-rms Zernikes (Noll 2..) on the crop, PSFs binned 8 x 8 (or the largest divisor of the
-    tensor's side below 8), as the loop's estimator."""
+def _linear_estimator(rec: LoopRecipe, device: Device, modes: int | None = None):
+    """The push-pull linear reconstructor (:mod:`metadesign.reconstruction.linear`) of the first ``modes``
+    (default ``[dm] modes``) unit-rms Zernikes (Noll 2..) on the crop, PSFs binned 8 x 8 (or the largest
+    divisor of the tensor's side below 8), as the loop's estimator."""
     s = device.sensor.tensor_size
     b = max(d for d in range(1, 9) if s % d == 0)
-    basis = ModalDM.for_crop(device.crop, n_modes=rec.dm.modes).influence
+    basis = ModalDM.for_crop(device.crop, n_modes=modes or rec.dm.modes).influence
     return LinearEstimator(LinearReconstructor.build(device, basis, bin=b))
 
 
@@ -388,7 +391,7 @@ def _search_gains(ctx: LoopContext, folder: TaskFolder, run: Execution) -> dict:
         res, _ = run.run(_task, tasks, folder, shared=ctx, weight=lambda n: lp.gain_steps, unit="step")
         return {(m, g): float(np.mean(res[name]["npib"])) for name, (_, m, _, g, _, _) in tasks.items()}
 
-    out = gain_search(list(ctx.sensors), run_stage)
+    out = gain_search(lp.searched(list(ctx.sensors)), run_stage)
     for m, v in out.items():
         trials = dict(zip(v["gains"], v["npib_mean"]))
         run.log(f"  gain {LABELS[m]:<29} {v['gain']:.3f} (mean NPiB {trials[v['gain']]:.3f} over "
