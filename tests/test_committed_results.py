@@ -96,3 +96,30 @@ def test_the_committed_peds_model_matches_its_table_library_and_report():
     assert list(m.harmonics) == chosen
     np.testing.assert_allclose(np.array(m.coef), [complex(*c) for c in cert["learning_curve"][-1]["coef"]])
     assert (REPO / "library" / m.card["figure"]).is_file()
+
+
+#: committed loop reports whose provenance names their recipe and files (the reports before provenance,
+#: loop-demo-out and loop-demo-gain-out, name none)
+LOOPS = sorted(p.relative_to(SENSING).as_posix() for p in SENSING.glob("*-out/loop.json")
+               if json.loads(p.read_text()).get("provenance"))
+
+
+@pytest.mark.parametrize("result", LOOPS)
+def test_a_committed_loop_report_matches_its_recipe_and_files(result):
+    """A loop report's recipe (by its parsed content: a comment edit keeps it) and every file it names (the
+    device's recipes, the models and their cards, by their bytes) are still what made it."""
+    report = SENSING / result
+    pv = json.loads(report.read_text())["provenance"]
+    recipe = (report.parent / pv["recipe"]["path"]).resolve()
+    assert content_key(load_toml(recipe)) == pv["recipe"]["key"], \
+        f"sensing/{result}: {recipe.name} changed since it was made: re-run it"
+    for name in ("design", "sensor", "turbulence", "model", "realtime"):
+        entry = pv.get(name)
+        for e in ([entry, entry.get("card")] if entry and "card" in entry else [entry]):
+            if e and e["sha256"]:
+                assert file_key(recipe.parent / e["path"]) == e["sha256"], \
+                    f"sensing/{result}: {e['path']} changed since it was made: re-run it"
+
+
+def test_the_loop_reports_are_checked():
+    assert "loop-demo-w48-out/loop.json" in LOOPS  # the headline's report is among them
