@@ -95,13 +95,13 @@ def main() -> int:
 
     torch.set_num_threads(1)
     from metadesign.studies.loop_recipe import load_loop_recipe
-    from metadesign.studies.loop_study import _build
+    from metadesign.studies.loop_study import build_loop
     from metadesign.turbulence.frozen import FrozenFlow
 
     with tempfile.TemporaryDirectory() as tmp:
         rec = load_loop_recipe(_recipe(Path(tmp)))
         t = time.perf_counter()
-        ctx, _, temporal = _build(rec, Path(tmp) / "out", lambda *_: None)
+        ctx, _, temporal = build_loop(rec, Path(tmp) / "out", lambda *_: None)
         build = time.perf_counter() - t
         lp = rec.loop
         t = time.perf_counter()

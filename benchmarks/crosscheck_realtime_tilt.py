@@ -11,7 +11,10 @@ below its bandwidth).  Needs the network's dataset built (``metadesign dataset b
 sensing/dataset-realtime.toml``; ~1 min for the 768 validation beacons' reads):
 
     python benchmarks/crosscheck_realtime_tilt.py [--model sensing/models/realtime-w48.safetensors]
-        [--dataset sensing/dataset-realtime] [--limit 768] [--json]
+        [--dataset sensing/dataset-realtime] [--limit 768] [--linear sensing/loop-demo-w48.toml] [--json]
+
+``--linear LOOP_RECIPE``: also the push-pull linear reconstructor of Noll 2, 3 on that loop's device (what
+the loop's ``realtime_tt`` method reads tip and tilt with; its device designed in a temporary folder, ~1 min).
 """
 
 import argparse
@@ -39,11 +42,27 @@ def gradient_tilts(u: np.ndarray, mask: np.ndarray, radius: float) -> tuple[np.n
     return gx[:, mx].mean(axis=1) * radius / 2, gy[:, my].mean(axis=1) * radius / 2
 
 
+def _linear_tilts(recipe: str, x: np.ndarray) -> np.ndarray:
+    """The loop's push-pull tip/tilt reconstructor (its ``realtime_tt``) on the recipe's device: (B, 2)."""
+    import tempfile
+
+    from metadesign.studies.loop_recipe import load_loop_recipe
+    from metadesign.studies.loop_study import build_loop, linear_estimator
+
+    rec = load_loop_recipe(recipe)
+    with tempfile.TemporaryDirectory() as d:
+        _, device, _ = build_loop(rec, Path(d), lambda s: None)
+        lin = linear_estimator(rec, device, modes=2).reconstructor
+    return np.asarray(lin.estimate(x), np.float64)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", default=str(REPO / "sensing" / "models" / "realtime-w48.safetensors"))
     p.add_argument("--dataset", default=str(REPO / "sensing" / "dataset-realtime"))
     p.add_argument("--limit", type=int, default=768, help="validation beacons read (default 768: all of them)")
+    p.add_argument("--linear", metavar="LOOP_RECIPE", help="also the push-pull tip/tilt reconstructor of this "
+                   "loop recipe's device")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     if a.limit < 2:
@@ -68,17 +87,24 @@ def main(argv=None) -> int:
         c = np.concatenate([net.commands(torch.from_numpy(x[i:i + 64])).numpy() for i in range(0, len(x), 64)])
     mask = net.mask.numpy() > 0
     radius = (net.config.aperture_size - 1) / 2.0  # the basis' disc: diameter aperture_size - 1 samples
+    readers = {"network": c[:, :2]}
+    if a.linear:
+        readers["linear"] = _linear_tilts(a.linear, x)
     rows = []
-    for j, (name, ref) in enumerate(zip(("Noll 2 (tip, x)", "Noll 3 (tilt, y)"), gradient_tilts(u, mask, radius))):
-        est = c[:, j].astype(np.float64)
+    for (reader, cs), j in ((r, j) for r in readers.items() for j in range(2)):
+        name, ref = ("Noll 2 (tip, x)", "Noll 3 (tilt, y)")[j], gradient_tilts(u, mask, radius)[j]
+        est = cs[:, j].astype(np.float64)
+        small = np.abs(ref) < SMALL_RAD
         slope = float(np.dot(ref, est) / np.dot(ref, ref))
-        rows.append({"mode": name, "reference_rms_rad": float(ref.std()), "network_rms_rad": float(est.std()),
+        rows.append({"reader": reader, "mode": name, "reference_rms_rad": float(ref.std()),
+                     "estimate_rms_rad": float(est.std()),
                      "slope": slope, "correlation": float(np.corrcoef(ref, est)[0, 1]),
                      "error_rms_rad": float(np.sqrt(np.mean((est - ref) ** 2))),
                      # a closed loop's residual tilts are small: the error where the reference is
                      "small": SMALL_RAD, "small_beacons": int(np.sum(np.abs(ref) < SMALL_RAD)),
-                     "small_error_rms_rad": float(np.sqrt(np.mean((est - ref)[np.abs(ref) < SMALL_RAD] ** 2)))
-                     if np.any(np.abs(ref) < SMALL_RAD) else None})
+                     "small_error_rms_rad": float(np.sqrt(np.mean((est - ref)[small] ** 2))) if small.any() else None,
+                     "small_slope": float(np.dot(ref[small], est[small]) / np.dot(ref[small], ref[small]))
+                     if small.any() else None})
     rep = {"model": a.model, "dataset": a.dataset, "beacons": int(len(idx)), "modes": rows}
     if a.json:
         print(json.dumps(rep, indent=1))
@@ -86,12 +112,13 @@ def main(argv=None) -> int:
     print(f"{Path(a.model).name} on {len(idx)} validation beacons of {Path(a.dataset).name} "
           "(reference: the field's mean phase gradient)")
     for r in rows:
-        print(f"  {r['mode']:<17} reference {r['reference_rms_rad']:.3f} rad rms, network {r['network_rms_rad']:.3f}, "
+        print(f"  {r['reader']:<8} {r['mode']:<17} reference {r['reference_rms_rad']:.3f} rad rms, "
+              f"estimate {r['estimate_rms_rad']:.3f}, "
               f"slope {r['slope']:.3f}, correlation {r['correlation']:.3f}, error {r['error_rms_rad']:.3f} rad rms "
               f"({r['error_rms_rad'] ** 2:.3f} rad^2)")
         if r["small_error_rms_rad"] is not None:
-            print(f"  {'':<17} where |reference| < {SMALL_RAD:g} rad ({r['small_beacons']} beacons): error "
-                  f"{r['small_error_rms_rad']:.3f} rad rms")
+            print(f"  {'':<8} {'':<17} where |reference| < {SMALL_RAD:g} rad ({r['small_beacons']} beacons): error "
+                  f"{r['small_error_rms_rad']:.3f} rad rms, slope {r['small_slope']:.3f}")
     return 0
 
 

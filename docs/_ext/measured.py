@@ -100,6 +100,8 @@ LOOP = "sensing/loop-demo-out/loop.json"
 LOOP_G = "sensing/loop-demo-gain-out/loop.json"
 LOOP_N = "sensing/loop-demo-loopnet-out/loop.json"
 LOOP_W = "sensing/loop-demo-w48-out/loop.json"
+LOOP_Z = "sensing/loop-demo-w48-lat0-out/loop.json"
+LOOP_T = "sensing/loop-demo-w48-tt-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
@@ -109,16 +111,10 @@ def _cc(run: str, case: str, what: str, stat: str = "mean", fmt: str = "{:.4f}",
     return Q(CC.format(run), f"cases/{case}/{stat}/{what}", fmt, scale)
 
 
-def _searched(rec: dict, m: str) -> float:
-    """A loop's mean NPiB over the gain search's trial at the gain it chose."""
-    gs = rec["methods"][m]["gain_search"]
-    return gs["npib_mean"][gs["gains"].index(rec["methods"][m]["gain"])]
-
-
-def _loop_band(m: str, modes: str, f_max: float | None = 50.0) -> D:
-    """The demo loop's (searched gains) modal PSD power of method ``m`` in ``(0, f_max]`` Hz over the open
-    loop's, ``modes`` "tt" (Noll 2, 3) or "ho" (Noll 4 on); ``f_max`` None: the variance itself (rad^2, every
-    bin, all the record's modes)."""
+def _loop_band(m: str, modes: str, f_max: float | None = 50.0, record: str = "") -> D:
+    """A loop's (default: the demo loop's, searched gains) modal PSD power of method ``m`` in ``(0, f_max]`` Hz
+    over the open loop's, ``modes`` "tt" (Noll 2, 3) or "ho" (Noll 4 on); ``f_max`` None: the variance itself
+    (rad^2, every bin, all the record's modes)."""
     def power(rec, name, sel, top):
         p = rec["methods"][name]["modal_psd"]
         df = p["f_hz"][1] - p["f_hz"][0]
@@ -126,12 +122,18 @@ def _loop_band(m: str, modes: str, f_max: float | None = 50.0) -> D:
                         for f, v in zip(p["f_hz"], row) if top is None or 0 < f <= top)
 
     def fn(get):
-        rec = get(LOOP_G)
+        rec = get(record or LOOP_G)
         if f_max is None:
             return power(rec, m, lambda j: True, None)
         sel = (lambda j: j <= 3) if modes == "tt" else (lambda j: j >= 4)
         return power(rec, m, sel, f_max) / power(rec, "open", sel, f_max)
     return D(fn, "{:.2f}" if f_max is not None else "{:.3f}")
+
+
+def _modal_var(rec: dict, m: str, noll: int) -> float:
+    """Method ``m``'s variance (rad^2) of Zernike ``noll`` in a loop record: its modal PSD over every bin."""
+    p = rec["methods"][m]["modal_psd"]
+    return (p["f_hz"][1] - p["f_hz"][0]) * sum(p["psd_rad2_hz"][p["noll"].index(noll)])
 
 
 def _tol_range(end: Callable, when: str) -> D:
@@ -344,8 +346,22 @@ MEASURED: dict[str, Q | D] = {
     **{f"loopw_{m}_delay": Q(LOOP_W, f"methods/{m}/delay_frames", "{:.1f}") for m in ("realtime", "ideal", "shack_hartmann")},
     "loopw_rt_vs_ideal": Q(LOOP_W, "verdict/vs_ideal", "{:.2f}"),
     "loopw_rt_vs_sh": Q(LOOP_W, "verdict/vs_shack_hartmann", "{:.2f}"),
-    "loopw_rt_search_npib": D(lambda get: _searched(get(LOOP_W), "realtime")),
-    "loopw_ideal_search_npib": D(lambda get: _searched(get(LOOP_W), "ideal")),
+    **{f"loopw_psd_{m}_{b}": _loop_band(m, b, record=LOOP_W) for m in ("realtime", "ideal") for b in ("tt", "ho")},
+    "loopw_realtime_residual": Q(LOOP_W, "methods/realtime/residual_rms_rad", "{:.1f}"),
+    "loopw_open_tip_rms": D(lambda get: _modal_var(get(LOOP_W), "open", 2) ** 0.5, "{:.2f}"),
+    # the same loop with the network's latency declared 0 (which latency would get it there)
+    **{f"loopz_{m}_npib": Q(LOOP_Z, f"methods/{m}/npib_mean") for m in ("realtime", "ideal", "open")},
+    **{f"loopz_{m}_gain": Q(LOOP_Z, f"methods/{m}/gain") for m in ("realtime", "ideal")},
+    "loopz_realtime_delay": Q(LOOP_Z, "methods/realtime/delay_frames", "{:.2f}"),
+    "loopz_rt_vs_ideal": Q(LOOP_Z, "verdict/vs_ideal", "{:.2f}"),
+    # the same loop with the network's tip and tilt from the push-pull linear reconstructor (realtime_tt)
+    **{f"loopt_{m}_npib": Q(LOOP_T, f"methods/{m}/npib_mean") for m in ("realtime_tt", "ideal", "shack_hartmann")},
+    "loopt_realtime_tt_gain": Q(LOOP_T, "methods/realtime_tt/gain"),
+    "loopt_realtime_tt_fade": Q(LOOP_T, "methods/realtime_tt/fades/probability"),
+    "loopt_realtime_tt_latency_us": Q(LOOP_T, "methods/realtime_tt/latency_ms", "{:.0f}", 1e3),
+    "loopt_rt_vs_ideal": Q(LOOP_T, "verdict/vs_ideal", "{:.2f}"),
+    "loopt_rt_vs_sh": Q(LOOP_T, "verdict/vs_shack_hartmann", "{:.2f}"),
+    **{f"loopt_psd_realtime_tt_{b}": _loop_band("realtime_tt", b, record=LOOP_T) for b in ("tt", "ho")},
     # its modal temporal spectra (docs/figures/loop_psd.py): power below 50 Hz over the open loop's; variances
     **{f"loopg_psd_{m}_{b}": _loop_band(m, b) for m in ("realtime", "ideal") for b in ("tt", "ho")},
     **{f"loopg_psd_{m}_var": _loop_band(m, "", None) for m in ("realtime", "ideal", "open")},

@@ -82,7 +82,7 @@ from ..turbulence.temporal import greenwood_frequency, temporal_summary
 from ..validation import ConfigError
 from .loop import ORACLES, LoopTiming
 from .loop_recipe import AUTO, OPTIMISE, LoopRecipe, loop_recipe_of
-from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, _build, _latency, gain_search,
+from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, build_loop, _latency, gain_search,
                          _measure_latencies, _pooled_fades, _sensors, sh_lenslets_for)
 
 __all__ = ["MapRecipe", "load_map_recipe", "run_loop_map", "in_region", "regions", "latency_reaching",
@@ -504,7 +504,7 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
     t_start = time.perf_counter()
     rec = mrec.loop
     lp = rec.loop
-    ctx0, device, _ = _build(replace(rec, loop=replace(lp, rytov=mrec.rytov[0])), out, lambda s: None)
+    ctx0, device, _ = build_loop(replace(rec, loop=replace(lp, rytov=mrec.rytov[0])), out, lambda s: None)
     cells, scan_keys, runs = _plan(mrec)
     xs = ", ".join(format(x, "g") for x in mrec.xs)
     run.log(f"loop map: {mrec.name}: {'rates' if mrec.axis == 'rate_hz' else 'latencies'} {xs} "

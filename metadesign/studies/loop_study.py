@@ -64,7 +64,8 @@ from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
 __all__ = ["run_loop_study", "LABELS", "ShackHartmannLoopSensor", "LoopContext", "GAIN_GRID", "GAIN_REFINE",
-           "gain_search", "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror", "calibrate_retrieval"]
+           "gain_search", "sh_lenslets_for", "SH_MIN_SAMPLES", "loop_detector", "loop_mirror", "calibrate_retrieval",
+           "build_loop", "linear_estimator"]
 
 #: Zernike modes of the modal spectra (Noll 2..)
 MODES = 10
@@ -201,14 +202,14 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
             est = ShackHartmannEstimator(device, SHConfig(lenslets=lenslets, threshold=0.3, noise_percent=min(bg, 100)))
             s = ShackHartmannLoopSensor(est, det, lp.seed)
         elif m == "linear":
-            s = MetasurfaceSensor(device, _linear_estimator(rec, device), det, lp.seed)
+            s = MetasurfaceSensor(device, linear_estimator(rec, device), det, lp.seed)
         elif m in ("realtime", "realtime_tt"):
             rt, _ = load_network(rec.realtime)
             if not hasattr(rt, "commands"):
                 raise ConfigError("device.realtime", f"{rec.realtime} is not a modal network (model.kind = \"modal\")")
             est = RealtimeEstimator(rt)
             if m == "realtime_tt":  # its tip and tilt from the push-pull reconstructor of Noll 2, 3
-                est = TipTiltSplitEstimator(est, _linear_estimator(rec, device, modes=2).reconstructor)
+                est = TipTiltSplitEstimator(est, linear_estimator(rec, device, modes=2).reconstructor)
             s = MetasurfaceSensor(device, est, det, lp.seed)
         elif m == "refine" and refiner is None:
             raise ValueError("loop.methods: refine needs a refiner as the model")
@@ -225,7 +226,7 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
     return out
 
 
-def _linear_estimator(rec: LoopRecipe, device: Device, modes: int | None = None):
+def linear_estimator(rec: LoopRecipe, device: Device, modes: int | None = None):
     """The push-pull linear reconstructor (:mod:`metadesign.reconstruction.linear`) of the first ``modes``
     (default ``[dm] modes``) unit-rms Zernikes (Noll 2..) on the crop, PSFs binned 8 x 8 (or the largest
     divisor of the tensor's side below 8), as the loop's estimator."""
@@ -300,7 +301,7 @@ def _task(ctx: LoopContext, task: tuple) -> tuple[str, dict]:
     return name, ctx.run(m, r, gain, steps, modal)
 
 
-def _build(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
+def build_loop(rec: LoopRecipe, out: Path, log) -> tuple[LoopContext, Device, dict]:
     """The device as made, the mirror, the sensors: the study's :class:`LoopContext` (latencies not yet
     measured), its device and the turbulence's temporal summary."""
     lp = rec.loop
@@ -431,7 +432,7 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
     the end)."""
     t_start = time.perf_counter()
     lp = rec.loop
-    ctx, _, temporal = _build(rec, out, run.log)
+    ctx, _, temporal = build_loop(rec, out, run.log)
     folder = TaskFolder(scratch_path(out), _job_key(rec), log=run.log, what="loop study")
     ctx.latency = _measure_latencies(ctx, folder)
     if ctx.retrieval:
