@@ -80,8 +80,7 @@ def main(argv=None) -> int:
     net, _ = load_network(a.model)
     g = zarr.open_group(a.dataset, mode="r")
     idx = np.nonzero(np.asarray(g["split"][:]) == 1)[0][:a.limit]  # the validation split
-    x = np.asarray(g["psf"].oindex[idx], np.float32)
-    x = x * (8.0 / x.sum(axis=(1, 2, 3), keepdims=True))  # the cards' input normalisation
+    x = np.asarray(g["psf"].oindex[idx], np.float32)  # stored as the network reads it (channels sum to 8)
     u = np.asarray(g["received"].oindex[idx])
     with torch.no_grad():
         c = np.concatenate([net.commands(torch.from_numpy(x[i:i + 64])).numpy() for i in range(0, len(x), 64)])

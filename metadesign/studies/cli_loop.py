@@ -9,7 +9,7 @@ from ..cliutil import emit, log_to, out_dir, progress_bar, workers_arg
 from ..execution import Execution, scratch_path
 from ..outputs import product
 
-#: the steps a fade probability of 1e-3 needs (~100 fades of a few frames each; issue #50)
+#: the steps a fade probability of 1e-3 needs (100 frames in a fade at that probability; issue #50)
 FADE_STEPS = 100_000
 
 __all__ = ["register", "loop_inputs"]

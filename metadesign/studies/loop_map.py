@@ -82,6 +82,7 @@ from ..turbulence.temporal import greenwood_frequency, temporal_summary
 from ..validation import ConfigError
 from .loop import ORACLES, LoopTiming
 from .loop_recipe import AUTO, OPTIMISE, LoopRecipe, loop_recipe_of
+from .loop_recipe import METASURFACE as LOOP_METASURFACE
 from .loop_study import (GAIN_GRID, GAIN_REFINE, LABELS, LoopContext, build_loop, _latency, gain_search,
                          _measure_latencies, _pooled_fades, _sensors, sh_lenslets_for)
 
@@ -89,8 +90,9 @@ __all__ = ["MapRecipe", "load_map_recipe", "run_loop_map", "in_region", "regions
            "map_verdict", "scaled_wind", "MAP_SECTION", "METASURFACE", "REGION_VS_IDEAL",
            "REGION_FADE_PROBABILITY", "GOAL_VS_IDEAL", "GOAL_VS_SHACK_HARTMANN", "DEFAULT_SCAN_MS", "LETTERS"]
 
-#: the metasurface sensor's loops (the best of them is the verdict's)
-METASURFACE = ("refine", "unet", "linear", "realtime", "realtime_tt")
+#: the metasurface sensor's loops a map runs (the best of them is the verdict's): the loop study's, less the
+#: ones whose cost depends on a budget or a warm start
+METASURFACE = tuple(m for m in LOOP_METASURFACE if m not in ("retrieval", "refine_warm"))
 #: the region: mean NPiB at least this fraction of the ideal-phase loop's ...
 REGION_VS_IDEAL = 0.8
 #: ... and a fade probability at most this

@@ -109,8 +109,9 @@ from ..reconstruction.refine import is_refiner
 from ..tasks import file_key
 from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
+from .loop import ORACLES
 
-__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "OPTIMISE", "load_loop_recipe",
+__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "METASURFACE", "OPTIMISE", "load_loop_recipe",
            "loop_recipe_of", "SECTIONS", "AUTO", "SH_LENSLETS", "load_influence"]
 
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
@@ -125,6 +126,8 @@ METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "
 #: request)
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime", "retrieval", "refine_warm",
                                                         "realtime_tt"))
+#: the metasurface sensor's loops (the verdict's best is among them)
+METASURFACE = ("refine", "unet", "linear", "realtime", "realtime_tt", "retrieval", "refine_warm")
 #: the value of ``[loop] sh_lenslets`` that has the study choose the lenslet count from the path's r0
 AUTO = "auto"
 #: ``[loop] sh_lenslets``: the default, and the range of a given count
@@ -198,7 +201,7 @@ class LoopSection:
     def optimise_gain(self) -> bool:
         """Whether a closed loop's gain is chosen (``gain = "optimise"``, or a table naming it so) rather
         than given."""
-        return self.gain == OPTIMISE or (isinstance(self.gain, dict) and OPTIMISE in self.gain.values())
+        return _searches(self.gain)
 
     def searched(self, closed: list) -> list:
         """The closed loops among ``closed`` whose gain the study searches."""
@@ -251,6 +254,11 @@ def _latencies(raw, methods, where: str) -> dict:
             raise ConfigError(f"loop.latency_ms.{k}", f"expected milliseconds in [0, 1e5], got {v!r}")
         out[k] = float(v) * 1e-3
     return out
+
+
+def _searches(gain) -> bool:
+    """Whether a parsed ``[loop] gain`` has some loop's gain searched."""
+    return gain == OPTIMISE or (isinstance(gain, dict) and OPTIMISE in gain.values())
 
 
 def _gain(raw):
@@ -336,8 +344,7 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     if lp["read_noise_e"] and not lp["photons_per_frame"]:
         raise ConfigError("loop.read_noise_e", "needs loop.photons_per_frame > 0 (read noise is counted in "
                                                f"photo-electrons), got {lp['read_noise_e']:g} with none")
-    if (gain == OPTIMISE or (isinstance(gain, dict) and OPTIMISE in gain.values())) \
-            and lp["gain_steps"] > lp["steps"]:
+    if _searches(gain) and lp["gain_steps"] > lp["steps"]:
         raise ConfigError("loop.gain_steps", f"expected at most loop.steps ({lp['steps']}), got {lp['gain_steps']}")
     if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
         raise ConfigError("loop.methods", f"expected a list of method names, got {methods!r}")
@@ -346,7 +353,7 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
     if bad or not methods or len(set(methods)) != len(methods):
         raise ConfigError("loop.methods", f"expected distinct methods among {', '.join(METHODS)}, got {list(methods)}")
     if isinstance(gain, dict):
-        closed = [m for m in methods if m not in ("open", "fitted", "conjugate")]
+        closed = [m for m in methods if m not in ORACLES]
         if set(gain) != set(closed):
             raise ConfigError("loop.gain", f"a table of gains names every closed loop of loop.methods "
                                            f"({', '.join(closed)}), got {', '.join(gain) or 'none'}")

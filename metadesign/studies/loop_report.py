@@ -26,7 +26,7 @@ from ..optics.control import rejection_tf
 from ..plotting import pyplot, save_figure
 from ..tasks import content_key, file_key
 from .loop import ORACLES, REALISATION_TAG, LoopTiming, pol_rejection_tf
-from .loop_recipe import LoopRecipe
+from .loop_recipe import METASURFACE, LoopRecipe
 from .loop_stats import cdf_points, fade_statistics, welch_psd
 from .pipeline_report import _git_commit
 
@@ -237,8 +237,7 @@ def loop_verdict(rep: dict) -> dict:
     """The headline: the metasurface loops' mean NPiB against the ideal-phase loop's and the Shack-Hartmann
     loop's (the issue's goals: >= 0.8 of the ideal, >= 2x the Shack-Hartmann)."""
     ms = rep["methods"]
-    best = max((m for m in ("refine", "unet", "linear", "realtime", "realtime_tt", "retrieval", "refine_warm") if m in ms),
-               key=lambda m: ms[m]["npib_mean"], default=None)
+    best = max((m for m in METASURFACE if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
     out = {"best_metasurface": best}
     if best is None:
         return out
