@@ -203,7 +203,8 @@ def test_the_gain_is_chosen_per_closed_loop_by_the_stated_search(tmp_path, capsy
 def test_the_realtime_method_runs_a_modal_network_in_the_loop(tmp_path, capsys):
     """`[device] realtime` names a modal network; the loop renders its tensor size and runs it through
     ONNX Runtime as the method "realtime", and with its tip and tilt from the push-pull linear reconstructor
-    as "realtime_tt" (measured latency, delay and NPiB reported)."""
+    as "realtime_tt", and with them from the in-focus channel's peak as "realtime_peak" (measured latency,
+    delay and NPiB reported)."""
     import json
 
     import torch
@@ -214,11 +215,12 @@ def test_the_realtime_method_runs_a_modal_network_in_the_loop(tmp_path, capsys):
     torch.manual_seed(0)
     save_model(ModalNet(ModalNetConfig(input_size=32, aperture_size=41, modes=10, stride=2, width=4, hidden=8,
                                        bin=4)), tmp_path / "rt.safetensors", {"epoch": 0})
-    rec = _recipe(tmp_path, 'steps = 4\nsubsteps = 1\nmethods = ["realtime", "realtime_tt", "open"]\n')
+    rec = _recipe(tmp_path, 'steps = 4\nsubsteps = 1\nmethods = ["realtime", "realtime_tt", "realtime_peak", '
+                            '"open"]\n')
     rec.write_text(rec.read_text().replace('methods = ["ideal", "open"]\n', "").replace(
         "[loop]", f'realtime = "{tmp_path / "rt.safetensors"}"\n[loop]'))
     rc, _, err = run_main(["loop", rec, "-o", tmp_path / "out", "--json"], capsys)
     assert rc == 0, err
     ms = json.loads((tmp_path / "out" / "loop.json").read_text())["methods"]
-    for r in (ms["realtime"], ms["realtime_tt"]):  # the network alone, and with the linear tip/tilt
+    for r in (ms["realtime"], ms["realtime_tt"], ms["realtime_peak"]):  # alone, with the linear or the peak tilt
         assert r["latency_ms"] > 0 and r["delay_frames"] > 1 and 0 <= r["npib_mean"] <= 1.5

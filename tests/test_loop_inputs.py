@@ -66,6 +66,7 @@ LOOP_CASES = [
     ({(M, "model"): '"nope.safetensors"'}, "device.model"),
     ({(L, "methods"): '["unet"]'}, "device.model"),
     ({(L, "methods"): '["realtime_tt", "open"]'}, "device.realtime"),
+    ({(L, "methods"): '["realtime_peak", "open"]'}, "device.realtime"),
     ({(M, "realtime"): '"nope.safetensors"'}, "device.realtime"),
     ({(M, "colour"): '"red"'}, "device.colour"),
     ({(L, "rate_hz"): "nan"}, "loop.rate_hz"),

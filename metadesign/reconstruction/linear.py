@@ -101,14 +101,13 @@ class LinearEstimator:
 
 
 class TipTiltSplitEstimator:
-    """Another estimator's phase with its tip and tilt read by a linear reconstructor instead (issue #50):
-    ``estimate(batch) = main - P(main) + tiptilt.phase(psf)``, ``P`` the least-squares projection onto the
-    reconstructor's basis (its modes, e.g. the unit-rms Noll 2 and 3 on the crop, fitted over the samples
-    where any of them is non-zero).  Why: the real-time network reads tip and tilt with a ~0.4 rad rms error
-    whatever their size (``benchmarks/crosscheck_realtime_tilt.py``), which a closed loop keeps below its
-    bandwidth; the push-pull reconstructor around the flat wavefront is precise where a converged loop's
-    residual lies (small tilts) and costs one binning and a (2, P) matvec.  ``estimate({"psf": (B, 8, S, S)})
-    -> (B, A, A)`` rad."""
+    """Another estimator's phase with its tip and tilt read by a separate reader instead (issue #50):
+    ``estimate(batch) = main - P(main) + tiptilt.estimate(psf) @ tiptilt.basis``, ``P`` the least-squares
+    projection onto the reader's basis (its modes, e.g. the unit-rms Noll 2 and 3 on the crop, fitted over
+    the samples where any of them is non-zero).  The reader: anything with ``estimate(psf) -> (B, M)`` and
+    ``basis`` (M, A, A): the push-pull :class:`LinearReconstructor` of Noll 2, 3 (the loop's
+    ``realtime_tt``) or :class:`~metadesign.reconstruction.peak_tilt.PeakTipTilt`, the in-focus channel's
+    far-field peak (``realtime_peak``).  ``estimate({"psf": (B, 8, S, S)}) -> (B, A, A)`` rad."""
 
     def __init__(self, main, tiptilt: LinearReconstructor):
         self.main, self.tiptilt = main, tiptilt

@@ -104,7 +104,8 @@ GOAL_VS_SHACK_HARTMANN = 2.0
 DEFAULT_SCAN_MS = (0.0, 0.25, 0.5, 1.0, 2.0)
 #: one letter per method (the text summary's region tables, the figure's gains)
 LETTERS = {"ideal": "I", "shack_hartmann": "S", "realtime": "R", "linear": "L", "unet": "U", "refine": "F",
-           "fitted": "D", "conjugate": "C", "open": "O", "realtime_tt": "T", "retrieval": "B", "refine_warm": "W"}
+           "fitted": "D", "conjugate": "C", "open": "O", "realtime_tt": "T", "realtime_peak": "P",
+           "retrieval": "B", "refine_warm": "W"}
 #: the wind keys the map scales (m/s); directions stay
 _SPEEDS = ("speed_m_s", "end_speed_m_s", "speeds_m_s")
 
@@ -664,7 +665,8 @@ def _point(r: float, g: float, x: float, mrec: MapRecipe, ms: dict, sh: dict | N
 MARKERS = {"ideal": ("^", "tab:green"), "shack_hartmann": ("s", "tab:orange"), "realtime": ("o", "tab:blue"),
            "linear": ("D", "tab:purple"), "unet": ("o", "tab:cyan"), "refine": ("P", "tab:red"),
            "fitted": ("*", "tab:olive"), "conjugate": ("X", "tab:brown"), "open": ("v", "tab:gray"),
-           "realtime_tt": ("h", "tab:pink"), "retrieval": ("d", "black"), "refine_warm": ("p", "gold")}
+           "realtime_tt": ("h", "tab:pink"),
+           "realtime_peak": ("H", "tab:blue"), "retrieval": ("d", "black"), "refine_warm": ("p", "gold")}
 
 
 def _plot(rep: dict, out: Path) -> list[Path]:

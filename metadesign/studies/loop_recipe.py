@@ -111,23 +111,26 @@ from ..turbulence.scenario import load_scenario, wind_from_dict
 from ..validation import ConfigError
 from .loop import ORACLES
 
-__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "METASURFACE", "OPTIMISE", "load_loop_recipe",
+__all__ = ["LoopRecipe", "LoopSection", "DMSection", "METHODS", "DEFAULT_METHODS", "METASURFACE", "REALTIME", "OPTIMISE",
+           "load_loop_recipe",
            "loop_recipe_of", "SECTIONS", "AUTO", "SH_LENSLETS", "load_influence"]
 
 #: the value of ``[loop] gain`` that has the study choose each closed loop's gain
 OPTIMISE = "optimise"
 #: the loop's methods: closed loops (a sensor and its reconstruction) and the references
 METHODS = ("unet", "refine", "shack_hartmann", "ideal", "fitted", "conjugate", "open", "linear", "realtime",
-           "retrieval", "refine_warm", "realtime_tt")
+           "retrieval", "refine_warm", "realtime_tt", "realtime_peak")
 #: the methods of a recipe that names none (``linear``, the push-pull linear reconstructor, ``realtime``, the
 #: real-time modal network of ``[device] realtime`` (issue #51), ``retrieval``, the phase-diversity retrieval
 #: capped by ``retrieval_budget_ms``, ``refine_warm``, the refinement warm-started from the last frame, and
-#: ``realtime_tt``, the real-time network with its tip and tilt read by the push-pull linear reconstructor, on
-#: request)
+#: ``realtime_tt`` and ``realtime_peak``, the real-time network with its tip and tilt read by the push-pull linear
+#: reconstructor or by the in-focus channel's peak, on request)
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in ("linear", "realtime", "retrieval", "refine_warm",
-                                                        "realtime_tt"))
+                                                        "realtime_tt", "realtime_peak"))
+#: the methods that read the real-time network of ``[device] realtime``
+REALTIME = ("realtime", "realtime_tt", "realtime_peak")
 #: the metasurface sensor's loops (the verdict's best is among them)
-METASURFACE = ("refine", "unet", "linear", "realtime", "realtime_tt", "retrieval", "refine_warm")
+METASURFACE = ("refine", "unet", "linear", "realtime", "realtime_tt", "realtime_peak", "retrieval", "refine_warm")
 #: the value of ``[loop] sh_lenslets`` that has the study choose the lenslet count from the path's r0
 AUTO = "auto"
 #: ``[loop] sh_lenslets``: the default, and the range of a given count
@@ -375,8 +378,8 @@ def loop_recipe_of(raw: dict, path: str | Path) -> LoopRecipe:
         raise ConfigError("device.model", f"{model}: the refine_warm method needs a refiner (a U-Net with its "
                           "learned refinement), not a U-Net")
     realtime = rel(d["realtime"]) if d["realtime"] else None
-    if realtime is None and {"realtime", "realtime_tt"} & set(methods):
-        raise ConfigError("device.realtime", "the realtime and realtime_tt methods need a real-time model (a modal "
+    if realtime is None and set(REALTIME) & set(methods):
+        raise ConfigError("device.realtime", f"the {', '.join(REALTIME)} methods need a real-time model (a modal "
                                              "network)")
     if realtime is not None and not realtime.exists():
         raise ConfigError("device.realtime", f"{realtime}: no such file")

@@ -37,7 +37,8 @@ LABELS = {"unet": "metasurface + U-Net", "refine": "metasurface + learned refine
           "shack_hartmann": "Shack-Hartmann", "ideal": "ideal phase sensor", "fitted": "DM-fitted oracle (no delay)",
           "conjugate": "phase conjugate", "open": "open loop", "linear": "metasurface + linear reconstructor",
           "realtime": "metasurface + real-time modal net",
-          "realtime_tt": "metasurface + net, linear tip/tilt", "retrieval": "metasurface + budget retrieval",
+          "realtime_tt": "metasurface + net, linear tip/tilt",
+          "realtime_peak": "metasurface + net, peak tip/tilt", "retrieval": "metasurface + budget retrieval",
           "refine_warm": "metasurface + warm refinement"}
 
 

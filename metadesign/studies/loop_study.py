@@ -42,6 +42,7 @@ from ..optics.dm import DeformableMirror, ModalDM, TipTiltSplit
 from ..reconstruction.dataset import received_crop
 from ..reconstruction.estimators import ShackHartmannEstimator, make_estimator
 from ..reconstruction.linear import LinearEstimator, LinearReconstructor, TipTiltSplitEstimator
+from ..reconstruction.peak_tilt import PeakTipTilt
 from ..reconstruction.realtime import RealtimeEstimator
 from ..reconstruction.losses import PiB
 from ..reconstruction.refine import load_network
@@ -59,7 +60,7 @@ from ..tasks import TaskFolder, content_key, file_key
 from ..validation import ConfigError
 from .loop import (ORACLES, IdealPhaseSensor, LoopTiming, LoopWorld, MetasurfaceSensor, RefineWarmSensor,
                    RetrievalLoopSensor, flow_seed, noise_stream, run_loop)
-from .loop_recipe import AUTO, SH_LENSLETS_RANGE, LoopRecipe, load_influence
+from .loop_recipe import AUTO, REALTIME, SH_LENSLETS_RANGE, LoopRecipe, load_influence
 from .loop_report import LABELS, loop_provenance, loop_report, plot_loop
 from .loop_report import pooled_fades as _pooled_fades  # noqa: F401  (the loop map's name for it)
 
@@ -203,13 +204,16 @@ def _sensors(rec: LoopRecipe, device: Device, lenslets: int = 8) -> dict:
             s = ShackHartmannLoopSensor(est, det, lp.seed)
         elif m == "linear":
             s = MetasurfaceSensor(device, linear_estimator(rec, device), det, lp.seed)
-        elif m in ("realtime", "realtime_tt"):
+        elif m in REALTIME:
             rt, _ = load_network(rec.realtime)
             if not hasattr(rt, "commands"):
                 raise ConfigError("device.realtime", f"{rec.realtime} is not a modal network (model.kind = \"modal\")")
             est = RealtimeEstimator(rt)
             if m == "realtime_tt":  # its tip and tilt from the push-pull reconstructor of Noll 2, 3
                 est = TipTiltSplitEstimator(est, linear_estimator(rec, device, modes=2).reconstructor)
+            elif m == "realtime_peak":  # its tip and tilt from the in-focus channel's far-field peak
+                est = TipTiltSplitEstimator(est, PeakTipTilt.build(device, ModalDM.for_crop(device.crop,
+                                                                                            n_modes=2).influence))
             s = MetasurfaceSensor(device, est, det, lp.seed)
         elif m == "refine" and refiner is None:
             raise ValueError("loop.methods: refine needs a refiner as the model")

@@ -1,0 +1,99 @@
+"""Tip and tilt from the far field's peak (issue #50): the tilt a closed loop's power in the bucket rewards.
+
+The tilt that best corrects a received field ``u`` is the one that maximises the corrected beam's overlap
+with it, ``|sum_aperture u exp(-i (a Z2 + b Z3))|^2``: the position of ``u``'s far-field peak.  Under
+scintillation that is neither the phase's mean gradient nor its intensity-weighted mean gradient (the
+far field's centroid): on the closed-loop residuals of ``sensing/dataset-loop`` both lie 0.3-0.5 rad rms
+from it (``benchmarks/crosscheck_realtime_tilt.py``).  A metasurface channel that focuses on the sensor
+images the far field, so its peak is that tilt.
+
+:class:`PeakTipTilt` finds the channel whose flat-wavefront PSF has the highest peak (the in-focus one),
+locates the peak of that channel to a fraction of a pixel (a three-point parabola through the brightest
+pixel and its neighbours along each axis) and reads it through a push-pull calibration on the device: the
+peak's shift for ``+/- amplitude`` rad of each tilt mode around the flat wavefront, a 2 x 2 matrix,
+inverted.  One frame: one argmax over the channel's pixels and five reads.  It reads what
+:class:`~metadesign.reconstruction.linear.TipTiltSplitEstimator` swaps in (``estimate(psf) -> (B, 2)``,
+``basis``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..validation import InputError
+from .dataset import normalise_psf
+
+__all__ = ["PeakTipTilt", "peak_position"]
+
+#: pixels: the least peak shift a calibration push may give (below it the parabola's error dominates)
+MIN_SHIFT_PX = 0.2
+
+
+def peak_position(img: np.ndarray) -> np.ndarray:
+    """``(..., S, S)`` -> ``(..., 2)``: the (x, y) position of each image's peak in pixels from the image's
+    centre ``(S - 1) / 2``: the brightest pixel moved by the vertex of the parabola through it and its two
+    neighbours along each axis (no move where the three do not curve downwards, or on the border)."""
+    a = np.asarray(img, np.float64)
+    *lead, s, s2 = a.shape
+    if s != s2 or s < 3:
+        raise InputError(f"psf: expected square images of at least 3 x 3 pixels, got {a.shape}")
+    f = a.reshape(-1, s, s)
+    k = f.reshape(len(f), -1).argmax(axis=1)
+    iy, ix = np.divmod(k, s)
+    iy, ix = np.clip(iy, 1, s - 2), np.clip(ix, 1, s - 2)
+    b = np.arange(len(f))
+    v0 = f[b, iy, ix]
+
+    def vertex(vm, vp):
+        d = vm - 2 * v0 + vp
+        return np.where(d < 0, 0.5 * (vm - vp) / np.where(d < 0, d, -1.0), 0.0)
+
+    x = ix + vertex(f[b, iy, ix - 1], f[b, iy, ix + 1]) - (s - 1) / 2
+    y = iy + vertex(f[b, iy - 1, ix], f[b, iy + 1, ix]) - (s - 1) / 2
+    return np.stack([x, y], axis=-1).reshape(*lead, 2)
+
+
+@dataclass
+class PeakTipTilt:
+    """``estimate(psf) = R @ (peak(psf[channel]) - reference)``: the tip and tilt (rad rms of each basis
+    mode) of a normalised PSF tensor ``(C, S, S)`` (or a batch ``(B, C, S, S)``)."""
+
+    R: np.ndarray            # (2, 2): the inverse of the calibration
+    reference: np.ndarray    # (2,): the flat wavefront's peak (pixels from the centre)
+    basis: np.ndarray        # (2, A, A) float32: the tilt modes on the crop
+    channel: int             # the in-focus channel
+    interaction: np.ndarray  # (2, 2): peak shift (pixels) per rad of each mode
+    amplitude: float
+
+    @classmethod
+    def build(cls, device, basis: np.ndarray, amplitude: float = 1.0) -> PeakTipTilt:
+        """Calibrate on ``device`` (a :class:`~metadesign.sensing.device.Device` with a receiver crop) for the
+        two tilt modes ``basis`` (2, A, A) on the crop, pushed by ``+/- amplitude`` rad."""
+        basis = np.asarray(basis, np.float64)
+        if basis.shape != (2, device.crop.size, device.crop.size):
+            raise InputError(f"basis: expected (2, {device.crop.size}, {device.crop.size}) tilt modes on the crop, "
+                             f"got {basis.shape}")
+        if not (np.isfinite(amplitude) and amplitude > 0):
+            raise InputError(f"peak tilt: expected amplitude > 0 rad, got {amplitude!r}")
+
+        def render(phase):
+            psf, _ = normalise_psf(device.psfs(device.pupil_field(np.exp(1j * phase).astype(np.complex64))))
+            return np.asarray(psf, np.float64)
+
+        flat = render(np.zeros(basis.shape[1:]))
+        channel = int(np.argmax(flat.reshape(len(flat), -1).max(axis=1)))
+        ref = peak_position(flat[channel])
+        M = np.stack([(peak_position(render(amplitude * z)[channel])
+                       - peak_position(render(-amplitude * z)[channel])) / (2 * amplitude) for z in basis], axis=1)
+        shift = np.abs(M).max(axis=0) * amplitude
+        if np.any(shift < MIN_SHIFT_PX) or abs(np.linalg.det(M)) < 1e-12:
+            raise InputError(f"peak tilt: channel {channel}'s peak moves {np.round(shift, 2).tolist()} px for "
+                             f"{amplitude:g} rad of tip and tilt (at least {MIN_SHIFT_PX} px needed): push harder")
+        return cls(np.linalg.inv(M), ref, basis.astype(np.float32), channel, M, float(amplitude))
+
+    def estimate(self, psf: np.ndarray) -> np.ndarray:
+        """Tip and tilt ``(2,)`` (or ``(B, 2)``) of a normalised PSF tensor ``(C, S, S)`` (or a batch)."""
+        p = np.asarray(psf)
+        return (peak_position(p[..., self.channel, :, :]) - self.reference) @ self.R.T
