@@ -102,6 +102,7 @@ LOOP_N = "sensing/loop-demo-loopnet-out/loop.json"
 LOOP_W = "sensing/loop-demo-w48-out/loop.json"
 LOOP_Z = "sensing/loop-demo-w48-lat0-out/loop.json"
 LOOP_T = "sensing/loop-demo-w48-tt-out/loop.json"
+LOOP_P = "sensing/loop-demo-w48-peak-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
@@ -362,6 +363,13 @@ MEASURED: dict[str, Q | D] = {
     "loopt_rt_vs_ideal": Q(LOOP_T, "verdict/vs_ideal", "{:.2f}"),
     "loopt_rt_vs_sh": Q(LOOP_T, "verdict/vs_shack_hartmann", "{:.2f}"),
     **{f"loopt_psd_realtime_tt_{b}": _loop_band("realtime_tt", b, record=LOOP_T) for b in ("tt", "ho")},
+    # the same loop with the network's tip and tilt from the in-focus channel's far-field peak (realtime_peak)
+    "loopp_realtime_peak_npib": Q(LOOP_P, "methods/realtime_peak/npib_mean"),
+    "loopp_realtime_peak_gain": Q(LOOP_P, "methods/realtime_peak/gain"),
+    "loopp_realtime_peak_fade": Q(LOOP_P, "methods/realtime_peak/fades/probability"),
+    "loopp_realtime_peak_latency_us": Q(LOOP_P, "methods/realtime_peak/latency_ms", "{:.0f}", 1e3),
+    "loopp_rt_vs_ideal": Q(LOOP_P, "verdict/vs_ideal", "{:.2f}"),
+    "loopp_rt_vs_sh": Q(LOOP_P, "verdict/vs_shack_hartmann", "{:.2f}"),
     # its modal temporal spectra (docs/figures/loop_psd.py): power below 50 Hz over the open loop's; variances
     **{f"loopg_psd_{m}_{b}": _loop_band(m, b) for m in ("realtime", "ideal") for b in ("tt", "ho")},
     **{f"loopg_psd_{m}_var": _loop_band(m, "", None) for m in ("realtime", "ideal", "open")},
