@@ -258,3 +258,19 @@ def test_gaussian_influence_matches_hcipy():
     c = np.random.default_rng(6).standard_normal(81)
     mirror.actuators = c
     assert np.abs(mirror.surface.shaped - dm.surface(c)).max() < 1e-4
+
+
+@pytest.mark.parametrize("leak", [0.99, 0.95])
+@pytest.mark.parametrize("sensitivity", [0.0, 0.1, 1.0])
+def test_a_biased_weakly_seen_mode_settles_where_the_leak_says(leak, sensitivity):
+    """Why the leak matters to a learned sensor (#50): a mode the sensor reads at ``sensitivity`` s of its
+    residual plus a constant error b (no turbulence) settles at the integrator's fixed point
+    ``u = leak u + g (b - s u)``, i.e. ``u = g b / (1 - leak + g s)``: 30 b for an unseen mode at leak 0.99
+    and gain 0.3, 6 b at leak 0.95.  Through the controller with its delay line (1.5 frames)."""
+    g, b = 0.3, 0.05
+    ctrl = Controller(g, 1.5, leak)
+    u = np.zeros(1)
+    for _ in range(4000):
+        u = ctrl.step(np.array([b - sensitivity * u[0]]))
+    expected = g * b / (1 - leak + g * sensitivity)
+    assert abs(u[0] - expected) < 1e-6 * max(1.0, expected), (u, expected)
