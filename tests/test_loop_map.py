@@ -386,3 +386,26 @@ def test_auto_lenslets_follow_each_rytov_numbers_r0(tmp_path):
     assert study["shack_hartmann"]["lenslets"] == 5
     point = next(p for p in rep["points"] if p["rytov"] == 0.5)["methods"]["shack_hartmann"]
     assert point["npib_mean"] == pytest.approx(study["methods"]["shack_hartmann"]["npib_mean"], rel=1e-12)
+
+
+def test_a_gain_table_gives_some_loops_their_gain_and_searches_the_others_per_point(optimised, tmp_path):
+    """``gain = { ideal = "optimise", shack_hartmann = 0.3 }``: the ideal loop's gain searched at each point as
+    the all-optimised map searches it (the same trials), the Shack-Hartmann at 0.3 at every point and never
+    searched; map.json records the given gain."""
+    _, j1 = optimised
+    ref = json.loads((j1 / "map.json").read_text())
+    rec = _recipe(tmp_path, OPT_MAP, OPT_LOOP.replace('gain = "optimise"',
+                                                      'gain = { ideal = "optimise", shack_hartmann = 0.3 }'))
+    rc, err = _main(["loop-map", rec, "-o", tmp_path / "out", "-j", "1", "--json"])
+    assert rc == 0, err
+    rep = json.loads((tmp_path / "out" / "map.json").read_text())
+    assert rep["gain"]["rule"] == "optimise" and rep["gain"]["given"] == {"shack_hartmann": 0.3}
+    mine = {(s["rate_hz"], s["method"]): s for s in rep["gain"]["searches"]}
+    theirs = {(s["rate_hz"], s["method"]): s for s in ref["gain"]["searches"]}
+    assert sorted(mine) == [(1000.0, "ideal"), (4000.0, "ideal")]
+    for k, s in mine.items():
+        assert s["gains"] == theirs[k]["gains"] and s["npib_mean"] == theirs[k]["npib_mean"]
+    for p, q in zip(rep["points"], ref["points"]):
+        assert p["methods"]["shack_hartmann"]["gain"] == 0.3
+        assert p["methods"]["ideal"]["gain"] == q["methods"]["ideal"]["gain"]
+        assert p["methods"]["ideal"]["npib_mean"] == q["methods"]["ideal"]["npib_mean"]

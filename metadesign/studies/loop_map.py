@@ -38,7 +38,9 @@ mean NPiB of ``gain_steps`` frames of the first realisation at each gain of
 :data:`~metadesign.studies.loop_study.GAIN_REFINE` around the grid's best, the best of all the trials
 winning (the lowest gain on a tie).  The trials are tasks of the same folder (resumable, the same bytes on
 any worker count); ``map.json`` records each run's gain (``points[].methods[m].gain``) and every search
-(``gain.searches``), and the figure writes the chosen gains in each cell.
+(``gain.searches``), and the figure writes the chosen gains in each cell.  A table (``gain = { realtime =
+0.4, ideal = "optimise", ... }``, naming every closed loop): each loop at its given gain at every point, the
+ones marked ``"optimise"`` searched per point (``gain.given`` records the others).
 
 **The Shack-Hartmann** (``[loop] sh_lenslets``): a count is the same at every point; ``"auto"`` is resolved
 at each Rytov number of the map (:func:`~metadesign.studies.loop_study.sh_lenslets_for`: ``ceil(D / r0)`` at
@@ -215,10 +217,7 @@ def load_map_recipe(path: str | Path) -> MapRecipe:
     scan = v["scan_latency_ms"]
     scan = tuple(sorted({float(x) for x in scan})) if scan is not None else (lats or DEFAULT_SCAN_MS)
     steps = v["steps"] if v["steps"] is not None else lp.steps
-    if isinstance(lp.gain, dict):
-        raise ConfigError("loop.gain", f"a table of gains per method is the loop's (metadesign loop); a map takes "
-                                       f"one gain or \"{OPTIMISE}\" (chosen per point)")
-    if lp.gain == OPTIMISE and lp.gain_steps > steps:
+    if lp.optimise_gain and lp.gain_steps > steps:
         raise ConfigError("loop.gain_steps", f"expected at most the map's steps ({steps} frames a run; "
                           f"gain = \"{OPTIMISE}\" tries each gain on the first gain_steps), got {lp.gain_steps}")
     vr, vg, vf = v["verdict_rytov"], v["verdict_greenwood_hz"], v["verdict_rate_hz"]
@@ -525,13 +524,14 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
     mctx = MapContext(ctx0, turbulence, {k: v["wind"] for k, v in mrec.scenes.items()}, sensors, latency, sh)
     search = {}
     if lp.optimise_gain:
-        closed = [k for k in runs if k[3] not in ORACLES]
+        searched = set(lp.searched(sorted({k[3] for k in runs if k[3] not in ORACLES})))
+        closed = [k for k in runs if k[3] in searched]
         run.log(f"  gains: the loop study's search at each of {len(closed)} closed-loop runs ({lp.gain_steps} steps "
                 "of the first seed a trial)")
         search = _search_gains(mctx, closed, lp.gain_steps, folder, run)
         for k, v in search.items():
             run.log(f"  gain {_where(k)} {LABELS[k[3]]}: {v['gain']:.3f} ({len(v['gains'])} trials)")
-    gains = {k: None if k[3] in ORACLES else search[k]["gain"] if k in search else float(lp.gain) for k in runs}
+    gains = {k: None if k[3] in ORACLES else search[k]["gain"] if k in search else lp.given(k[3]) for k in runs}
     tasks = {}
     for k in runs:
         for r in range(lp.seeds):
@@ -628,8 +628,9 @@ def _gain_record(lp, search: dict) -> dict:
     """How the gains were set: fixed, or the search (its rule and every run's trials)."""
     if not lp.optimise_gain:
         return {"rule": "fixed", "gain": lp.gain}
-    return {"rule": "optimise", "grid": list(GAIN_GRID), "refine": list(GAIN_REFINE), "steps": lp.gain_steps,
-            "realisation": 0,
+    given = {m: g for m, g in lp.gain.items() if g != OPTIMISE} if isinstance(lp.gain, dict) else {}
+    return {"rule": "optimise", **({"given": given} if given else {}), "grid": list(GAIN_GRID),
+            "refine": list(GAIN_REFINE), "steps": lp.gain_steps, "realisation": 0,
             "criterion": "the highest mean NPiB over the first gain_steps frames of the first realisation (the "
                          "lowest gain on a tie): the grid, then the refinement around its best",
             "searches": [{"rytov": k[0], "greenwood_hz": k[1], "rate_hz": k[2], "method": k[3],

@@ -212,6 +212,13 @@ class LoopSection:
             return list(closed)
         return [m for m in closed if isinstance(self.gain, dict) and self.gain.get(m) == OPTIMISE]
 
+    def given(self, m: str) -> float:
+        """The gain the recipe gives closed loop ``m`` (one not searched): the table's entry, or the one gain."""
+        g = self.gain.get(m) if isinstance(self.gain, dict) else self.gain
+        if g is None or g == OPTIMISE:
+            raise ValueError(f"loop.gain: closed loop {m!r} has no given gain ({self.gain!r})")
+        return float(g)
+
 
 @dataclass(frozen=True)
 class DMSection:

@@ -443,8 +443,7 @@ def run_loop_study(rec: LoopRecipe, out: Path, run: Execution = SERIAL) -> dict:
         run.log(f"  retrieval: {ctx.retrieval['why']} (budget {lp.retrieval_budget_ms:g} ms)")
     ctx._cache.clear()
     search = _search_gains(ctx, folder, run) if lp.optimise_gain else {}
-    gains = {m: (search[m]["gain"] if m in search else lp.gain[m] if isinstance(lp.gain, dict) else lp.gain)
-             for m in ctx.sensors}
+    gains = {m: search[m]["gain"] if m in search else lp.given(m) for m in ctx.sensors}
     order = ["open"] + [m for m in lp.methods if m != "open"]
     names = {(m, r): f"seed{r:05d}-{m}" for m in order for r in range(lp.seeds)}
     tasks = {names[m, r]: (names[m, r], m, r, float(gains.get(m, 0.0)), lp.steps, True)
