@@ -103,6 +103,7 @@ LOOP_W = "sensing/loop-demo-w48-out/loop.json"
 LOOP_Z = "sensing/loop-demo-w48-lat0-out/loop.json"
 LOOP_T = "sensing/loop-demo-w48-tt-out/loop.json"
 LOOP_P = "sensing/loop-demo-w48-peak-out/loop.json"
+LOOP_K = "sensing/loop-demo-w48-leak-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
@@ -370,6 +371,17 @@ MEASURED: dict[str, Q | D] = {
     "loopp_realtime_peak_latency_us": Q(LOOP_P, "methods/realtime_peak/latency_ms", "{:.0f}", 1e3),
     "loopp_rt_vs_ideal": Q(LOOP_P, "verdict/vs_ideal", "{:.2f}"),
     "loopp_rt_vs_sh": Q(LOOP_P, "verdict/vs_shack_hartmann", "{:.2f}"),
+    # the same loops with the integrator's leak at 0.95 (sensing/loop-demo-w48-leak.toml): every gain searched
+    **{f"loopk_{m}_npib": Q(LOOP_K, f"methods/{m}/npib_mean") for m in ("realtime", "ideal", "shack_hartmann", "open")},
+    **{f"loopk_{m}_gain": Q(LOOP_K, f"methods/{m}/gain") for m in ("realtime", "ideal", "shack_hartmann")},
+    **{f"loopk_{m}_fade": Q(LOOP_K, f"methods/{m}/fades/probability") for m in ("realtime", "ideal", "shack_hartmann", "open")},
+    **{f"loopk_{m}_delay": Q(LOOP_K, f"methods/{m}/delay_frames", "{:.1f}") for m in ("realtime", "ideal", "shack_hartmann")},
+    "loopk_rt_vs_ideal": Q(LOOP_K, "verdict/vs_ideal", "{:.2f}"),
+    "loopk_rt_vs_sh": Q(LOOP_K, "verdict/vs_shack_hartmann", "{:.2f}"),
+    # against the ideal loop at its better leak (0.95 here or 0.99 in the headline run)
+    "loopk_rt_vs_best_ideal": D(lambda get: get(LOOP_K)["methods"]["realtime"]["npib_mean"] / max(
+        get(LOOP_K)["methods"]["ideal"]["npib_mean"], get(LOOP_W)["methods"]["ideal"]["npib_mean"]), "{:.2f}"),
+    **{f"loopk_psd_{m}_{b}": _loop_band(m, b, record=LOOP_K) for m in ("realtime", "ideal") for b in ("tt", "ho")},
     # its modal temporal spectra (docs/figures/loop_psd.py): power below 50 Hz over the open loop's; variances
     **{f"loopg_psd_{m}_{b}": _loop_band(m, b) for m in ("realtime", "ideal") for b in ("tt", "ho")},
     **{f"loopg_psd_{m}_var": _loop_band(m, "", None) for m in ("realtime", "ideal", "open")},
