@@ -131,6 +131,12 @@ def test_the_region_criterion_and_the_verdict_are_applied_as_stated():
     assert "(goal >= 2x: met)" in v["statement"] and "0.8 of the ideal: reached up to 0.25 ms" in v["statement"]
     assert map_verdict({"methods": {"ideal": cell["methods"]["ideal"]}}, {}, {"rytov": 0.5, "greenwood_hz": 100.0,
                                                                                  "rate_hz": 2000.0})["best_metasurface"] is None
+    # the best loop's gain is called optimised only where it was searched (a gain table may give it)
+    cell["methods"]["realtime"]["gain"] = 0.4
+    where = {"rytov": 0.5, "greenwood_hz": 100.0, "rate_hz": 2000.0}
+    assert "gain 0.4 (optimised)" in map_verdict(cell, scan, where, optimised=frozenset({"realtime"}))["statement"]
+    assert "optimised" not in map_verdict(cell, scan, where, optimised=frozenset({"ideal"}))["statement"]
+    assert "gain 0.4 (optimised)" in map_verdict(cell, scan, where, optimised=True)["statement"]
 
 
 @pytest.fixture(scope="module")

@@ -34,25 +34,32 @@ MIN_SHIFT_PX = 0.2
 def peak_position(img: np.ndarray) -> np.ndarray:
     """``(..., S, S)`` -> ``(..., 2)``: the (x, y) position of each image's peak in pixels from the image's
     centre ``(S - 1) / 2``: the brightest pixel moved by the vertex of the parabola through it and its two
-    neighbours along each axis (no move where the three do not curve downwards, or on the border)."""
+    neighbours along each axis (no move along an axis where the three do not curve downwards or the pixel
+    lies on that border).  NaN for an image with no light or a non-finite pixel."""
     a = np.asarray(img, np.float64)
     *lead, s, s2 = a.shape
     if s != s2 or s < 3:
         raise InputError(f"psf: expected square images of at least 3 x 3 pixels, got {a.shape}")
     f = a.reshape(-1, s, s)
-    k = f.reshape(len(f), -1).argmax(axis=1)
+    flat = f.reshape(len(f), -1)
+    ok = np.all(np.isfinite(flat), axis=1)
+    k = np.where(ok, np.where(ok[:, None], flat, 0.0).argmax(axis=1), 0)
+    ok &= flat[np.arange(len(f)), k] > 0
     iy, ix = np.divmod(k, s)
-    iy, ix = np.clip(iy, 1, s - 2), np.clip(ix, 1, s - 2)
     b = np.arange(len(f))
     v0 = f[b, iy, ix]
 
-    def vertex(vm, vp):
+    def vertex(i, vm, vp):
         d = vm - 2 * v0 + vp
-        return np.where(d < 0, 0.5 * (vm - vp) / np.where(d < 0, d, -1.0), 0.0)
+        inner = (i >= 1) & (i <= s - 2) & (d < 0)
+        return np.where(inner, 0.5 * (vm - vp) / np.where(inner, d, -1.0), 0.0)
 
-    x = ix + vertex(f[b, iy, ix - 1], f[b, iy, ix + 1]) - (s - 1) / 2
-    y = iy + vertex(f[b, iy - 1, ix], f[b, iy + 1, ix]) - (s - 1) / 2
-    return np.stack([x, y], axis=-1).reshape(*lead, 2)
+    lo_x, hi_x = np.clip(ix - 1, 0, s - 1), np.clip(ix + 1, 0, s - 1)
+    lo_y, hi_y = np.clip(iy - 1, 0, s - 1), np.clip(iy + 1, 0, s - 1)
+    x = ix + vertex(ix, f[b, iy, lo_x], f[b, iy, hi_x]) - (s - 1) / 2
+    y = iy + vertex(iy, f[b, lo_y, ix], f[b, hi_y, ix]) - (s - 1) / 2
+    out = np.stack([np.where(ok, x, np.nan), np.where(ok, y, np.nan)], axis=-1)
+    return out.reshape(*lead, 2)
 
 
 @dataclass
@@ -88,12 +95,16 @@ class PeakTipTilt:
         M = np.stack([(peak_position(render(amplitude * z)[channel])
                        - peak_position(render(-amplitude * z)[channel])) / (2 * amplitude) for z in basis], axis=1)
         shift = np.abs(M).max(axis=0) * amplitude
-        if np.any(shift < MIN_SHIFT_PX) or abs(np.linalg.det(M)) < 1e-12:
+        if not np.all(np.isfinite(M)) or np.any(shift < MIN_SHIFT_PX) or np.linalg.cond(M) > 1e3:
             raise InputError(f"peak tilt: channel {channel}'s peak moves {np.round(shift, 2).tolist()} px for "
                              f"{amplitude:g} rad of tip and tilt (at least {MIN_SHIFT_PX} px needed): push harder")
         return cls(np.linalg.inv(M), ref, basis.astype(np.float32), channel, M, float(amplitude))
 
     def estimate(self, psf: np.ndarray) -> np.ndarray:
-        """Tip and tilt ``(2,)`` (or ``(B, 2)``) of a normalised PSF tensor ``(C, S, S)`` (or a batch)."""
+        """Tip and tilt ``(2,)`` (or ``(B, 2)``) of a normalised PSF tensor ``(C, S, S)`` (or a batch); zero
+        (no correction) for a frame whose channel has no light or a non-finite pixel."""
         p = np.asarray(psf)
-        return (peak_position(p[..., self.channel, :, :]) - self.reference) @ self.R.T
+        if p.ndim < 3 or p.shape[-3] <= self.channel:
+            raise InputError(f"psf: expected (..., C, S, S) with at least {self.channel + 1} channels, got {p.shape}")
+        t = (peak_position(p[..., self.channel, :, :]) - self.reference) @ self.R.T
+        return np.where(np.isfinite(t), t, 0.0)

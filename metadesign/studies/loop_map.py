@@ -301,14 +301,14 @@ def _fmt_reach(r: dict, scan: list) -> str:
     return f"reached up to {r['latency_ms']:g} ms (interpolated {r['interpolated_ms']:.3g} ms)"
 
 
-def map_verdict(cell: dict | None, scan: dict, where: dict, optimised: bool = False) -> dict:
+def map_verdict(cell: dict | None, scan: dict, where: dict, optimised: bool | frozenset = False) -> dict:
     """The issue's verdict at one point.  ``cell``: that point's ``{"methods": {m: {"npib_mean", "latency_ms",
     "delay_frames"}}}`` (every latency as declared or measured), or None; ``scan``: ``{m: {"latency_ms":
     [...], "npib_mean": [...]}}``, each metasurface method at declared latencies there; ``where``: the
     point (``rytov``, ``greenwood_hz``, ``rate_hz``).  Returns the best metasurface loop's ratios to the
     ideal-phase and the Shack-Hartmann loops, whether each goal is met, the latencies that keep each goal
-    (:func:`latency_reaching`) and a plain statement (with each loop's ``gain`` where ``optimised``: chosen
-    per point)."""
+    (:func:`latency_reaching`) and a plain statement (with the best loop's ``gain`` where it was chosen per
+    point: ``optimised`` True, or the set of the searched methods)."""
     out: dict = {**where, "goal_vs_ideal": GOAL_VS_IDEAL, "goal_vs_shack_hartmann": GOAL_VS_SHACK_HARTMANN}
     ms = (cell or {}).get("methods", {})
     best = max((m for m in METASURFACE if m in ms), key=lambda m: ms[m]["npib_mean"], default=None)
@@ -329,7 +329,8 @@ def map_verdict(cell: dict | None, scan: dict, where: dict, optimised: bool = Fa
                                    bool(out["vs_shack_hartmann"] >= GOAL_VS_SHACK_HARTMANN))
     met = [x for x in (out["meets_ideal"], out["meets_shack_hartmann"]) if x is not None]
     out["met"] = bool(met) and all(met)
-    gain = f", gain {ms[best]['gain']:.3g} (optimised)" if optimised and ms[best].get("gain") is not None else ""
+    searched = best in optimised if isinstance(optimised, frozenset) else bool(optimised)
+    gain = f", gain {ms[best]['gain']:.3g} (optimised)" if searched and ms[best].get("gain") is not None else ""
     parts = [f"{head}: {LABELS[best]} ({ms[best]['latency_ms']:.3g} ms latency, {ms[best]['delay_frames']:.2f} "
              f"frames of delay{gain}) keeps mean NPiB {v:.3f}"]
     if out["vs_ideal"] is not None:
@@ -553,7 +554,7 @@ def run_loop_map(mrec: MapRecipe, out: Path, run: Execution = SERIAL) -> dict:
         for f in s:
             s[f].append(summ[k][f])
     where = {"rytov": vr, "greenwood_hz": vg, "rate_hz": vf}
-    verdict = map_verdict(vcell, scan, where, optimised=lp.optimise_gain)
+    verdict = map_verdict(vcell, scan, where, optimised=frozenset(lp.searched(list(lp.methods))))
     verdict["methods"] = {m: _pick(v) for m, v in vcell["methods"].items()}
     verdict["scans"] = scan
     on_grid = any(c[:3] == mrec.verdict and c[3] is None for *_, c in cells)
