@@ -105,6 +105,7 @@ LOOP_T = "sensing/loop-demo-w48-tt-out/loop.json"
 LOOP_P = "sensing/loop-demo-w48-peak-out/loop.json"
 LOOP_K = "sensing/loop-demo-w48-leak-out/loop.json"
 MAP = "sensing/loop-map-out/map.json"
+MAP_W = "sensing/loop-map-w48-out/map.json"
 PC, PC_RT = "sensing/polcam-demo/polcam.json", "sensing/polcam-retrained/polcam.json"
 _PC_CAMS = {"ideal": "ideal", "er10_15": "ER 10, 15 um", "er10_30": "ER 10, 30 um", "er30_75": "ER 30, 7.5 um"}
 
@@ -394,6 +395,15 @@ MEASURED: dict[str, Q | D] = {
     "map_delay": Q(MAP, "verdict/delay_frames", "{:.2f}"),
     **{f"map_scan_{i}": Q(MAP, f"verdict/latency_scan/npib_mean[{i}]") for i in range(5)},
     "map_min": Q(MAP, "seconds", "{:.0f}", 1 / 60),
+    # the map with the headline's loops (sensing/loop-map-w48.toml: realtime-w48, leak 0.95, the searched gains)
+    "mapw_rt_npib": Q(MAP_W, "verdict/npib_mean"),
+    "mapw_ideal_npib": Q(MAP_W, "verdict/ideal_npib_mean"),
+    "mapw_sh_npib": Q(MAP_W, "verdict/shack_hartmann_npib_mean"),
+    "mapw_vs_ideal": Q(MAP_W, "verdict/vs_ideal", "{:.2f}"),
+    "mapw_vs_sh": Q(MAP_W, "verdict/vs_shack_hartmann", "{:.2f}"),
+    "mapw_delay": Q(MAP_W, "verdict/delay_frames", "{:.2f}"),
+    **{f"mapw_scan_{i}": Q(MAP_W, f"verdict/latency_scan/npib_mean[{i}]") for i in range(5)},
+    "mapw_min": Q(MAP_W, "seconds", "{:.0f}", 1 / 60),
     # the polarisation camera with and without retraining (sensing/polcam-demo/, sensing/polcam-retrained/)
     **{f"pc_unet_{k}": Q(PC, f"cameras/{c}/unet/captured_fraction") for k, c in _PC_CAMS.items()},
     **{f"pc_rt_{k}": Q(PC_RT, f"cameras/{c}/unet/captured_fraction") for k, c in _PC_CAMS.items()},
