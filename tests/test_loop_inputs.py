@@ -223,7 +223,8 @@ MAP_CASES = [
     ({(P, None): "3"}, "map"),
     ({(L, "gain"): '"fast"'}, "loop.gain"),
     ({(L, "gain"): '"optimise"', (L, "gain_steps"): "300", (P, "steps"): "200"}, "loop.gain_steps"),  # > the map's
-    ({(L, "gain"): "{ ideal = 0.4 }"}, "loop.gain"),  # a table of gains is the loop's, not the map's
+    ({(L, "gain"): "{ bogus = 0.4 }"}, "loop.gain"),  # a table of gains names every closed loop, no other
+    ({(L, "gain"): '{ ideal = "fast" }'}, "loop.gain.ideal"),
     ({(L, "methods"): '["open"]'}, "loop.methods"),
     ({(L, "photons_per_frame"): "nan"}, "loop.photons_per_frame"),
     ({(L, "sh_lenslets"): "0"}, "loop.sh_lenslets"),
