@@ -18,7 +18,14 @@ import numpy as np
 from ..validation import InputError
 from .dataset import normalise_psf
 
-__all__ = ["LinearReconstructor", "LinearEstimator", "TipTiltSplitEstimator", "bin_tensor"]
+__all__ = ["LinearReconstructor", "LinearEstimator", "TipTiltSplitEstimator", "bin_tensor", "render_phase"]
+
+
+def render_phase(device, phase: np.ndarray) -> np.ndarray:
+    """The noise-free PSF tensor (float64, normalised as the datasets are) of the crop field ``exp(i phase)``
+    on ``device``: what a push-pull calibration measures."""
+    psf, _ = normalise_psf(device.psfs(device.pupil_field(np.exp(1j * phase).astype(np.complex64))))
+    return np.asarray(psf, np.float64)
 
 
 def bin_tensor(psf: np.ndarray, b: int) -> np.ndarray:
@@ -59,8 +66,7 @@ class LinearReconstructor:
         b = int(bin)
 
         def measure(phase):
-            psf, _ = normalise_psf(device.psfs(device.pupil_field(np.exp(1j * phase).astype(np.complex64))))
-            return bin_tensor(psf, b).astype(np.float64)
+            return bin_tensor(render_phase(device, phase).astype(np.float32), b).astype(np.float64)
 
         ref = measure(np.zeros(basis.shape[1:]))
         cols = [(measure(amplitude * z) - measure(-amplitude * z)) / (2 * amplitude) for z in basis]
@@ -109,7 +115,7 @@ class TipTiltSplitEstimator:
     ``realtime_tt``) or :class:`~metadesign.reconstruction.peak_tilt.PeakTipTilt`, the in-focus channel's
     far-field peak (``realtime_peak``).  ``estimate({"psf": (B, 8, S, S)}) -> (B, A, A)`` rad."""
 
-    def __init__(self, main, tiptilt: LinearReconstructor):
+    def __init__(self, main, tiptilt):
         self.main, self.tiptilt = main, tiptilt
         self.name = f"{getattr(main, 'name', 'estimator')}+tiptilt"
         B = np.asarray(tiptilt.basis, np.float64)

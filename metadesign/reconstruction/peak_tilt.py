@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..validation import InputError
-from .dataset import normalise_psf
+from .linear import render_phase
 
 __all__ = ["PeakTipTilt", "peak_position"]
 
@@ -85,15 +85,13 @@ class PeakTipTilt:
         if not (np.isfinite(amplitude) and amplitude > 0):
             raise InputError(f"peak tilt: expected amplitude > 0 rad, got {amplitude!r}")
 
-        def render(phase):
-            psf, _ = normalise_psf(device.psfs(device.pupil_field(np.exp(1j * phase).astype(np.complex64))))
-            return np.asarray(psf, np.float64)
-
-        flat = render(np.zeros(basis.shape[1:]))
+        flat = render_phase(device, np.zeros(basis.shape[1:]))
         channel = int(np.argmax(flat.reshape(len(flat), -1).max(axis=1)))
         ref = peak_position(flat[channel])
-        M = np.stack([(peak_position(render(amplitude * z)[channel])
-                       - peak_position(render(-amplitude * z)[channel])) / (2 * amplitude) for z in basis], axis=1)
+        def peak(phase):
+            return peak_position(render_phase(device, phase)[channel])
+
+        M = np.stack([(peak(amplitude * z) - peak(-amplitude * z)) / (2 * amplitude) for z in basis], axis=1)
         shift = np.abs(M).max(axis=0) * amplitude
         if not np.all(np.isfinite(M)) or np.any(shift < MIN_SHIFT_PX) or np.linalg.cond(M) > 1e3:
             raise InputError(f"peak tilt: channel {channel}'s peak moves {np.round(shift, 2).tolist()} px for "
